@@ -1,0 +1,1 @@
+"""The ``perscli`` command line: a thin layer over the library modules."""

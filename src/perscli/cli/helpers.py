@@ -1,0 +1,60 @@
+"""Glue between click and the library: errors, logging and progress."""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+
+import click
+
+from .. import PerscliError
+
+
+class DataError(click.ClickException):
+    """A runtime or data error: one line on stderr, exit status 1."""
+
+    exit_code = 1
+
+
+def report_errors(func):
+    """Turn library errors into one clear line and exit 1 (a traceback with -vv)."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except PerscliError as exc:
+            if logging.getLogger("perscli").isEnabledFor(logging.DEBUG):
+                logging.getLogger("perscli").exception("traceback")
+            raise DataError(str(exc)) from None
+        except MemoryError:
+            raise DataError("out of memory: use smaller inputs or fewer --workers") from None
+        except KeyboardInterrupt:
+            raise click.Abort() from None
+
+    return wrapper
+
+
+def progress_reporter(label: str):
+    """A ``progress(done, total, name)`` callback drawing a bar on stderr.
+
+    Silent when stderr is not a terminal or with -q, so logs and pipes stay clean.
+    """
+    ctx = click.get_current_context(silent=True)
+    verbosity = (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
+    if verbosity < 0 or not sys.stderr.isatty():
+        return None
+    state = {}
+
+    def progress(done, total, name):
+        bar = state.get("bar")
+        if bar is None:
+            bar = click.progressbar(length=total, label=label, file=sys.stderr)
+            bar.__enter__()
+            state["bar"] = bar
+        bar.update(1, current_item=name)
+        if done >= total:
+            bar.__exit__(None, None, None)
+
+    return progress

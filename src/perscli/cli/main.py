@@ -1,0 +1,52 @@
+"""The ``perscli`` click group: version, verbosity and the registered commands."""
+
+from __future__ import annotations
+
+import logging
+
+import click
+
+from .. import __version__
+from .apply_persistence import apply_persistence
+
+
+class _StderrFormatter(logging.Formatter):
+    def format(self, record):
+        return f"perscli: {record.levelname.lower()}: {record.getMessage()}" + (
+            "\n" + self.formatException(record.exc_info) if record.exc_info else "")
+
+
+def configure_logging(verbosity: int) -> None:
+    """WARNING by default; -v INFO, -vv DEBUG (with tracebacks); -q ERROR."""
+    level = max(10, logging.WARNING - 10 * verbosity)
+    logger = logging.getLogger("perscli")
+    logger.handlers[:] = []
+    handler = logging.StreamHandler()
+    handler.setFormatter(_StderrFormatter())
+    logger.addHandler(handler)
+    logger.setLevel(level)
+    logger.propagate = False
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="perscli", message="%(prog)s %(version)s")
+@click.option("-v", "--verbose", count=True, help="More messages on stderr (-vv: debug, with tracebacks).")
+@click.option("-q", "--quiet", count=True, help="Fewer messages on stderr (errors only; no progress bars).")
+@click.pass_context
+def cli(ctx, verbose, quiet):
+    """Image persistence in near-infrared detectors, from FITS frames to shear budgets.
+
+    Every command reads and writes FITS; '-' stands for standard input or
+    output, so commands compose in shell pipelines.  Exit status: 0 success,
+    1 a data or runtime error, 2 a usage error.
+    """
+    ctx.obj = {"verbosity": verbose - quiet}
+    configure_logging(verbose - quiet)
+
+
+cli.add_command(apply_persistence)
+
+
+def main():
+    """Console-script entry point."""
+    cli(prog_name="perscli")

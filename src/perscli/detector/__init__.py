@@ -1,0 +1,1 @@
+"""Detector effects, one home for each (persistence first)."""

@@ -1,0 +1,1 @@
+"""One FITS layer for every command: frames in, FITS files out."""
