@@ -118,6 +118,10 @@ def persistence_on(current: Frame, previous, model: PersistenceModel, *, time_mo
         if prev.shape != current.shape:
             raise PerscliError(f"{_label(prev)}: image shape {prev.shape} differs from {_label(current)}'s "
                                f"{current.shape}; earlier exposures must be of the same detector area")
+        offsets = [(f.keyword("LTV1"), f.keyword("LTV2")) for f in (prev, current)]
+        if None not in offsets[0] + offsets[1] and offsets[0] != offsets[1]:
+            raise PerscliError(f"{_label(prev)}: subarray offset LTV1/LTV2={offsets[0]} differs from "
+                               f"{_label(current)}'s {offsets[1]}: not the same pixels of the detector")
         if prev.end > current.start:
             raise PerscliError(
                 f"{_label(prev)} ends at MJD {prev.end:.8f}, after {_label(current)} starts "

@@ -1,0 +1,147 @@
+"""The persistence law itself: presets, branches, YAML files, overrides, time integral."""
+
+import numpy as np
+import pytest
+from scipy import integrate
+
+from perscli import PerscliError
+from perscli.detector.persistence import (GALSIM_LINEAR_COEFFICIENTS, PRESETS, PersistenceModel,
+                                          accumulate, load_model, time_factor)
+
+
+def paper_F(x, A, x0, dx, alpha, half_well, **_):
+    """The paper's law written out independently: Fermi above half_well, linear below."""
+    x = np.asarray(x, dtype=float)
+    fermi = lambda v: A / (np.exp(-(v - x0) / dx) + 1.0) * (v / x0) ** alpha  # noqa: E731
+    with np.errstate(invalid="ignore"):
+        return np.where(x > half_well, fermi(x), np.where(x > 0, fermi(half_well) * x / half_well, 0.0))
+
+
+@pytest.mark.parametrize("name", ["typical", "pessimistic"])
+def test_presets_are_the_papers_table_1(name):
+    model = load_model(name)
+    expected = {"typical": (0.017, 6.0e4, 5.0e4, 0.045, 1.0), "pessimistic": (0.086, 1.37e5, 2.6e4, 0.02, 1.0)}
+    assert (model.A, model.x0, model.dx, model.alpha, model.gamma) == expected[name]
+    assert model.half_well == 5e4
+
+
+def test_branches_match_the_papers_formula():
+    x = np.array([-1e3, 0.0, 1.0, 2.5e4, 5e4, 5e4 + 1e-6, 6e4, 1e5, 1e6])
+    for name in PRESETS:
+        model = load_model(name)
+        np.testing.assert_allclose(model.F(x), paper_F(x, **PRESETS[name]), rtol=1e-14, atol=0)
+    # continuous at half_well, zero at and below zero fluence
+    m = load_model("typical")
+    assert m.F([5e4])[0] == pytest.approx(m.F([5e4 * (1 + 1e-12)])[0], rel=1e-9)
+    assert m.F([0.0, -5.0]).tolist() == [0.0, 0.0]
+
+
+def test_saturated_pixel_leaves_dozens_of_electrons_in_the_next_exposure():
+    # the paper: saturated pixels give "persistence signals of several dozens of electrons in a
+    # subsequent 140s exposure"; Roman's cadence leaves a ~30 s gap before the next exposure
+    m = load_model("typical")
+    charge = m.F([1.2e5, 2e5]) * time_factor(30.0, 30.0 + 139.8, 1.0)
+    assert np.all((charge > 10) & (charge < 100))
+
+
+def test_compiled_kernel_equals_numpy_law_for_every_byte_order():
+    rng = np.random.default_rng(3)
+    x = 10 ** rng.uniform(-1, 6, 5000)
+    x[:3] = [-1.0, 0.0, np.nan]
+    for name in ("typical", "pessimistic"):
+        model = load_model(name)
+        expected = model.F(np.nan_to_num(x, nan=0.0)) * 2.5
+        for dtype in ("<f8", ">f8", "<f4", ">f4"):
+            xv = x.astype(dtype)
+            acc = np.zeros((1, x.size))
+            bad = accumulate(xv, acc, [2.5], model)
+            ref = model.F(np.nan_to_num(xv.astype(float), nan=0.0)) * 2.5
+            np.testing.assert_allclose(acc[0], ref, rtol=1e-13, atol=0)
+            assert bad == 1
+        np.testing.assert_allclose(acc[0], expected, rtol=1e-6)
+
+
+def test_kernel_max_combine_and_several_planes_and_threads():
+    rng = np.random.default_rng(4)
+    model = load_model("pessimistic")
+    a, b = 10 ** rng.uniform(0, 6, (2, 300, 1000))
+    acc = np.zeros((2, 300, 1000))
+    accumulate(a, acc, [1.0, 3.0], model, combine="max", workers=2)
+    accumulate(b, acc, [2.0, 1.0], model, combine="max", workers=2)
+    np.testing.assert_allclose(acc[0], np.maximum(model.F(a), 2 * model.F(b)), rtol=1e-14)
+    np.testing.assert_allclose(acc[1], np.maximum(3 * model.F(a), model.F(b)), rtol=1e-14)
+    summed = np.zeros((1, 300, 1000))
+    accumulate(a, summed, [1.0], model, workers=2, scale=2.0)
+    np.testing.assert_allclose(summed[0], model.F(2 * a), rtol=1e-14)
+
+
+@pytest.mark.parametrize("gamma", [0.0, 0.3, 0.7, 0.999999, 1.0, 1.000001, 1.3, 2.0])
+@pytest.mark.parametrize("window", [(0.5, 7.6), (30.0, 169.8), (1234.5, 1374.3), (5e5, 5e5 + 88.4)])
+def test_time_factor_is_the_exact_integral(gamma, window):
+    t1, t2 = window
+    expected, err = integrate.quad(lambda t: (t / 1000.0) ** (-gamma), t1, t2, epsabs=0, epsrel=1e-13)
+    assert float(time_factor(t1, t2, gamma)) == pytest.approx(expected, rel=1e-10)
+
+
+def test_time_factor_edge_cases():
+    assert float(time_factor(10.0, 10.0, 1.0)) == 0.0
+    assert float(time_factor(0.0, 100.0, 0.5)) == pytest.approx(2 * 1000 ** 0.5 * 10.0, rel=1e-12)
+    with pytest.raises(ValueError):
+        time_factor(0.0, 100.0, 1.5)
+    with pytest.raises(ValueError):
+        time_factor(20.0, 10.0, 1.0)
+
+
+def test_overrides_and_their_errors():
+    model = load_model("typical", ["gamma=1.2", "A=0.02"])
+    assert (model.gamma, model.A, model.x0) == (1.2, 0.02, 6.0e4)
+    assert "gamma=1.2" in model.name
+    with pytest.raises(PerscliError, match="unknown persistence parameter 'beta'"):
+        load_model("typical", ["beta=1"])
+    with pytest.raises(PerscliError, match="not a number"):
+        load_model("typical", ["gamma=fast"])
+    with pytest.raises(PerscliError, match="KEY=VALUE"):
+        load_model("typical", ["gamma"])
+    with pytest.raises(PerscliError, match="must be positive"):
+        load_model("typical", ["dx=0"])
+    with pytest.raises(PerscliError, match="unknown persistence model"):
+        load_model("optimistic")
+    with pytest.raises(PerscliError, match="linear"):
+        load_model("galsim-linear", ["gamma=2"])
+
+
+def test_yaml_models(tmp_path):
+    full = tmp_path / "full.yaml"
+    full.write_text("A: 0.03\nx0: 7.0e4\ndx: 3.0e4\nalpha: 0.05\ngamma: 1.1\nhalf_well: 4.0e4\n")
+    model = load_model(str(full))
+    assert (model.A, model.x0, model.dx, model.alpha, model.gamma, model.half_well) == (
+        0.03, 7.0e4, 3.0e4, 0.05, 1.1, 4.0e4)
+    section = tmp_path / "detector.yaml"
+    section.write_text("persistence:\n  base: pessimistic\n  gamma: 0.9\n")
+    model = load_model(str(section))
+    assert (model.A, model.gamma) == (0.086, 0.9)
+    linear = tmp_path / "linear.yaml"
+    linear.write_text("kind: linear\ncoefficients: [1.0e-3, 5.0e-4]\n")
+    assert load_model(str(linear)).coefficients == (1e-3, 5e-4)
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("A: 0.03\nx_0: 7.0e4\n")
+    with pytest.raises(PerscliError, match="unknown persistence parameter.*x_0"):
+        load_model(str(typo))
+    partial = tmp_path / "partial.yaml"
+    partial.write_text("A: 0.03\n")
+    with pytest.raises(PerscliError, match="missing x0"):
+        load_model(str(partial))
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("A: [unclosed\n")
+    with pytest.raises(PerscliError, match="not valid YAML"):
+        load_model(str(bad))
+    with pytest.raises(PerscliError, match="not found"):
+        load_model(str(tmp_path / "absent.yaml"))
+
+
+def test_galsim_linear_coefficients_are_galsims():
+    galsim_roman = pytest.importorskip("galsim.roman")
+    np.testing.assert_allclose(GALSIM_LINEAR_COEFFICIENTS, galsim_roman.persistence_coefficients, rtol=1e-12)
+    np.testing.assert_allclose(
+        [getattr(PersistenceModel(), k) for k in ("A", "x0", "dx", "alpha", "gamma", "half_well")],
+        galsim_roman.persistence_fermi_parameters, rtol=1e-15)

@@ -1,0 +1,99 @@
+"""Real HST WFC3-IR MULTIACCUM raw ramps from ../shared/data/wfc3 (skipped where absent)."""
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from click.testing import CliRunner
+
+from perscli.cli.main import cli
+from perscli.io.frames import open_frame
+
+from test_persistence_model import paper_F
+from perscli.detector.persistence import PRESETS
+
+EARLIER, LATER, OTHER = "ibxy01aoq_raw.fits", "ibxy04s4q_raw.fits", "ibh7a7lsq_raw.fits"
+
+
+def reads_in_time_order(path):
+    """(DN arrays, SAMPTIMEs) of a raw file, zeroth read first, read independently of perscli."""
+    with fits.open(path) as hdul:
+        sci = sorted((h for h in hdul if h.name == "SCI"), key=lambda h: h.ver, reverse=True)
+        return [h.data.astype(np.float64) for h in sci], np.array([h.header["SAMPTIME"] for h in sci])
+
+
+def test_ramp_layout_units_and_timing(shared_data):
+    frame = open_frame(str(shared_data / "wfc3" / LATER))
+    try:
+        assert frame.layout == "wfc3-ramp" and frame.nreads == 14
+        assert frame.unit == "DN" and frame.gain == 2.5
+        assert frame.read_times[0] == 0.0 and frame.read_times[-1] == pytest.approx(88.435623)
+        assert frame.start == pytest.approx(56211.29994182) and frame.end == pytest.approx(56211.30096552)
+        fluence, scale = frame.fluence()
+        reads, _ = reads_in_time_order(shared_data / "wfc3" / LATER)
+        np.testing.assert_array_equal(fluence * scale, (reads[-1] - reads[0]) * 2.5)
+        assert 4.0e4 < (fluence * scale).max() < 5.0e4  # NOTES: peak fluence ~4.8e4 e-
+    finally:
+        frame.close()
+
+
+@pytest.mark.parametrize("gap", [None, "30"])
+def test_persistence_of_a_real_ramp_on_a_real_ramp(shared_data, tmp_path, gap):
+    earlier, later = shared_data / "wfc3" / EARLIER, shared_data / "wfc3" / LATER
+    out = tmp_path / "pred.fits"
+    args = ["apply-persistence", str(later), str(earlier), "--mode", "predict", "-o", str(out)]
+    if gap:
+        args += ["--gap", gap]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+
+    prev_reads, _ = reads_in_time_order(earlier)
+    fluence = (prev_reads[-1] - prev_reads[0]) * 2.5  # DN x CCDGAIN
+    _, samptime = reads_in_time_order(later)
+    if gap:
+        delay = float(gap)
+    else:
+        delay = (fits.getval(later, "EXPSTART") - fits.getval(earlier, "EXPEND")) * 86400.0
+        assert 13 * 86400 < delay < 15 * 86400  # taken 14 days apart
+    rate_1000 = paper_F(fluence, **PRESETS["typical"])
+    with fits.open(out) as hdul:
+        assert len(hdul) == len(fits.open(later))
+        assert fits.getval(out, "PSUNIT") == "DN"
+        got = {h.ver: h.data.astype(np.float64) for h in hdul if h.name == "SCI"}
+    nreads = len(samptime)
+    for k, t in enumerate(samptime):
+        expected_dn = rate_1000 * 1000.0 * np.log((delay + t) / delay) / 2.5
+        np.testing.assert_allclose(got[nreads - k], expected_dn, rtol=2e-6, atol=1e-12)
+    if gap:
+        # a saturating grism trace 30 s earlier leaves a visible signal in the last read
+        assert got[1].max() > 1.0
+
+
+def test_adding_keeps_every_other_hdu(shared_data, tmp_path):
+    earlier, later = shared_data / "wfc3" / EARLIER, shared_data / "wfc3" / LATER
+    out = tmp_path / "added.fits"
+    result = CliRunner().invoke(cli, ["apply-persistence", str(later), str(earlier), "--gap", "30",
+                                      "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    with fits.open(out, checksum=True) as new, fits.open(later) as old:
+        assert [(h.name, h.ver) for h in new] == [(h.name, h.ver) for h in old]
+        for h_new, h_old in zip(new, old):
+            if h_new.name == "SCI":
+                assert h_new.data.dtype.kind == "f"
+                diff = h_new.data.astype(float) - h_old.data
+                assert diff.min() >= 0
+                if h_old.header["SAMPTIME"] == 0:
+                    assert diff.max() == 0
+                if h_old.header["SAMPTIME"] > 80:
+                    assert diff.max() > 0.5
+            else:
+                assert h_new.header.get("NAXIS") == h_old.header.get("NAXIS")
+        assert new[0].header["PSP01"] == EARLIER and new[0].header["PSCUR"] == LATER
+
+
+def test_different_subarray_is_refused(shared_data, tmp_path):
+    out = tmp_path / "x.fits"
+    result = CliRunner().invoke(cli, ["apply-persistence", str(shared_data / "wfc3" / LATER),
+                                      str(shared_data / "wfc3" / OTHER), "-o", str(out)])
+    assert result.exit_code == 1
+    assert "shape" in result.output and OTHER in result.output
+    assert not out.exists()
