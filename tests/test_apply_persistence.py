@@ -210,3 +210,19 @@ def test_gap_option_supplies_timing_in_command_line_order(frame_writer, tmp_path
     expected = (quad_charge(f2, params, 30.0, 169.8, 1.0)
                 + quad_charge(f1, params, 30.0 + 169.8, 169.8 + 169.8, 1.0))
     np.testing.assert_allclose(sci(out), expected, rtol=1e-6)
+
+
+def test_corrupted_data_caught_by_datasum(frame_writer, tmp_path):
+    prev = tmp_path / "p.fits"
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.full((8, 8), 6e4, dtype=np.float32), fits.Header(
+        {"BUNIT": "electron", "EXPTIME": 139.8, "EXPSTART": T0, "EXPEND": T0 + 139.8 / DAY}), name="SCI")]
+                 ).writeto(prev, checksum=True)
+    cur = frame_writer("c.fits", np.zeros((8, 8)), start=T0 + 169.8 / DAY)
+    out = tmp_path / "o.fits"
+    run("apply-persistence", cur, prev, "-o", out)  # intact: accepted
+    raw = bytearray(prev.read_bytes())
+    raw[-100] ^= 0xFF  # flip bits inside the data, headers untouched
+    prev.write_bytes(bytes(raw))
+    result = run("apply-persistence", cur, prev, "-o", tmp_path / "o2.fits", ok=False)
+    assert result.exit_code == 1 and "DATASUM" in result.output and "corrupt" in result.output
+    assert not (tmp_path / "o2.fits").exists()

@@ -41,7 +41,7 @@ def _paragraphs(help_text: str) -> str:
 
 def render_page(command: click.Command, name: str, parent: click.Context | None = None) -> str:
     """The man page of ``command`` as troff text."""
-    ctx = click.Context(command, info_name=name, parent=parent)
+    ctx = click.Context(command, info_name=name, parent=parent, **command.context_settings)
     usage = " ".join(command.collect_usage_pieces(ctx))
     title = name.replace(" ", "-").upper()
     short = command.get_short_help_str(limit=200)
@@ -76,7 +76,7 @@ def render_all() -> dict:
     from .main import cli
 
     pages = {"perscli.1": render_page(cli, "perscli")}
-    root = click.Context(cli, info_name="perscli")
+    root = click.Context(cli, info_name="perscli", **cli.context_settings)
     for sub in cli.list_commands(root):
         pages[f"perscli-{sub}.1"] = render_page(cli.get_command(root, sub), f"perscli {sub}", parent=root)
     return pages

@@ -220,22 +220,36 @@ class Frame:
         return charge, self.electrons_per_unit(seconds=1.0)
 
     def datasum(self, index: int) -> int:
-        """FITS DATASUM of HDU ``index`` computed from its bytes as stored."""
+        """FITS DATASUM of HDU ``index``, computed from its bytes as stored.
+
+        Raises
+        ------
+        PerscliError
+            If the header carries a DATASUM that the data do not match (the
+            data were corrupted after the file was written).
+        """
         from .. import _kernels
 
-        info = self.hdul[index].fileinfo()
+        hdu = self.hdul[index]
+        info = hdu.fileinfo()
         if info is None or info["datSpan"] == 0:
             return 0
         loc, span = info["datLoc"], info["datSpan"]
         if self.raw is not None:
-            return _kernels.datasum(memoryview(self.raw)[loc:loc + span])
-        size = os.path.getsize(self.name)
-        span = min(span, size - loc)
-        mm = np.memmap(self.name, dtype=np.uint8, mode="r", offset=loc, shape=(span,))
-        try:
-            return _kernels.datasum(mm)
-        finally:
-            del mm
+            value = _kernels.datasum(memoryview(self.raw)[loc:loc + span])
+        else:
+            mm = np.memmap(self.name, dtype=np.uint8, mode="r", offset=loc, shape=(span,))
+            try:
+                value = _kernels.datasum(mm)
+            finally:
+                del mm
+        stated = str(hdu.header.get("DATASUM", "")).strip()
+        if stated.isdigit() and int(stated) != value:
+            label = "stdin" if self.name == "-" else self.name
+            raise PerscliError(
+                f"{label}: HDU {index} ({hdu.name}) data do not match its DATASUM ({stated}, computed {value}): "
+                "the file is corrupt; re-copy it (or delete DATASUM if the data were edited on purpose)")
+        return value
 
     def close(self):
         """Release the memory map (pages of earlier frames are not kept)."""
