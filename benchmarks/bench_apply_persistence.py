@@ -121,7 +121,6 @@ def ensure_frames(workdir: Path, size: int, seed: int, regenerate: bool = False)
     tag = recipe_tag(params)
     names = frame_names()
     paths = [workdir / n for n in names]
-    expected_size = None
     stats = []
     if not regenerate and all(p.exists() for p in paths):
         ok = True
@@ -176,18 +175,74 @@ def perscli_command() -> list:
     return [sys.executable, "-c", "import sys; from perscli.cli.main import main; sys.argv[0] = 'perscli'; main()"]
 
 
+# The child is started by a small wrapper process because on Linux a child's ru_maxrss starts from
+# the RSS high-water mark of the address space it exec'd from, and subprocess forks (vfork) from this
+# process, which holds all the frames in memory for GalSim.  The wrapper (a fresh, small interpreter)
+# spawns the command, waits for it with os.wait4 and reports that child's own wall time and peak RSS.
+_WRAPPER = r"""
+import os, sys, time
+t0 = time.perf_counter()
+pid = os.posix_spawn(sys.argv[1], sys.argv[1:], os.environ)
+_, status, usage = os.wait4(pid, 0)
+wall = time.perf_counter() - t0
+sys.stderr.write("\nBENCH %r %d %d\n" % (wall, usage.ru_maxrss, os.waitstatus_to_exitcode(status)))
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
+
+
 def run_child(cmd: list) -> tuple[float, float, str]:
-    """Run ``cmd``; return (wall seconds, peak RSS in bytes of that child alone, stderr)."""
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    err = proc.stderr.read()
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    proc.stderr.close()
-    if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed with status {proc.returncode}:\n{err.decode()}")
-    return wall, usage.ru_maxrss * 1024.0, err.decode()
+    """Run ``cmd``; return (wall seconds, peak RSS in bytes of that process alone, its stderr)."""
+    proc = subprocess.run([sys.executable, "-c", _WRAPPER, *cmd], stdout=subprocess.DEVNULL,
+                          stderr=subprocess.PIPE, text=True)
+    err, _, last = proc.stderr.rstrip("\n").rpartition("\nBENCH ")
+    if proc.returncode != 0 or not last:
+        raise RuntimeError(f"{' '.join(cmd)} failed with status {proc.returncode}:\n{proc.stderr}")
+    wall, maxrss_kib, _ = last.split()
+    return float(wall), int(maxrss_kib) * 1024.0, err
+
+
+_PROFILE = r"""
+import cProfile, sys
+sys.argv = ["perscli", *sys.argv[2:]]
+from perscli.cli.main import main
+prof = cProfile.Profile()
+try:
+    prof.runcall(main)
+except SystemExit:
+    pass
+finally:
+    prof.dump_stats(PROFILE_OUT)
+"""
+
+#: (label, function name, file name ending) whose cumulative time the profile reports
+PHASES = [
+    ("imports (after interpreter start)", "_find_and_load", "<frozen importlib._bootstrap>"),
+    ("open_frame x11 (headers, memmaps)", "open_frame", "frames.py"),
+    ("persistence kernel (_kernels.accumulate)", "<built-in method perscli._kernels.accumulate>", "~"),
+    ("input DATASUMs (_kernels.datasum)", "<built-in method perscli._kernels.datasum>", "~"),
+    ("build_output (current + persistence)", "build_output", "apply.py"),
+    ("write_fits (astropy writeto, checksum=True)", "write_fits", "output.py"),
+]
+
+
+def profile_perscli(cmd_args: list, workdir: Path) -> tuple[list, float, str]:
+    """Run perscli once under cProfile; return [(label, seconds)], the total and the top of the listing."""
+    import io
+    import pstats
+
+    out = workdir / "perscli.prof"
+    code = _PROFILE.replace("PROFILE_OUT", repr(str(out)))
+    subprocess.run([sys.executable, "-c", code, "perscli", *cmd_args], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    stats = pstats.Stats(str(out))
+    total = stats.total_tt
+    phases = []
+    for label, func, fname in PHASES:
+        ct = sum(v[3] for (f, _, name), v in stats.stats.items() if name == func and f.endswith(fname))
+        phases.append((label, ct))
+    buf = io.StringIO()
+    pstats.Stats(str(out), stream=buf).sort_stats("cumulative").print_stats(30)
+    return phases, total, buf.getvalue()
 
 
 def load_arrays(paths, dtype):
@@ -258,6 +313,8 @@ def main(argv=None):
     ap.add_argument("--results", type=Path, default=None,
                     help="write the results here (default: benchmarks/RESULTS.md, at full size only)")
     ap.add_argument("--no-results", action="store_true", help="do not write a results file")
+    ap.add_argument("--no-profile", action="store_true",
+                    help="skip the extra perscli run under cProfile that splits its time into phases")
     args = ap.parse_args(argv)
     if args.repeats < 1:
         ap.error("--repeats must be >= 1")
@@ -327,6 +384,11 @@ def main(argv=None):
     pers_max = float(np.nanmax(gal_pers))
     del gal_pers, pred, cur64
 
+    profile = None
+    if not args.no_profile:
+        print("profile: perscli --workers 1 once more, under cProfile")
+        profile = profile_perscli(cmd_w1[len(exe):], workdir)
+
     ratio_w1 = g_best / w1_best
     ratio_w2 = g_best / w2_best
     mb = 1e6
@@ -348,6 +410,22 @@ def main(argv=None):
           f"max persistence {pers_max:.3g} e-); required < 1e-6")
     ok = ratio_w1 >= 5 and max_rel < 1e-6
     print("PASS" if ok else "FAIL")
+    profile_md = ""
+    if profile is not None:
+        phases, total, listing = profile
+        print(f"\nwhere perscli's time goes (one run under cProfile, {total:.3f} s in Python; "
+              f"cProfile adds some overhead):")
+        rest = total - sum(t for _, t in phases)
+        for label, t in phases + [("other (click, model, provenance, logging, ...)", rest)]:
+            print(f"  {label:50s} {t:7.3f} s  {100 * t / total:5.1f} %")
+        (workdir / "perscli_profile.txt").write_text(listing)
+        print(f"  (top of the cProfile listing in {workdir / 'perscli_profile.txt'})")
+        profile_md = ("\n## Where the perscli process spends its time\n\n"
+                      f"One more `--workers 1` run under cProfile ({total:.3f} s inside Python, profiler overhead "
+                      "included; interpreter start-up itself, ~0.02 s, is not counted):\n\n"
+                      "| phase | seconds | share |\n|---|---:|---:|\n")
+        for label, t in phases + [("other (click, model, provenance, logging, ...)", rest)]:
+            profile_md += f"| {label} | {t:.3f} | {100 * t / total:.0f} % |\n"
 
     if args.no_results or (args.results is None and args.size != SIZE):
         return 0 if ok else 1
@@ -394,7 +472,7 @@ Reproduce with `make bench` (runs `.venv/bin/python benchmarks/bench_apply_persi
 
 Per-repeat times (s): GalSim {', '.join(f'{t:.3f}' for t in g_times)}; perscli
 {', '.join(f'{t:.3f}' for t, _ in w1)}; perscli --workers 2 {', '.join(f'{t:.3f}' for t, _ in w2)}.
-"""
+{profile_md}"""
     dest.write_text(text)
     print(f"wrote {dest}")
     return 0 if ok else 1

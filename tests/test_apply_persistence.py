@@ -221,7 +221,7 @@ def test_corrupted_data_caught_by_datasum(frame_writer, tmp_path):
     out = tmp_path / "o.fits"
     run("apply-persistence", cur, prev, "-o", out)  # intact: accepted
     raw = bytearray(prev.read_bytes())
-    raw[-100] ^= 0xFF  # flip bits inside the data, headers untouched
+    raw[2 * 2880 + 10] ^= 0xFF  # flip bits inside the data (after two header blocks), headers untouched
     prev.write_bytes(bytes(raw))
     result = run("apply-persistence", cur, prev, "-o", tmp_path / "o2.fits", ok=False)
     assert result.exit_code == 1 and "DATASUM" in result.output and "corrupt" in result.output

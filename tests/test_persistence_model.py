@@ -1,10 +1,12 @@
 """The persistence law itself: presets, branches, YAML files, overrides, time integral."""
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 from scipy import integrate
 
-from perscli import PerscliError
+from perscli import PerscliError, _kernels
 from perscli.detector.persistence import (GALSIM_LINEAR_COEFFICIENTS, PRESETS, PersistenceModel,
                                           accumulate, load_model, time_factor)
 
@@ -54,10 +56,12 @@ def test_compiled_kernel_equals_numpy_law_for_every_byte_order():
         for dtype in ("<f8", ">f8", "<f4", ">f4"):
             xv = x.astype(dtype)
             acc = np.zeros((1, x.size))
-            bad = accumulate(xv, acc, [2.5], model)
+            bad, datasum = accumulate(xv, acc, [2.5], model)
             ref = model.F(np.nan_to_num(xv.astype(float), nan=0.0)) * 2.5
             np.testing.assert_allclose(acc[0], ref, rtol=1e-13, atol=0)
             assert bad == 1
+            # the DATASUM gathered on the way is that of the values stored big-endian
+            assert datasum == _kernels.datasum(xv.astype(xv.dtype.newbyteorder(">")).tobytes())
         np.testing.assert_allclose(acc[0], expected, rtol=1e-6)
 
 
@@ -66,13 +70,16 @@ def test_kernel_max_combine_and_several_planes_and_threads():
     model = load_model("pessimistic")
     a, b = 10 ** rng.uniform(0, 6, (2, 300, 1000))
     acc = np.zeros((2, 300, 1000))
-    accumulate(a, acc, [1.0, 3.0], model, combine="max", workers=2)
-    accumulate(b, acc, [2.0, 1.0], model, combine="max", workers=2)
-    np.testing.assert_allclose(acc[0], np.maximum(model.F(a), 2 * model.F(b)), rtol=1e-14)
-    np.testing.assert_allclose(acc[1], np.maximum(3 * model.F(a), model.F(b)), rtol=1e-14)
-    summed = np.zeros((1, 300, 1000))
-    accumulate(a, summed, [1.0], model, workers=2, scale=2.0)
+    with ThreadPoolExecutor(2) as pool:
+        accumulate(a, acc, [1.0, 3.0], model, combine="max", pool=pool, workers=2)
+        accumulate(b, acc, [2.0, 1.0], model, combine="max", pool=pool, workers=2)
+        np.testing.assert_allclose(acc[0], np.maximum(model.F(a), 2 * model.F(b)), rtol=1e-14)
+        np.testing.assert_allclose(acc[1], np.maximum(3 * model.F(a), model.F(b)), rtol=1e-14)
+        summed = np.zeros((1, 300, 1000))
+        _, threaded_sum = accumulate(a, summed, [1.0], model, pool=pool, workers=3, scale=2.0)
     np.testing.assert_allclose(summed[0], model.F(2 * a), rtol=1e-14)
+    # DATASUMs of pieces combine by ones'-complement addition
+    assert threaded_sum == _kernels.datasum(a.astype(">f8").tobytes())
 
 
 @pytest.mark.parametrize("gamma", [0.0, 0.3, 0.7, 0.999999, 1.0, 1.000001, 1.3, 2.0])

@@ -72,7 +72,7 @@ def apply_persistence(current, previous, output, model_spec, params, mode, time_
     result = apply_persistence_files(
         current, previous, output, model=model, mode=mode, time_model=time_model, combine=combine,
         max_previous=max_previous, units=units, gain=gain, exptime=exptime, gap=gap,
-        overwrite=overwrite, workers=workers, progress=progress_reporter("earlier exposures"))
-    total = result.electrons[-1]
+        overwrite=overwrite, workers=workers, progress=progress_reporter("rows"))
     log.info("%s: persistence from %d earlier exposure(s): max %.4g e-, total %.6g e- (last plane)",
-             "stdout" if output == "-" else output, len(result.used), float(total.max()), float(total.sum()))
+             "stdout" if output == "-" else output, len(result.used), result.max_electrons,
+             result.total_electrons)

@@ -3,32 +3,42 @@
 This is the frame-level driver behind ``perscli apply-persistence``: it
 orders the earlier exposures by their timestamps, works out the exact
 time factor of each (or GalSim's approximation), streams their fluence
-through :func:`perscli.detector.persistence.accumulate` one frame at a time,
-and builds the output file with the input's structure and units.
+through :func:`perscli.detector.persistence.accumulate` block of rows by
+block of rows, all earlier frames side by side, and builds the output file
+with the input's structure and units.  Memory is the output frame plus one
+block per input, whatever the number of earlier frames.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
-from astropy.io import fits
 
 from .. import PerscliError
+from ..io.fitsfile import OutHDU, image_cards
 from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, require_timing
 from ..io.output import add_provenance
-from .persistence import GALSIM_EXPTIME, PersistenceModel, accumulate, time_factor
+from .persistence import GALSIM_EXPTIME, PersistenceModel, accumulate, ones_complement_add, time_factor
 
 log = logging.getLogger(__name__)
 
 MODES = ("add", "subtract", "predict")
+
+#: keywords written by :func:`provenance`
+_PROVENANCE_KEY = re.compile(r"^(PS(MODE|MODEL|KIND|TIME|COMB|MAXPRV|NPREV|UNIT|CUR|CURDS)|PS_\w+|PSCOEF\d+|PSP\d+\w*)$")
+
+#: rows per block: 64 rows of a 4088-pixel frame are 2 MB of float64, which stays in cache
+BLOCK_ROWS = 64
 
 
 @dataclass
 class EarlierExposure:
     """What one earlier exposure contributed."""
 
+    frame: Frame = field(repr=False)
     name: str
     recency: int          # 0 = most recent
     gap: float            # seconds from its end to the start of the current exposure
@@ -38,30 +48,36 @@ class EarlierExposure:
 
 
 @dataclass
-class PersistenceResult:
-    """Persistence in electrons on the current frame, plane by plane."""
+class PersistencePlan:
+    """Which earlier exposures count, and with which time factors."""
 
-    electrons: np.ndarray             # (nplanes, ny, nx), float64
+    current: Frame
     used: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
 
 
-def _label(frame: Frame) -> str:
-    return "stdin" if frame.name == "-" else frame.name
+@dataclass
+class PersistenceResult:
+    """Summary of a run: the exposures used and the persistence added, in electrons."""
+
+    used: list
+    skipped: list
+    max_electrons: float = 0.0     # largest persistence in the last plane
+    total_electrons: float = 0.0   # sum over the last plane
 
 
 def _time_factors(current: Frame, prev: Frame, recency: int, model: PersistenceModel, time_model: str):
     gap = (current.start - prev.end) * SECONDS_PER_DAY
     if model.kind == "linear":
         if current.is_ramp:
-            raise PerscliError(f"{_label(current)}: the linear model has no time dependence and cannot be "
+            raise PerscliError(f"{current.label}: the linear model has no time dependence and cannot be "
                                "applied read by read; use a Fermi model (typical, pessimistic) for ramps")
         if recency >= len(model.coefficients):
             return gap, None
         return gap, [model.coefficients[recency]]
     if time_model == "galsim":
         if current.is_ramp:
-            raise PerscliError(f"{_label(current)}: --time-model galsim has no notion of reads; "
+            raise PerscliError(f"{current.label}: --time-model galsim has no notion of reads; "
                                "use --time-model exact for ramps")
         mid = (0.5 + recency) * GALSIM_EXPTIME
         return gap, [GALSIM_EXPTIME * (mid / 1000.0) ** (-model.gamma)]
@@ -71,166 +87,237 @@ def _time_factors(current: Frame, prev: Frame, recency: int, model: PersistenceM
         ends = np.array([gap + (current.end - current.start) * SECONDS_PER_DAY])
     if gap <= 0 and model.gamma >= 1:
         raise PerscliError(
-            f"{_label(prev)} ends exactly when {_label(current)} starts: with gamma={model.gamma:g} the "
+            f"{prev.label} ends exactly when {current.label} starts: with gamma={model.gamma:g} the "
             "persistence integral diverges at zero delay; check the timestamps (a reset takes time)")
     try:
         return gap, [float(v) for v in time_factor(np.full_like(ends, gap), ends, model.gamma)]
     except ValueError as exc:
-        raise PerscliError(f"{_label(prev)}: {exc}") from None
+        raise PerscliError(f"{prev.label}: {exc}") from None
 
 
-def persistence_on(current: Frame, previous, model: PersistenceModel, *, time_model: str = "exact",
-                   combine: str = "sum", max_previous: int = 10, workers: int = 1,
-                   progress=None) -> PersistenceResult:
-    """The persistence that earlier exposures leave in ``current``, in electrons.
+def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str = "exact",
+         max_previous: int = 10) -> PersistencePlan:
+    """Check the earlier exposures, order them by time and work out their time factors.
 
     Parameters
     ----------
     current : Frame
         The exposure that receives persistence (an image or a ramp).
     previous : iterable of Frame
-        Earlier exposures of the same detector, in any order.  Each is
-        closed after use, so only one earlier frame is in memory at a time.
+        Earlier exposures of the same detector, in any order.
     model : PersistenceModel
     time_model : {'exact', 'galsim'}
         'exact': the integral of the rate over the current exposure's own
         [start, end] (or up to each read's time for a ramp), with t counted
         from the end of each earlier exposure.  'galsim': GalSim's
         ``rate((0.5 + i) * 139.8 s) * 139.8 s`` for the i-th most recent one.
-    combine : {'sum', 'max'}
-        Sum over earlier exposures (the paper, GalSim) or per-pixel maximum
-        (the WFC3 pipeline).
     max_previous : int
         Only the most recent ``max_previous`` earlier exposures count (0: all).
-    workers : int
-        Threads per frame.
-    progress : callable, optional
-        Called as ``progress(done, total, name)`` after each earlier frame.
 
     Returns
     -------
-    PersistenceResult
+    PersistencePlan
     """
     previous = list(previous)
     require_timing(current)
+    if time_model not in ("exact", "galsim"):
+        raise PerscliError(f"--time-model must be exact or galsim, not {time_model!r}")
     for prev in previous:
         require_timing(prev)
         if prev.shape != current.shape:
-            raise PerscliError(f"{_label(prev)}: image shape {prev.shape} differs from {_label(current)}'s "
+            raise PerscliError(f"{prev.label}: image shape {prev.shape} differs from {current.label}'s "
                                f"{current.shape}; earlier exposures must be of the same detector area")
         offsets = [(f.keyword("LTV1"), f.keyword("LTV2")) for f in (prev, current)]
         if None not in offsets[0] + offsets[1] and offsets[0] != offsets[1]:
-            raise PerscliError(f"{_label(prev)}: subarray offset LTV1/LTV2={offsets[0]} differs from "
-                               f"{_label(current)}'s {offsets[1]}: not the same pixels of the detector")
+            raise PerscliError(f"{prev.label}: subarray offset LTV1/LTV2={offsets[0]} differs from "
+                               f"{current.label}'s {offsets[1]}: not the same pixels of the detector")
         if prev.end > current.start:
             raise PerscliError(
-                f"{_label(prev)} ends at MJD {prev.end:.8f}, after {_label(current)} starts "
+                f"{prev.label} ends at MJD {prev.end:.8f}, after {current.label} starts "
                 f"(MJD {current.start:.8f}): it is not an earlier exposure; check the order or the timestamps")
     if max_previous < 0:
         raise PerscliError(f"--max-previous must be >= 0 (0 for all), not {max_previous}")
     ordered = sorted(previous, key=lambda f: f.end, reverse=True)
     keep = ordered if max_previous == 0 else ordered[:max_previous]
-    skipped = [_label(f) for f in ordered[len(keep):]]
-    for frame in ordered[len(keep):]:
-        frame.close()
-    if skipped:
-        log.info("only the %d most recent earlier exposures count; ignoring %s", len(keep), ", ".join(skipped))
-
-    nplanes = current.nreads
-    acc = np.zeros((nplanes,) + current.shape, dtype=np.float64)
-    result = PersistenceResult(electrons=acc, skipped=skipped)
+    result = PersistencePlan(current=current, skipped=[f.label for f in ordered[len(keep):]])
+    if result.skipped:
+        log.info("only the %d most recent earlier exposures count; ignoring %s", len(keep),
+                 ", ".join(result.skipped))
     for recency, prev in enumerate(keep):
         gap, factors = _time_factors(current, prev, recency, model, time_model)
-        record = EarlierExposure(name=prev.name, recency=recency, gap=gap, factors=factors or [])
-        record.datasum = prev.datasum(prev.sci[-1] if prev.layout == "wfc3-ramp" else prev.sci[0])
         if factors is None:
-            log.info("%s: beyond the linear model's %d coefficients; ignored", _label(prev),
-                     len(model.coefficients))
-        else:
-            fluence, scale = prev.fluence()
-            record.nonfinite = accumulate(fluence, acc, factors, model, scale=scale,
-                                          combine=combine, workers=workers)
-            del fluence
-            if record.nonfinite:
-                log.warning("%s: %d non-finite pixels counted as zero fluence", _label(prev), record.nonfinite)
-        prev.close()
-        result.used.append(record)
-        if progress is not None:
-            progress(recency + 1, len(keep), _label(prev))
+            log.info("%s: beyond the linear model's %d coefficients; ignored", prev.label, len(model.coefficients))
+            result.skipped.append(prev.label)
+            continue
+        result.used.append(EarlierExposure(frame=prev, name=prev.name, recency=recency, gap=gap, factors=factors))
     return result
 
 
-def _to_units(current: Frame, electrons: np.ndarray, plane: int) -> np.ndarray:
-    """Persistence electrons of one plane in the current frame's units."""
+def persistence_blocks(the_plan: PersistencePlan, model: PersistenceModel, *, combine: str = "sum",
+                       block_rows: int = BLOCK_ROWS, workers: int = 1, progress=None):
+    """Stream the persistence on the current frame, in electrons, block of rows by block of rows.
+
+    Yields
+    ------
+    (r0, r1, ndarray)
+        Rows ``r0:r1`` and the persistence there, shape ``(nplanes, r1 - r0, nx)``
+        (one plane per read of a ramp).  The array is reused: copy it to keep it.
+
+    Notes
+    -----
+    Every earlier frame is read once, a block at a time, by the compiled
+    kernel directly from its stored bytes where it can; the DATASUM of each
+    is gathered on the way and checked against its header at the end.
+    """
+    current = the_plan.current
+    ny, nx = current.shape
+    nplanes = current.nreads
+    storage = np.empty(nplanes * min(block_rows, ny) * nx, dtype=np.float64)
+    pool = None
+    if workers > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        pool = ThreadPoolExecutor(workers)
+    try:
+        nblocks = (ny + block_rows - 1) // block_rows
+        for b, r0 in enumerate(range(0, ny, block_rows)):
+            r1 = min(ny, r0 + block_rows)
+            acc = storage[:nplanes * (r1 - r0) * nx].reshape(nplanes, r1 - r0, nx)
+            acc.fill(0.0)
+            for rec in the_plan.used:
+                fluence, scale = rec.frame.fluence_rows(r0, r1)
+                bad, dsum = accumulate(fluence, acc, rec.factors, model, scale=scale, combine=combine,
+                                       pool=pool, workers=workers)
+                rec.nonfinite += bad
+                rec.datasum = ones_complement_add(rec.datasum, dsum)
+            yield r0, r1, acc
+            if progress is not None:
+                progress(b + 1, nblocks)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    for rec in the_plan.used:
+        frame = rec.frame
+        if frame.fluence_is_raw:
+            frame.check_datasum(frame.provenance_hdu, rec.datasum)
+        else:
+            rec.datasum = frame.datasum(frame.provenance_hdu)
+        if rec.nonfinite:
+            log.warning("%s: %d non-finite pixels counted as zero fluence", frame.label, rec.nonfinite)
+
+
+def persistence_image(current: Frame, previous, model: PersistenceModel, *, time_model: str = "exact",
+                      combine: str = "sum", max_previous: int = 10, workers: int = 1) -> np.ndarray:
+    """The persistence that earlier exposures leave in ``current``, in electrons.
+
+    Parameters are those of :func:`plan` and :func:`persistence_blocks`.
+
+    Returns
+    -------
+    ndarray of float64, shape ``(nplanes, ny, nx)``
+    """
+    the_plan = plan(current, previous, model, time_model=time_model, max_previous=max_previous)
+    out = np.zeros((current.nreads,) + current.shape)
+    for r0, r1, block in persistence_blocks(the_plan, model, combine=combine, workers=workers):
+        out[:, r0:r1] = block
+    return out
+
+
+def _unit_factor(current: Frame, plane: int) -> float:
+    """Electrons per unit of the current frame's plane (0 for a read at time zero of a rate ramp)."""
     is_dn, is_rate = UNITS[current.unit]
-    if not (is_dn or is_rate):
-        return electrons
     if is_rate:
         seconds = current.read_times[plane] if current.is_ramp else current.exptime
         if current.is_ramp and seconds == 0:
-            return np.zeros_like(electrons)
-        factor = current.electrons_per_unit(seconds=seconds)
-    else:
-        factor = current.electrons_per_unit()
-    return electrons / factor
+            return 0.0
+        return current.electrons_per_unit(seconds=seconds)
+    return current.electrons_per_unit()
 
 
-def _science_header(header: fits.Header) -> fits.Header:
-    header = header.copy()
-    # the output is float: integer scaling keywords no longer apply
-    for key in ("BZERO", "BSCALE", "BLANK", "CHECKSUM", "DATASUM"):
-        header.remove(key, ignore_missing=True)
-    return header
-
-
-def build_output(current: Frame, result: PersistenceResult, *, mode: str = "add") -> fits.HDUList:
-    """The output file: the current frame's HDUs with its science data replaced.
+def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: str = "add",
+                   time_model: str = "exact", combine: str = "sum", max_previous: int = 10,
+                   workers: int = 1, progress=None):
+    """Output HDUs: the current frame with persistence added, subtracted or alone.
 
     Parameters
     ----------
-    current : Frame
-    result : PersistenceResult
-        From :func:`persistence_on`.
+    current, previous, model, time_model, combine, max_previous, workers, progress
+        See :func:`plan` and :func:`persistence_blocks`.
     mode : {'add', 'subtract', 'predict'}
         Data plus persistence, data minus persistence, or persistence alone;
         always in the current frame's units.  Integer data become float32;
         float data keep their precision.
+
+    Returns
+    -------
+    (list of OutHDU, PersistenceResult)
+        The output file's HDUs, in the input's structure, with provenance in
+        the primary header.
     """
     if mode not in MODES:
         raise PerscliError(f"--mode must be one of {', '.join(MODES)}, not {mode!r}")
-    planes = current.planes()
-    new = []
-    for k, data in enumerate(planes):
-        dtype = data.dtype.newbyteorder("=") if data.dtype.kind == "f" else np.dtype(np.float32)
-        pers = _to_units(current, result.electrons[k], k)
-        if mode == "predict":
-            out = pers.astype(dtype)
-        else:
-            out = np.array(data, dtype=dtype)
-            if mode == "add":
-                np.add(out, pers, out=out, casting="unsafe")
+    if combine not in ("sum", "max"):
+        raise PerscliError(f"--combine must be sum or max, not {combine!r}")
+    the_plan = plan(current, previous, model, time_model=time_model, max_previous=max_previous)
+    ny, nx = current.shape
+    nplanes = current.nreads
+    sci_hdus = [current.hdus[i] for i in current.sci]
+    dtype = np.dtype(">f8") if sci_hdus[0].dtype == np.dtype(">f8") and sci_hdus[0].is_plain_float else np.dtype(">f4")
+    out = np.empty((nplanes, ny, nx), dtype=dtype)
+    factors = [_unit_factor(current, k) for k in range(nplanes)]
+    fold_current = current.layout == "image" and sci_hdus[0].is_plain_float
+    current_sum = 0
+    peak = total = 0.0
+    tmp = np.empty((min(BLOCK_ROWS, ny), nx))
+    for r0, r1, electrons in persistence_blocks(the_plan, model, combine=combine, workers=workers,
+                                                progress=progress):
+        work = tmp[:r1 - r0]
+        for k in range(nplanes):
+            if factors[k] == 0.0:
+                work.fill(0.0)
             else:
-                np.subtract(out, pers, out=out, casting="unsafe")
-        new.append(out)
+                np.divide(electrons[k], factors[k], out=work)
+            if mode != "predict":
+                rows = current.rows(k, r0, r1)
+                if fold_current:
+                    from .. import _kernels
+
+                    current_sum = ones_complement_add(current_sum, _kernels.datasum(rows))
+                if mode == "add":
+                    np.add(rows, work, out=work)
+                else:
+                    np.subtract(rows, work, out=work)
+            out[k, r0:r1] = work
+        peak = max(peak, float(electrons[-1].max()))
+        total += float(electrons[-1].sum())
+    if fold_current and mode != "predict":
+        current.check_datasum(current.provenance_hdu, current_sum)
+    else:
+        current_sum = current.datasum(current.provenance_hdu)
 
     hdus = []
-    for i, hdu in enumerate(current.hdul):
-        if i in current.sci:
-            if current.layout == "cube":
-                data = np.stack(new)
-            else:
-                data = new[current.sci.index(i)]
-            header = _science_header(hdu.header)
-            cls = fits.PrimaryHDU if i == 0 else fits.ImageHDU
-            hdus.append(cls(data=data, header=header))
-        elif i == 0:
-            hdus.append(fits.PrimaryHDU(data=hdu.data, header=hdu.header.copy()))
+    for hdu in current.hdus:
+        if hdu.index in current.sci:
+            data = out if current.layout == "cube" else out[current.sci.index(hdu.index)]
+            extname = hdu.header.get("EXTNAME") if "EXTNAME" in hdu.header else None
+            cards = image_cards(data, hdu.header.cards, primary=hdu.index == 0, extname=extname)
+            hdus.append(OutHDU(cards, _be_bytes(data)))
         else:
-            hdus.append(hdu)
-    return fits.HDUList(hdus)
+            copy = OutHDU(list(hdu.header.cards), hdu.raw_bytes(0, hdu.data_size) if hdu.data_size else b"")
+            copy.remove("CHECKSUM", "DATASUM")
+            hdus.append(copy)
+    result = PersistenceResult(used=the_plan.used, skipped=the_plan.skipped, max_electrons=peak,
+                               total_electrons=total)
+    provenance(hdus[0], current, result, model, mode=mode, time_model=time_model, combine=combine,
+               max_previous=max_previous, current_datasum=current_sum)
+    return hdus, result
 
 
-def provenance(hdul: fits.HDUList, current: Frame, result: PersistenceResult, model: PersistenceModel, *,
+def _be_bytes(data: np.ndarray):
+    return memoryview(np.ascontiguousarray(data)).cast("B")
+
+
+def provenance(header, current: Frame, result: PersistenceResult, model: PersistenceModel, *,
                mode: str, time_model: str, combine: str, max_previous: int, current_datasum: int) -> None:
     """Write the settings and inputs of an apply-persistence run into the primary header."""
     params = {
@@ -255,14 +342,16 @@ def provenance(hdul: fits.HDUList, current: Frame, result: PersistenceResult, mo
     else:
         for i, c in enumerate(model.coefficients, 1):
             params[f"PSCOEF{i:02d}"] = (c, f"linear coefficient, exposure {i} back")
+    if isinstance(header, OutHDU):
+        # a chained run (apply-persistence on an earlier output) replaces the earlier run's
+        # settings; its HISTORY cards stay
+        header.remove(matching=lambda key: _PROVENANCE_KEY.match(key) is not None)
     inputs = [("PSCUR", current.name, current_datasum)]
     for i, rec in enumerate(result.used, 1):
         stem = f"PSP{i:02d}"
         inputs.append((stem, rec.name, rec.datasum))
         params[f"{stem}DT"] = (round(rec.gap, 6), f"[s] from end of {stem} to start of PSCUR")
-        if rec.factors:
-            params[f"{stem}TF"] = (rec.factors[-1], "[s] time factor (or coefficient), last plane")
-    header = hdul[0].header
+        params[f"{stem}TF"] = (rec.factors[-1], "[s] time factor (or coefficient), last plane")
     add_provenance(header, step=f"apply-persistence mode={mode} model={model.name} "
                                 f"time-model={params['PSTIME'][0]} combine={combine} "
                                 f"previous={len(result.used)}",
@@ -286,7 +375,7 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
         Output path, or '-' for stdout.
     model : PersistenceModel
     mode, time_model, combine, max_previous, workers, progress
-        See :func:`persistence_on` and :func:`build_output`.
+        See :func:`apply_to_frame`.
     units, gain, exptime : optional
         Override BUNIT, GAIN/CCDGAIN and supply EXPTIME for every input.
     gap : float, optional
@@ -300,14 +389,8 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
     PersistenceResult
     """
     from ..io.frames import assign_sequence_timing, open_frame
-    from ..io.output import check_output, write_fits
+    from ..io.output import check_output, write_hdus
 
-    if time_model not in ("exact", "galsim"):
-        raise PerscliError(f"--time-model must be exact or galsim, not {time_model!r}")
-    if combine not in ("sum", "max"):
-        raise PerscliError(f"--combine must be sum or max, not {combine!r}")
-    if mode not in MODES:
-        raise PerscliError(f"--mode must be one of {', '.join(MODES)}, not {mode!r}")
     names = [current, *previous]
     if names.count("-") > 1:
         raise PerscliError("only one input can be read from standard input ('-')")
@@ -321,13 +404,9 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
             if gap < 0:
                 raise PerscliError(f"--gap must be >= 0 seconds, not {gap}")
             assign_sequence_timing(prevs + [cur], gap, exptime)
-        result = persistence_on(cur, prevs, model, time_model=time_model, combine=combine,
-                                max_previous=max_previous, workers=workers, progress=progress)
-        hdul = build_output(cur, result, mode=mode)
-        cur_sum = cur.datasum(cur.sci[-1] if cur.layout == "wfc3-ramp" else cur.sci[0])
-        provenance(hdul, cur, result, model, mode=mode, time_model=time_model, combine=combine,
-                   max_previous=max_previous, current_datasum=cur_sum)
-        write_fits(hdul, dest, overwrite=overwrite, stdout=stdout)
+        hdus, result = apply_to_frame(cur, prevs, model, mode=mode, time_model=time_model, combine=combine,
+                                      max_previous=max_previous, workers=workers, progress=progress)
+        write_hdus(hdus, dest, overwrite=overwrite, stdout=stdout)
         return result
     finally:
         for frame in opened:

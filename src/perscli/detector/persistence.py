@@ -193,7 +193,8 @@ def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence
     if not items:
         return model
     if model.kind != "fermi":
-        raise PerscliError(f"parameters cannot be overridden for the linear model {model.name!r}")
+        raise PerscliError(f"parameters cannot be overridden for the linear model {model.name!r}; "
+                           "use --model typical|pessimistic|FILE.yaml to set Fermi parameters")
     changes = {}
     for key, value in items:
         if key not in FERMI_PARAMETERS:
@@ -284,15 +285,24 @@ def time_factor(t_start, t_end, gamma: float) -> np.ndarray:
     return 1000.0 ** gamma * t1 ** (1.0 - gamma) * np.expm1(u) / (1.0 - gamma)
 
 
+def ones_complement_add(a: int, b: int) -> int:
+    """Add two 32-bit ones'-complement sums (how FITS DATASUMs of pieces combine)."""
+    s = a + b
+    while s >> 32:
+        s = (s & 0xFFFFFFFF) + (s >> 32)
+    return s
+
+
 def accumulate(fluence, acc, time_factors, model: PersistenceModel, *, scale: float = 1.0,
-               combine: str = "sum", workers: int = 1) -> int:
+               combine: str = "sum", pool=None, workers: int = 1):
     """Add ``T_k * F(scale * fluence)`` into ``acc[k]`` for every time factor, in one pass.
 
     Parameters
     ----------
     fluence : ndarray
-        An earlier frame, float32 or float64, native or big-endian (a FITS
-        memmap can be passed as it is), C-contiguous.
+        An earlier frame (or a block of its rows), float32 or float64,
+        native or big-endian (the bytes of a FITS file can be passed as they
+        are), C-contiguous.
     acc : ndarray of float64
         Accumulator of shape ``(len(time_factors),) + fluence.shape``, updated in place.
     time_factors : sequence of float
@@ -303,13 +313,16 @@ def accumulate(fluence, acc, time_factors, model: PersistenceModel, *, scale: fl
         Converts fluence values to electrons (gain, exposure time).
     combine : {'sum', 'max'}
         Add the contributions or keep the per-pixel maximum.
+    pool : concurrent.futures.Executor, optional
+        Threads to split the pixels across (the compiled loop releases the GIL).
     workers : int
-        Threads to split the frame across (the compiled loop releases the GIL).
+        Number of pieces to split into when ``pool`` is given.
 
     Returns
     -------
-    int
-        Number of non-finite fluence pixels (counted as zero).
+    (int, int)
+        Number of non-finite fluence pixels (counted as zero), and the FITS
+        DATASUM of ``fluence``'s values written big-endian.
     """
     from .. import _kernels
 
@@ -329,13 +342,14 @@ def accumulate(fluence, acc, time_factors, model: PersistenceModel, *, scale: fl
     args = (tf, float(scale), combine == "max", int(linear), model.A, model.x0, model.dx,
             model.alpha, model.half_well, 0.0 if linear else model.slope)
     n = fluence.size
-    workers = max(1, int(workers))
-    if workers == 1 or n < 1 << 18:
+    if pool is None or workers <= 1 or n < 1 << 16:
         return _kernels.accumulate(fluence, acc, *args, (0, n))
-    from concurrent.futures import ThreadPoolExecutor
-
     edges = np.linspace(0, n, workers + 1).astype(np.int64)
-    with ThreadPoolExecutor(workers) as pool:
-        futures = [pool.submit(_kernels.accumulate, fluence, acc, *args, (int(a), int(b)))
-                   for a, b in zip(edges[:-1], edges[1:])]
-        return sum(f.result() for f in futures)
+    futures = [pool.submit(_kernels.accumulate, fluence, acc, *args, (int(a), int(b)))
+               for a, b in zip(edges[:-1], edges[1:])]
+    nonfinite, datasum = 0, 0
+    for future in futures:
+        bad, part = future.result()
+        nonfinite += bad
+        datasum = ones_complement_add(datasum, part)
+    return nonfinite, datasum

@@ -19,24 +19,22 @@ ramps       WFC3-IR raw/ima: SCI,1 is the last read, SCI,NSAMP the zeroth;
 ==========  ==============================================================
 
 Keywords are looked up in the science extension's header first, then in the
-primary header.  Files are memory-mapped, so a frame costs no memory until its
-pixels are used; ``-`` reads a FITS stream from standard input into memory
-(astropy cannot seek on a pipe).
+primary header.  Opening a frame reads only its headers; pixels are read
+when asked for, row block by row block (:meth:`Frame.rows`), so that many
+frames can be streamed side by side.  ``-`` reads a FITS stream from
+standard input into memory (a pipe cannot seek).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
-import io
-import os
 import sys
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from astropy.io import fits
 
 from .. import PerscliError
+from .fitsfile import HDU, Source, scan
 
 #: canonical unit -> (is DN, is a rate)
 UNITS = {
@@ -82,15 +80,22 @@ def normalize_unit(text: str, source: str = "BUNIT") -> str:
     return _UNIT_ALIASES[key]
 
 
-def parse_date_obs(date: str, time: str | None = None) -> float:
-    """ISO-8601 DATE-OBS (with TIME-OBS when DATE-OBS has no time) to MJD."""
+def parse_date_obs(date: str, time: str | None = None, label: str = "") -> float:
+    """ISO-8601 DATE-OBS (with TIME-OBS when DATE-OBS has no time) to MJD.
+
+    A time-zone offset, if present, is honoured (the result is in UTC).
+    """
     text = str(date).strip()
     if "T" not in text and time:
         text = f"{text}T{str(time).strip()}"
+    where = f"{label}: " if label else ""
     try:
-        moment = _dt.datetime.fromisoformat(text.rstrip("Z"))
+        moment = _dt.datetime.fromisoformat(text[:-1] + "+00:00" if text.endswith("Z") else text)
     except ValueError:
-        raise PerscliError(f"DATE-OBS={date!r} is not an ISO-8601 date (YYYY-MM-DDThh:mm:ss)") from None
+        raise PerscliError(f"{where}DATE-OBS={date!r} is not an ISO-8601 date (YYYY-MM-DDThh:mm:ss); "
+                           "fix the header or give EXPSTART/EXPEND") from None
+    if moment.tzinfo is not None:
+        moment = moment.astimezone(_dt.timezone.utc).replace(tzinfo=None)
     return (moment - MJD_EPOCH).total_seconds() / SECONDS_PER_DAY
 
 
@@ -102,8 +107,8 @@ class Frame:
     ----------
     name : str
         The path, or '-' for standard input.
-    hdul : astropy.io.fits.HDUList
-        The open file (memory-mapped).
+    hdus : list of perscli.io.fitsfile.HDU
+        Every HDU of the file (headers parsed, data not read).
     sci : list of int
         HDU indices of the science arrays in time order (one for an image or
         a cube; the reads of a WFC3 ramp, zeroth read first).
@@ -118,12 +123,12 @@ class Frame:
         MJD of the start and end of the exposure.
     read_times : ndarray or None
         Seconds since the start of the exposure, one per read (ramps only).
-    raw : bytes or None
-        The whole file, when it came from standard input.
+    timing_source : str
+        Which keywords (or option) gave the timing.
     """
 
     name: str
-    hdul: fits.HDUList
+    hdus: list
     sci: list
     layout: str
     unit: str
@@ -132,18 +137,22 @@ class Frame:
     start: float | None
     end: float | None
     read_times: np.ndarray | None = None
-    raw: bytes | None = field(default=None, repr=False)
     timing_source: str = ""
+    source: Source | None = field(default=None, repr=False)
+
+    @property
+    def label(self) -> str:
+        return "stdin" if self.name == "-" else self.name
 
     # -- headers ---------------------------------------------------------
     @property
-    def header(self) -> fits.Header:
+    def header(self):
         """Header of the (first) science HDU."""
-        return self.hdul[self.sci[0]].header
+        return self.hdus[self.sci[0]].header
 
     def keyword(self, key, default=None):
         """A keyword from the science header, else from the primary header."""
-        for hdr in (self.header, self.hdul[0].header):
+        for hdr in (self.header, self.hdus[0].header):
             if key in hdr and hdr[key] not in (None, ""):
                 return hdr[key]
         return default
@@ -159,16 +168,29 @@ class Frame:
     @property
     def shape(self) -> tuple:
         """Shape of one image (one read)."""
-        shape = self.hdul[self.sci[0]].shape
-        return tuple(shape[-2:])
+        return tuple(self.hdus[self.sci[0]].shape[-2:])
 
     # -- pixels ----------------------------------------------------------
-    def planes(self) -> list:
-        """The science arrays in time order, in the file's units (memmaps where possible)."""
+    def _plane(self, k: int):
+        """(HDU, plane index within it) of read ``k`` in time order."""
         if self.layout == "cube":
-            data = self.hdul[self.sci[0]].data
-            return [data[k] for k in range(data.shape[0])]
-        return [self.hdul[i].data for i in self.sci]
+            return self.hdus[self.sci[0]], k
+        return self.hdus[self.sci[k]], 0
+
+    def rows(self, k: int, r0: int, r1: int) -> np.ndarray:
+        """Rows ``r0:r1`` of plane ``k`` (time order) in the file's units.
+
+        Float data are returned as stored (big-endian, no copy); integer data
+        are scaled to float64.
+        """
+        hdu, plane = self._plane(k)
+        return hdu.read_rows(r0, r1, plane)
+
+    def planes(self) -> list:
+        """The science arrays in time order, in the file's units (native byte order)."""
+        ny = self.shape[0]
+        return [np.asarray(self.rows(k, 0, ny), dtype=self.rows(k, 0, 0).dtype.newbyteorder("="))
+                for k in range(self.nreads)]
 
     def electrons_per_unit(self, seconds: float | None = None) -> float:
         """Factor that turns a value in this frame's unit into electrons.
@@ -183,7 +205,7 @@ class Frame:
         if is_dn:
             if self.gain is None:
                 raise PerscliError(
-                    f"{self.name}: BUNIT is {self.unit} but the header has neither GAIN nor CCDGAIN; "
+                    f"{self.label}: BUNIT is {self.unit} but the header has neither GAIN nor CCDGAIN; "
                     "give --gain E_PER_DN")
             factor *= self.gain
         if is_rate:
@@ -191,136 +213,101 @@ class Frame:
                 seconds = self.exptime
             if seconds is None:
                 raise PerscliError(
-                    f"{self.name}: BUNIT is {self.unit} (a rate) but the header has no EXPTIME or XPOSURE; "
+                    f"{self.label}: BUNIT is {self.unit} (a rate) but the header has no EXPTIME or XPOSURE; "
                     "give --exptime SECONDS")
             factor *= seconds
         return factor
 
-    def fluence(self):
-        """The accumulated charge of this exposure, as ``(array, scale)``.
+    def fluence_rows(self, r0: int, r1: int):
+        """The accumulated charge of rows ``r0:r1``, as ``(array, scale)``.
 
-        ``array * scale`` is the fluence in electrons.  For a plain float
-        image the array is the file's own memory map (no copy); for a ramp
-        it is the last read minus the zeroth read.
+        ``array * scale`` is the fluence in electrons.  For a float image the
+        array is the file's bytes as stored (no conversion: the compiled
+        kernel swaps bytes itself); for a ramp it is the last read minus the
+        zeroth read.
         """
         if not self.is_ramp:
-            data = self.hdul[self.sci[0]].data
-            if data.dtype.kind != "f":
-                data = np.asarray(data, dtype=np.float64)
-            return data, self.electrons_per_unit()
-        planes = self.planes()
-        is_dn, is_rate = UNITS[self.unit]
-        last = np.asarray(planes[-1], dtype=np.float64)
-        first = np.asarray(planes[0], dtype=np.float64)
-        if is_rate:
+            return self.rows(0, r0, r1), self.electrons_per_unit()
+        last = np.asarray(self.rows(self.nreads - 1, r0, r1), dtype=np.float64)
+        first = np.asarray(self.rows(0, r0, r1), dtype=np.float64)
+        if UNITS[self.unit][1]:
             # a rate ramp (WFC3 ima) stores each read's charge divided by its SAMPTIME
-            charge = (last * self.read_times[-1] - first * self.read_times[0])
+            charge = last * self.read_times[-1] - first * self.read_times[0]
         else:
             charge = last - first
         return charge, self.electrons_per_unit(seconds=1.0)
 
+    def fluence(self):
+        """The accumulated charge of the whole exposure, as ``(array, scale)`` (see :meth:`fluence_rows`)."""
+        array, scale = self.fluence_rows(0, self.shape[0])
+        return np.asarray(array, dtype=array.dtype.newbyteorder("=")), scale
+
+    @property
+    def fluence_is_raw(self) -> bool:
+        """True when :meth:`fluence_rows` hands out the stored bytes (their DATASUM can be folded in)."""
+        return not self.is_ramp and self.hdus[self.sci[0]].is_plain_float
+
+    @property
+    def provenance_hdu(self) -> int:
+        """The HDU whose DATASUM stands for this frame in provenance (the last read of a ramp)."""
+        return self.sci[-1] if self.layout == "wfc3-ramp" else self.sci[0]
+
+    def check_datasum(self, index: int, value: int) -> int:
+        """Compare a computed DATASUM with the header's, if it states one."""
+        hdu = self.hdus[index]
+        stated = str(hdu.header.get("DATASUM", "")).strip()
+        if stated.isdigit() and int(stated) != value:
+            raise PerscliError(
+                f"{self.label}: HDU {index} ({hdu.name or 'PRIMARY'}) data do not match its DATASUM "
+                f"({stated}, computed {value}): the file is corrupt; re-copy it "
+                "(or delete DATASUM if the data were edited on purpose)")
+        return value
+
     def datasum(self, index: int) -> int:
-        """FITS DATASUM of HDU ``index``, computed from its bytes as stored.
+        """FITS DATASUM of HDU ``index`` computed from its bytes as stored.
 
         Raises
         ------
         PerscliError
-            If the header carries a DATASUM that the data do not match (the
-            data were corrupted after the file was written).
+            If the header carries a DATASUM that the data do not match.
         """
-        from .. import _kernels
-
-        hdu = self.hdul[index]
-        info = hdu.fileinfo()
-        if info is None or info["datSpan"] == 0:
-            return 0
-        loc, span = info["datLoc"], info["datSpan"]
-        if self.raw is not None:
-            value = _kernels.datasum(memoryview(self.raw)[loc:loc + span])
-        else:
-            mm = np.memmap(self.name, dtype=np.uint8, mode="r", offset=loc, shape=(span,))
-            try:
-                value = _kernels.datasum(mm)
-            finally:
-                del mm
-        stated = str(hdu.header.get("DATASUM", "")).strip()
-        if stated.isdigit() and int(stated) != value:
-            label = "stdin" if self.name == "-" else self.name
-            raise PerscliError(
-                f"{label}: HDU {index} ({hdu.name}) data do not match its DATASUM ({stated}, computed {value}): "
-                "the file is corrupt; re-copy it (or delete DATASUM if the data were edited on purpose)")
-        return value
+        return self.check_datasum(index, self.hdus[index].datasum())
 
     def close(self):
-        """Release the memory map (pages of earlier frames are not kept)."""
-        self.hdul.close()
+        """Release the file."""
+        if self.source is not None:
+            self.source.close()
 
 
-def _read_bytes(name: str, stdin) -> bytes:
+def _read_stdin(stdin) -> bytes:
     stream = stdin if stdin is not None else sys.stdin.buffer
     data = stream.read()
     if not data:
-        raise PerscliError(f"{name}: standard input is empty; pipe a FITS file into it")
+        raise PerscliError("stdin: standard input is empty; pipe a FITS file into it")
     return data
 
 
-def _open_hdul(name: str, stdin=None):
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            if name == "-":
-                raw = _read_bytes("stdin", stdin)
-                hdul = fits.open(io.BytesIO(raw), memmap=False, lazy_load_hdus=False)
-            else:
-                raw = None
-                if not os.path.exists(name):
-                    raise PerscliError(f"{name}: no such file")
-                if os.path.isdir(name):
-                    raise PerscliError(f"{name}: is a directory, not a FITS file")
-                hdul = fits.open(name, mode="readonly", lazy_load_hdus=False)
-        except PerscliError:
-            raise
-        except (OSError, ValueError, TypeError, IndexError, KeyError) as exc:
-            what = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise PerscliError(f"{'stdin' if name == '-' else name}: not a readable FITS file ({what}); "
-                               "check that it is complete and really FITS") from None
-    for w in caught:
-        if "truncated" in str(w.message):
-            raise PerscliError(f"{'stdin' if name == '-' else name}: the file is truncated: "
-                               f"{str(w.message).split(';')[0]}; re-copy or regenerate it")
-    return hdul, raw
+def _open_source(name: str, stdin=None) -> Source:
+    import os
+
+    if name == "-":
+        return Source("stdin", data=_read_stdin(stdin))
+    if not os.path.exists(name):
+        raise PerscliError(f"{name}: no such file")
+    if os.path.isdir(name):
+        raise PerscliError(f"{name}: is a directory, not a FITS file; give the path of a file inside it")
+    try:
+        return Source(name, path=name)
+    except OSError as exc:
+        raise PerscliError(f"{name}: cannot be read ({exc.strerror})") from None
 
 
-def _data_bytes(header) -> int:
-    """Size of an HDU's data in bytes from its header (FITS Standard 4.4.1.1)."""
-    naxis = int(header.get("NAXIS", 0))
-    if naxis == 0:
-        return 0
-    n = 1
-    for k in range(1, naxis + 1):
-        n *= int(header.get(f"NAXIS{k}", 0))
-    return abs(int(header["BITPIX"])) // 8 * int(header.get("GCOUNT", 1)) * (int(header.get("PCOUNT", 0)) + n)
-
-
-def _check_complete(name, hdul, raw):
-    size = len(raw) if raw is not None else os.path.getsize(name)
-    for i, hdu in enumerate(hdul):
-        info = hdu.fileinfo()
-        if info is None:
-            continue
-        need = info["datLoc"] + _data_bytes(hdu.header)
-        if need > size:
-            raise PerscliError(
-                f"{name}: the file is truncated: HDU {i} needs {need} bytes but the file has {size}; "
-                "re-copy or regenerate it")
-
-
-def _science_hdus(name, hdul):
+def _science_hdus(name, hdus):
     """Find the science arrays and the layout of a file."""
-    sci = [i for i, h in enumerate(hdul) if h.name == "SCI" and getattr(h, "is_image", False)]
+    sci = [h.index for h in hdus if h.name == "SCI" and h.is_image]
     if len(sci) > 1:
-        by_ver = sorted(sci, key=lambda i: hdul[i].ver)
-        if all("SAMPTIME" in hdul[i].header for i in by_ver):
+        by_ver = sorted(sci, key=lambda i: hdus[i].ver)
+        if all("SAMPTIME" in hdus[i].header for i in by_ver):
             # WFC3 MULTIACCUM: SCI,1 is the last read, so time order is descending EXTVER
             return by_ver[::-1], "wfc3-ramp"
         raise PerscliError(
@@ -328,14 +315,14 @@ def _science_hdus(name, hdul):
             "extract one SCI extension (e.g. fitscopy 'file[SCI,1]')")
     if sci:
         index = sci[0]
-    elif hdul[0].header.get("NAXIS", 0) > 0:
+    elif int(hdus[0].header.get("NAXIS", 0)) > 0:
         index = 0
     else:
         raise PerscliError(f"{name}: no image data: expected a SCI extension or an image in the primary HDU")
-    hdu = hdul[index]
-    if hdu.data is None or hdu.header.get("NAXIS", 0) == 0:
+    hdu = hdus[index]
+    if hdu.data_size == 0:
         raise PerscliError(f"{name}: the {'SCI' if sci else 'primary'} HDU holds no data")
-    ndim = hdu.header["NAXIS"]
+    ndim = len(hdu.shape)
     if ndim == 2:
         return [index], "image"
     if ndim == 3:
@@ -343,24 +330,50 @@ def _science_hdus(name, hdul):
     raise PerscliError(f"{name}: the image has {ndim} axes; expected 2 (an image) or 3 (reads, y, x)")
 
 
-def _read_times(name, hdul, sci, layout, nplanes):
+def _read_times(name, hdus, sci, layout, nplanes):
     if layout == "wfc3-ramp":
-        times = np.array([float(hdul[i].header["SAMPTIME"]) for i in sci])
+        times = np.array([float(hdus[i].header["SAMPTIME"]) for i in sci])
     else:
-        tables = [h for h in hdul if h.name in ("READTIMES", "READ_TIMES", "TIMES") and isinstance(h, fits.BinTableHDU)]
+        tables = [h for h in hdus if h.name in ("READTIMES", "READ_TIMES", "TIMES")
+                  and str(h.header.get("XTENSION", "")).strip() == "BINTABLE"]
         if not tables:
             raise PerscliError(
                 f"{name}: a 3-D cube needs a READTIMES table (column TIME, seconds since the exposure start, "
                 "one row per read)")
-        cols = {c.lower(): c for c in tables[0].columns.names}
-        if "time" not in cols:
-            raise PerscliError(f"{name}: the READTIMES table has no TIME column (seconds since the exposure start)")
-        times = np.asarray(tables[0].data[cols["time"]], dtype=np.float64)
+        times = _table_column(name, tables[0], "TIME")
         if len(times) != nplanes:
             raise PerscliError(f"{name}: READTIMES has {len(times)} rows but the cube has {nplanes} reads")
     if not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0) or times[0] < 0:
         raise PerscliError(f"{name}: read times must be finite, non-negative and increasing; got {times.tolist()}")
     return times
+
+
+def _table_column(name, hdu: HDU, column: str) -> np.ndarray:
+    """A numeric column of a binary table, read with numpy from the raw rows."""
+    hdr = hdu.header
+    nfields = int(hdr.get("TFIELDS", 0))
+    formats = {"D": ">f8", "E": ">f4", "J": ">i4", "K": ">i8", "I": ">i2", "B": "u1"}
+    fields = []
+    for i in range(1, nfields + 1):
+        tform = str(hdr.get(f"TFORM{i}", "")).strip()
+        repeat = "".join(ch for ch in tform if ch.isdigit()) or "1"
+        code = tform.lstrip("0123456789")[:1]
+        ttype = str(hdr.get(f"TTYPE{i}", f"col{i}")).strip()
+        width = {"D": 8, "E": 4, "J": 4, "K": 8, "I": 2, "B": 1, "L": 1, "A": 1, "X": 0}.get(code)
+        if width is None:
+            raise PerscliError(f"{name}: READTIMES column {ttype} has unsupported format {tform}")
+        dtype = formats.get(code, f"V{width}")
+        fields.append((ttype, dtype, int(repeat)))
+    names = [f[0] for f in fields]
+    match = [n for n in names if n.upper() == column]
+    if not match:
+        raise PerscliError(f"{name}: the READTIMES table has no {column} column (seconds since the exposure start)")
+    dtype = np.dtype([(n, d) if r == 1 else (n, d, (r,)) for n, d, r in fields])
+    nrows = int(hdr.get("NAXIS2", 0))
+    if dtype.itemsize != int(hdr.get("NAXIS1", 0)):
+        raise PerscliError(f"{name}: the READTIMES table's row length does not match its columns")
+    rows = np.frombuffer(hdu.raw_bytes(0, nrows * dtype.itemsize), dtype=dtype)
+    return np.asarray(rows[match[0]], dtype=np.float64)
 
 
 def _float_keyword(frame_hdrs, key, name):
@@ -374,6 +387,10 @@ def _float_keyword(frame_hdrs, key, name):
                 raise PerscliError(f"{name}: keyword {key}={hdr[key]!r} is not finite")
             return value
     return None
+
+
+def _first(hdrs, key):
+    return next((h[key] for h in hdrs if h.get(key) not in (None, "")), None)
 
 
 def open_frame(name: str, *, units: str | None = None, gain: float | None = None,
@@ -404,19 +421,22 @@ def open_frame(name: str, *, units: str | None = None, gain: float | None = None
     PerscliError
         Unreadable, truncated or corrupt file; no image; unknown units.
     """
-    label = "stdin" if name == "-" else name
-    hdul, raw = _open_hdul(name, stdin)
+    source = _open_source(name, stdin)
+    label = source.label
     try:
-        _check_complete(label, hdul, raw)
-        sci, layout = _science_hdus(label, hdul)
-        hdrs = (hdul[sci[0]].header, hdul[0].header)
-        nplanes = hdul[sci[0]].shape[0] if layout == "cube" else len(sci)
-        read_times = _read_times(label, hdul, sci, layout, nplanes) if layout != "image" else None
+        hdus = scan(source)
+        sci, layout = _science_hdus(label, hdus)
+        hdrs = (hdus[sci[0]].header, hdus[0].header)
+        nplanes = hdus[sci[0]].shape[0] if layout == "cube" else len(sci)
+        read_times = _read_times(label, hdus, sci, layout, nplanes) if layout != "image" else None
+        for i in sci:
+            if hdus[i].shape[-2:] != hdus[sci[0]].shape[-2:]:
+                raise PerscliError(f"{label}: the reads of the ramp differ in shape")
 
         if units is not None:
             unit = normalize_unit(units, "--units")
         else:
-            bunit = next((h["BUNIT"] for h in hdrs if h.get("BUNIT") not in (None, "")), None)
+            bunit = _first(hdrs, "BUNIT")
             if bunit is None:
                 raise PerscliError(f"{label}: no BUNIT keyword; give --units electron|electron/s|DN|DN/s")
             unit = normalize_unit(bunit, f"{label}: BUNIT")
@@ -430,11 +450,11 @@ def open_frame(name: str, *, units: str | None = None, gain: float | None = None
 
         start = _float_keyword(hdrs, "EXPSTART", label)
         end = _float_keyword(hdrs, "EXPEND", label)
-        source = "EXPSTART/EXPEND"
+        source_kw = "EXPSTART/EXPEND"
         if start is None or end is None:
             start = _float_keyword(hdrs, "MJD-BEG", label)
             end = _float_keyword(hdrs, "MJD-END", label)
-            source = "MJD-BEG/MJD-END"
+            source_kw = "MJD-BEG/MJD-END"
         hdr_exptime = _float_keyword(hdrs, "EXPTIME", label)
         if hdr_exptime is None:
             hdr_exptime = _float_keyword(hdrs, "XPOSURE", label)
@@ -442,25 +462,24 @@ def open_frame(name: str, *, units: str | None = None, gain: float | None = None
             hdr_exptime = exptime
         if start is None or end is None:
             start = end = None
-            date = next((h["DATE-OBS"] for h in hdrs if h.get("DATE-OBS") not in (None, "")), None)
+            date = _first(hdrs, "DATE-OBS")
             if date is not None and hdr_exptime is not None:
-                time_obs = next((h["TIME-OBS"] for h in hdrs if h.get("TIME-OBS") not in (None, "")), None)
-                start = parse_date_obs(date, time_obs)
+                start = parse_date_obs(date, _first(hdrs, "TIME-OBS"), label)
                 end = start + hdr_exptime / SECONDS_PER_DAY
-                source = "DATE-OBS+EXPTIME"
+                source_kw = "DATE-OBS+EXPTIME"
             else:
-                source = ""
+                source_kw = ""
         if start is not None and end < start:
-            raise PerscliError(f"{label}: the exposure ends ({end}) before it starts ({start}) ({source})")
+            raise PerscliError(f"{label}: the exposure ends ({end}) before it starts ({start}) ({source_kw})")
         if hdr_exptime is None and start is not None:
             hdr_exptime = (end - start) * SECONDS_PER_DAY
         if hdr_exptime is not None and hdr_exptime < 0:
             raise PerscliError(f"{label}: exposure time {hdr_exptime} s is negative")
-        return Frame(name=name, hdul=hdul, sci=sci, layout=layout, unit=unit, gain=gain,
-                     exptime=hdr_exptime, start=start, end=end, read_times=read_times, raw=raw,
-                     timing_source=source)
+        return Frame(name=name, hdus=hdus, sci=sci, layout=layout, unit=unit, gain=gain,
+                     exptime=hdr_exptime, start=start, end=end, read_times=read_times,
+                     timing_source=source_kw, source=source)
     except BaseException:
-        hdul.close()
+        source.close()
         raise
 
 
@@ -475,7 +494,7 @@ def assign_sequence_timing(frames, gap: float, exptime: float | None = None):
     for frame in frames:
         seconds = frame.exptime if frame.exptime is not None else exptime
         if seconds is None:
-            raise PerscliError(f"{frame.name}: --gap needs an exposure time: the header has no EXPTIME; "
+            raise PerscliError(f"{frame.label}: --gap needs an exposure time: the header has no EXPTIME; "
                                "give --exptime SECONDS")
         frame.exptime = seconds
         frame.start = t / SECONDS_PER_DAY
@@ -488,5 +507,4 @@ def assign_sequence_timing(frames, gap: float, exptime: float | None = None):
 def require_timing(frame: Frame):
     """Raise a clear error if ``frame`` has no start/end time."""
     if frame.start is None or frame.end is None:
-        label = "stdin" if frame.name == "-" else frame.name
-        raise PerscliError(f"{label}: no exposure timing; {TIMING_HINT}")
+        raise PerscliError(f"{frame.label}: no exposure timing; {TIMING_HINT}")

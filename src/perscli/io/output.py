@@ -5,17 +5,20 @@ per processing step, one keyword per parameter, the inputs with their
 DATASUM, and CHECKSUM/DATASUM on every HDU.  Files are written to a temporary
 file in the destination folder and renamed into place, so a Makefile never
 sees a half-written target and an error leaves nothing behind.
+
+Two kinds of output are written the same way: a list of
+:class:`perscli.io.fitsfile.OutHDU` (images streamed by perscli's own writer)
+and an ``astropy.io.fits.HDUList`` (tables and anything else).
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import io
 import os
 import sys
 import tempfile
-
-from astropy.io import fits
 
 from .. import PerscliError, __version__
 
@@ -40,7 +43,9 @@ def check_output(dest: str, *, overwrite: bool = False, inputs=()) -> None:
         return
     folder = os.path.dirname(os.path.abspath(dest))
     if not os.path.isdir(folder):
-        raise PerscliError(f"{dest}: folder {folder} does not exist")
+        raise PerscliError(f"{dest}: folder {folder} does not exist; create it or choose another output")
+    if os.path.isdir(dest):
+        raise PerscliError(f"{dest}: is a directory; give a file name for the output")
     for name in inputs:
         if name != "-" and os.path.exists(name) and os.path.exists(dest) and os.path.samefile(name, dest):
             raise PerscliError(f"{dest}: is also an input; inputs are never modified: choose another output")
@@ -48,14 +53,14 @@ def check_output(dest: str, *, overwrite: bool = False, inputs=()) -> None:
         raise PerscliError(f"{dest}: already exists; use --overwrite to replace it")
 
 
-def add_provenance(header: fits.Header, *, step: str, params: dict | None = None,
-                   inputs=(), seed: int | None = None) -> fits.Header:
+def add_provenance(header, *, step: str, params: dict | None = None, inputs=(), seed: int | None = None):
     """Record who made an output, from what and how.
 
     Parameters
     ----------
-    header : astropy.io.fits.Header
-        Updated in place (and returned).
+    header : astropy.io.fits.Header or perscli.io.fitsfile.OutHDU
+        Updated in place (and returned): anything with item assignment of
+        ``(value, comment)`` and ``add_history``.
     step : str
         One line for the HISTORY card, e.g. 'apply-persistence mode=add'.
     params : dict
@@ -80,14 +85,14 @@ def add_provenance(header: fits.Header, *, step: str, params: dict | None = None
     return header
 
 
-def write_fits(hdul: fits.HDUList, dest: str, *, overwrite: bool = False, stdout=None) -> None:
-    """Write ``hdul`` with checksums, atomically, or to standard output.
+@contextlib.contextmanager
+def atomic_output(dest: str, *, overwrite: bool = False, stdout=None):
+    """A binary stream for ``dest`` that becomes the file only if the block succeeds.
 
     Parameters
     ----------
-    hdul : astropy.io.fits.HDUList
     dest : str
-        Path, or '-' for standard output.
+        Path, or '-' for standard output (buffered, written at the end).
     overwrite : bool
         Replace an existing file.
     stdout : binary file, optional
@@ -95,7 +100,7 @@ def write_fits(hdul: fits.HDUList, dest: str, *, overwrite: bool = False, stdout
     """
     if dest == "-":
         buffer = io.BytesIO()
-        hdul.writeto(buffer, checksum=True, output_verify="fix+warn")
+        yield buffer
         stream = stdout if stdout is not None else sys.stdout.buffer
         try:
             stream.write(buffer.getbuffer())
@@ -111,13 +116,29 @@ def write_fits(hdul: fits.HDUList, dest: str, *, overwrite: bool = False, stdout
     fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(dest)}.", suffix=".part", dir=folder)
     try:
         with os.fdopen(fd, "wb") as fh:
-            hdul.writeto(fh, checksum=True, output_verify="fix+warn")
-        os.chmod(tmp, 0o644 & ~_umask())
+            yield fh
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, dest)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def write_hdus(hdus, dest: str, *, overwrite: bool = False, stdout=None) -> None:
+    """Write :class:`~perscli.io.fitsfile.OutHDU` s with checksums, atomically or to stdout."""
+    from .fitsfile import Writer
+
+    with atomic_output(dest, overwrite=overwrite, stdout=stdout) as stream:
+        writer = Writer(stream)
+        for hdu in hdus:
+            writer.write(hdu)
+
+
+def write_fits(hdul, dest: str, *, overwrite: bool = False, stdout=None) -> None:
+    """Write an ``astropy.io.fits.HDUList`` with checksums, atomically or to stdout."""
+    with atomic_output(dest, overwrite=overwrite, stdout=stdout) as stream:
+        hdul.writeto(stream, checksum=True, output_verify="fix+warn")
 
 
 def _umask() -> int:
