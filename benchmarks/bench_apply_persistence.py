@@ -217,11 +217,12 @@ finally:
 #: (label, function name, file name ending) whose cumulative time the profile reports
 PHASES = [
     ("imports (after interpreter start)", "_find_and_load", "<frozen importlib._bootstrap>"),
-    ("open_frame x11 (headers, memmaps)", "open_frame", "frames.py"),
-    ("persistence kernel (_kernels.accumulate)", "<built-in method perscli._kernels.accumulate>", "~"),
-    ("input DATASUMs (_kernels.datasum)", "<built-in method perscli._kernels.datasum>", "~"),
-    ("build_output (current + persistence)", "build_output", "apply.py"),
-    ("write_fits (astropy writeto, checksum=True)", "write_fits", "output.py"),
+    ("open_frame x11 (headers only)", "open_frame", "frames.py"),
+    ("reading row blocks of the frames (pread)", "pread", "fitsfile.py"),
+    ("persistence kernel, DATASUM folded in (_kernels.accumulate)",
+     "<built-in method perscli._kernels.accumulate>", "~"),
+    ("other DATASUMs (_kernels.datasum: current, output)", "<built-in method perscli._kernels.datasum>", "~"),
+    ("write_hdus (output with CHECKSUM/DATASUM, atomic)", "write_hdus", "output.py"),
 ]
 
 
@@ -338,7 +339,7 @@ def main(argv=None):
     cmd_pred = base + ["-o", str(workdir / "pred_galsim.fits"), "--overwrite",
                        "--time-model", "galsim", "--mode", "predict"]
     # the fixed cost: the interpreter and the modules perscli imports, no data
-    cmd_base = [sys.executable, "-c", "import numpy, click, astropy.io.fits, perscli._kernels, "
+    cmd_base = [sys.executable, "-c", "import numpy, click, perscli._kernels, "
                 "perscli.cli.main, perscli.detector.apply, perscli.io.output"]
 
     print("warm-up (untimed): perscli once, GalSim once")

@@ -226,3 +226,24 @@ def test_corrupted_data_caught_by_datasum(frame_writer, tmp_path):
     result = run("apply-persistence", cur, prev, "-o", tmp_path / "o2.fits", ok=False)
     assert result.exit_code == 1 and "DATASUM" in result.output and "corrupt" in result.output
     assert not (tmp_path / "o2.fits").exists()
+
+
+def test_library_persistence_image_equals_the_commands_prediction(frame_writer, tmp_path):
+    from perscli.detector.apply import persistence_image
+    from perscli.detector.persistence import load_model
+    from perscli.io.frames import open_frame
+
+    rng = np.random.default_rng(12)
+    paths = [frame_writer(f"p{i}.fits", 10 ** rng.uniform(2, 5.5, (70, 30)), start=T0 + i * 169.8 / DAY)
+             for i in range(3)]
+    cur = frame_writer("c.fits", np.zeros((70, 30)), start=T0 + 3 * 169.8 / DAY)
+    out = tmp_path / "o.fits"
+    run("apply-persistence", cur, *paths, "--mode", "predict", "-o", out)
+    frames = [open_frame(p) for p in [cur, *paths]]
+    try:
+        image = persistence_image(frames[0], frames[1:], load_model("typical"), workers=2)
+    finally:
+        for f in frames:
+            f.close()
+    assert image.shape == (1, 70, 30)
+    np.testing.assert_allclose(image[0], sci(out), rtol=1e-12)

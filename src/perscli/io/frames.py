@@ -189,8 +189,7 @@ class Frame:
     def planes(self) -> list:
         """The science arrays in time order, in the file's units (native byte order)."""
         ny = self.shape[0]
-        return [np.asarray(self.rows(k, 0, ny), dtype=self.rows(k, 0, 0).dtype.newbyteorder("="))
-                for k in range(self.nreads)]
+        return [_native(self.rows(k, 0, ny)) for k in range(self.nreads)]
 
     def electrons_per_unit(self, seconds: float | None = None) -> float:
         """Factor that turns a value in this frame's unit into electrons.
@@ -240,7 +239,7 @@ class Frame:
     def fluence(self):
         """The accumulated charge of the whole exposure, as ``(array, scale)`` (see :meth:`fluence_rows`)."""
         array, scale = self.fluence_rows(0, self.shape[0])
-        return np.asarray(array, dtype=array.dtype.newbyteorder("=")), scale
+        return _native(array), scale
 
     @property
     def fluence_is_raw(self) -> bool:
@@ -277,6 +276,10 @@ class Frame:
         """Release the file."""
         if self.source is not None:
             self.source.close()
+
+
+def _native(array: np.ndarray) -> np.ndarray:
+    return np.asarray(array, dtype=array.dtype.newbyteorder("="))
 
 
 def _read_stdin(stdin) -> bytes:
