@@ -204,3 +204,20 @@ def test_console_script_usage_error_exit_2(tmp_path, frames):
     proc = _script("apply-persistence", *frames)
     assert proc.returncode == 2
     assert re.search(r"^Usage: perscli apply-persistence", proc.stderr.decode(), re.M)
+
+
+def test_progress_bar_on_a_terminal_and_silent_otherwise():
+    import io
+
+    from perscli.cli.helpers import progress_reporter
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    term = Terminal()
+    progress = progress_reporter("rows", stream=term)
+    for done in range(1, 5):
+        progress(done, 4)
+    assert "rows" in term.getvalue() and "100%" in term.getvalue()
+    assert progress_reporter("rows", stream=io.StringIO()) is None

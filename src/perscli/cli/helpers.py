@@ -36,24 +36,27 @@ def report_errors(func):
     return wrapper
 
 
-def progress_reporter(label: str):
-    """A ``progress(done, total, name)`` callback drawing a bar on stderr.
+def progress_reporter(label: str, stream=None):
+    """A ``progress(done, total, name=None)`` callback drawing a bar on stderr.
 
-    Silent when stderr is not a terminal or with -q, so logs and pipes stay clean.
+    Silent (None) when stderr is not a terminal or with -q, so logs and pipes
+    stay clean.
     """
+    stream = stream if stream is not None else sys.stderr
     ctx = click.get_current_context(silent=True)
     verbosity = (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
-    if verbosity < 0 or not sys.stderr.isatty():
+    if verbosity < 0 or not stream.isatty():
         return None
-    state = {}
+    state = {"done": 0}
 
-    def progress(done, total, name):
+    def progress(done, total, name=None):
         bar = state.get("bar")
         if bar is None:
-            bar = click.progressbar(length=total, label=label, file=sys.stderr)
+            bar = click.progressbar(length=total, label=label, file=stream)
             bar.__enter__()
             state["bar"] = bar
-        bar.update(1, current_item=name)
+        bar.update(done - state["done"], current_item=name)
+        state["done"] = done
         if done >= total:
             bar.__exit__(None, None, None)
 

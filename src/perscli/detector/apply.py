@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import PerscliError
+from .. import PerscliError, _kernels
 from ..io.fitsfile import OutHDU, image_cards
 from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, require_timing
 from ..io.output import add_provenance
@@ -280,8 +280,6 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
             if mode != "predict":
                 rows = current.rows(k, r0, r1)
                 if fold_current:
-                    from .. import _kernels
-
                     current_sum = ones_complement_add(current_sum, _kernels.datasum(rows))
                 if mode == "add":
                     np.add(rows, work, out=work)
