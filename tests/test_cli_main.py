@@ -9,6 +9,8 @@ from importlib import metadata
 
 import numpy as np
 import pytest
+
+from perscli.cli.main import cli
 from astropy.io import fits
 
 import perscli
@@ -44,7 +46,7 @@ def test_version_matches_the_installed_distribution():
 
 
 @pytest.mark.parametrize("flag", ["--help", "-h"])
-def test_help_lists_only_apply_persistence(flag):
+def test_help_lists_the_registered_commands(flag):
     result = invoke(flag)
     assert result.exit_code == 0
     text = result.stdout
@@ -52,7 +54,7 @@ def test_help_lists_only_apply_persistence(flag):
     commands = text.split("Commands:", 1)[1]
     # one command per line indented by two spaces; wrapped help lines are indented further
     names = re.findall(r"^  (\S+)", commands, re.M)
-    assert names == ["apply-persistence"]
+    assert names == sorted(cli.commands) == ["apply-persistence", "catalog", "pointings", "render"]
 
 
 def test_no_command_shows_usage():

@@ -8,6 +8,9 @@ import click
 
 from .. import __version__
 from .apply_persistence import apply_persistence
+from .render import render
+from .catalog import catalog
+from .pointings import pointings
 
 
 class _StderrFormatter(logging.Formatter):
@@ -45,6 +48,9 @@ def cli(ctx, verbose, quiet):
 
 
 cli.add_command(apply_persistence)
+cli.add_command(render)
+cli.add_command(catalog)
+cli.add_command(pointings)
 
 
 def main():

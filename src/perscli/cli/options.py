@@ -12,6 +12,10 @@ option            meaning                                       used by
 --gain            override GAIN/CCDGAIN (e-/DN)                 apply-persistence
 --exptime         exposure time for inputs that lack EXPTIME    apply-persistence
 --workers         threads or processes to use                   apply-persistence
+--ra, --dec       field centre (degrees)                        catalog, pointings
+--seed            random seed (same seed, same output)          catalog, pointings
+--filter          Roman filter name (R062 ... K213, W146)       pointings
+--sca             Roman detector 1-18 (0: none chosen)          pointings
 ================  ============================================  ==================
 """
 
@@ -39,3 +43,24 @@ exptime_opt = click.option(
 workers_opt = click.option(
     "--workers", type=click.IntRange(min=1), metavar="N", default=1, show_default=True,
     help="Number of cores to use.")
+
+ra_opt = click.option(
+    "--ra", type=float, required=True, metavar="DEG", help="Field centre: right ascension in degrees (ICRS).")
+
+dec_opt = click.option(
+    "--dec", type=click.FloatRange(-90, 90), required=True, metavar="DEG",
+    help="Field centre: declination in degrees (ICRS).")
+
+seed_opt = click.option(
+    "--seed", type=click.IntRange(min=0), default=1, show_default=True, metavar="N",
+    help="Random seed, written into the output: the same seed gives the same output.")
+
+# a plain string checked by the library (perscli.scene.check_filter), so that the command
+# line does not import the filter table
+filter_opt = click.option(
+    "--filter", "filter_name", metavar="NAME", default=None,
+    help="Roman filter: R062, Z087, Y106, J129, H158, F184, K213 or W146 (any case).")
+
+sca_opt = click.option(
+    "--sca", type=click.IntRange(0, 18), default=0, show_default=True, metavar="N",
+    help="Roman detector (SCA 1-18) to write into every row; 0 for none chosen.")

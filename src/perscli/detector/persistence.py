@@ -217,8 +217,17 @@ def _model_from_yaml(path: str) -> PersistenceModel:
         raise PerscliError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
     if isinstance(doc, Mapping) and isinstance(doc.get("persistence"), Mapping):
         doc = doc["persistence"]
+    if isinstance(doc, Mapping) and isinstance(doc.get("effects"), list):
+        # a detector model: take its persistence step
+        steps = [e["persistence"] for e in doc["effects"] if isinstance(e, Mapping) and "persistence" in e]
+        doc = steps[0] if steps else None
     if not isinstance(doc, Mapping):
         raise PerscliError(f"{path}: expected a mapping of persistence parameters (A, x0, dx, alpha, gamma, half_well)")
+    return _model_from_mapping(dict(doc), path)
+
+
+def _model_from_mapping(doc: dict, path: str) -> PersistenceModel:
+    """A model from parsed parameters (a YAML file's, or a detector model's persistence step)."""
     doc = dict(doc)
     kind = doc.pop("kind", doc.pop("model", "fermi"))
     base = doc.pop("base", None)
@@ -245,7 +254,8 @@ def _model_from_yaml(path: str) -> PersistenceModel:
     if missing:
         raise PerscliError(f"{path}: missing {', '.join(missing)} (or give 'base: typical' to start from a preset)")
     params.update({k: _number(k, v, path) for k, v in doc.items()})
-    return PersistenceModel(name=path, **params)
+    name = base if base and not doc else path
+    return PersistenceModel(name=name, **params)
 
 
 def time_factor(t_start, t_end, gamma: float) -> np.ndarray:

@@ -13,6 +13,8 @@ gain        GAIN, else CCDGAIN (e-/DN), unless ``gain=`` is given
 exptime     EXPTIME, else XPOSURE (s), else ``exptime=``, else end - start
 timing      EXPSTART/EXPEND (MJD, as HST writes them), else MJD-BEG/MJD-END,
             else DATE-OBS (+ TIME-OBS) plus the exposure time
+fluence     of an earlier exposure: a FLUENCE extension (electrons, as
+            ``perscli render`` writes) if there is one, else the data
 ramps       WFC3-IR raw/ima: SCI,1 is the last read, SCI,NSAMP the zeroth;
             SAMPTIME (s since the start) per read.  Cubes: (read, y, x) in
             time order with a READTIMES table (column TIME, s since start).
@@ -139,6 +141,23 @@ class Frame:
     read_times: np.ndarray | None = None
     timing_source: str = ""
     source: Source | None = field(default=None, repr=False)
+    fluence_hdu: int | None = None
+    image_shape: tuple | None = None
+
+    @classmethod
+    def planned(cls, name: str, shape: tuple, start: float, end: float, exptime: float, offsets=None):
+        """An exposure that is being made (no file yet): timing and shape only.
+
+        Used as the 'current' frame when rendering with persistence from
+        earlier exposures; ``offsets`` are its (LTV1, LTV2) for a cutout.
+        """
+        from .fitsfile import Header, format_card
+
+        cards = [format_card("LTV1", float(offsets[0])), format_card("LTV2", float(offsets[1]))] if offsets else []
+        frame = cls(name=name, hdus=[], sci=[], layout="image", unit="electron", gain=None, exptime=exptime,
+                    start=start, end=end, image_shape=tuple(shape))
+        frame._planned_header = Header(cards)
+        return frame
 
     @property
     def label(self) -> str:
@@ -148,11 +167,13 @@ class Frame:
     @property
     def header(self):
         """Header of the (first) science HDU."""
+        if not self.sci:
+            return self._planned_header
         return self.hdus[self.sci[0]].header
 
     def keyword(self, key, default=None):
         """A keyword from the science header, else from the primary header."""
-        for hdr in (self.header, self.hdus[0].header):
+        for hdr in (self.header, self.hdus[0].header if self.hdus else self.header):
             if key in hdr and hdr[key] not in (None, ""):
                 return hdr[key]
         return default
@@ -168,6 +189,8 @@ class Frame:
     @property
     def shape(self) -> tuple:
         """Shape of one image (one read)."""
+        if self.image_shape is not None:
+            return self.image_shape
         return tuple(self.hdus[self.sci[0]].shape[-2:])
 
     # -- pixels ----------------------------------------------------------
@@ -225,6 +248,9 @@ class Frame:
         kernel swaps bytes itself); for a ramp it is the last read minus the
         zeroth read.
         """
+        if self.fluence_hdu is not None:
+            # a frame perscli rendered: its FLUENCE extension holds the collected charge in electrons
+            return self.hdus[self.fluence_hdu].read_rows(r0, r1), 1.0
         if not self.is_ramp:
             return self.rows(0, r0, r1), self.electrons_per_unit()
         last = np.asarray(self.rows(self.nreads - 1, r0, r1), dtype=np.float64)
@@ -244,11 +270,16 @@ class Frame:
     @property
     def fluence_is_raw(self) -> bool:
         """True when :meth:`fluence_rows` hands out the stored bytes (their DATASUM can be folded in)."""
+        if self.fluence_hdu is not None:
+            return self.hdus[self.fluence_hdu].is_plain_float
         return not self.is_ramp and self.hdus[self.sci[0]].is_plain_float
 
     @property
     def provenance_hdu(self) -> int:
-        """The HDU whose DATASUM stands for this frame in provenance (the last read of a ramp)."""
+        """The HDU whose DATASUM stands for this frame in provenance (FLUENCE if used, the last read
+        of a ramp, else the science HDU)."""
+        if self.fluence_hdu is not None:
+            return self.fluence_hdu
         return self.sci[-1] if self.layout == "wfc3-ramp" else self.sci[0]
 
     def check_datasum(self, index: int, value: int) -> int:
@@ -478,9 +509,12 @@ def open_frame(name: str, *, units: str | None = None, gain: float | None = None
             hdr_exptime = (end - start) * SECONDS_PER_DAY
         if hdr_exptime is not None and hdr_exptime < 0:
             raise PerscliError(f"{label}: exposure time {hdr_exptime} s is negative")
+        fluence = [h.index for h in hdus if h.name == "FLUENCE" and h.is_image and h.data_size]
+        if fluence and hdus[fluence[0]].shape[-2:] != hdus[sci[0]].shape[-2:]:
+            raise PerscliError(f"{label}: the FLUENCE extension's shape differs from the science image's")
         return Frame(name=name, hdus=hdus, sci=sci, layout=layout, unit=unit, gain=gain,
                      exptime=hdr_exptime, start=start, end=end, read_times=read_times,
-                     timing_source=source_kw, source=source)
+                     timing_source=source_kw, source=source, fluence_hdu=fluence[0] if fluence else None)
     except BaseException:
         source.close()
         raise

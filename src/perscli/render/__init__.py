@@ -1,0 +1,1 @@
+"""Rendering exposures: sources drawn through the optics, then the detector chain."""

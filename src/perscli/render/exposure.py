@@ -1,0 +1,263 @@
+"""Render one Roman SCA exposure of a truth catalog.
+
+The optics come from GalSim's Roman module: the WCS of the SCA for the
+pointing (``galsim.roman.getWCS``, with the observatory position angle), the
+PSF of that SCA and filter (``galsim.roman.getPSF`` at the SCA centre and the
+filter's effective wavelength: it varies from SCA to SCA and filter to filter,
+not across one SCA), the filter's AB zeropoint and the zodiacal sky of
+``galsim.roman.getSkyLevel`` plus the thermal background.  Objects are drawn
+by :class:`perscli.render.draw.StampDrawer`; the detector chain of
+:mod:`perscli.detector.effects` turns the expected electrons into a frame.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import PerscliError
+from .draw import StampDrawer, galaxy_stamp_size, star_stamp_size
+
+log = logging.getLogger(__name__)
+
+FILTERS = ("R062", "Z087", "Y106", "J129", "H158", "F184", "K213", "W146")
+SCA_SIZE = 4088
+
+
+@dataclass
+class Exposure:
+    """What is observed: a pointing, an SCA, a filter and a time.
+
+    Attributes
+    ----------
+    ra, dec : float
+        Pointing centre of the focal plane, degrees.
+    pa : float
+        Position angle of the observatory, degrees (GalSim's convention).
+    sca : int
+        1-18.
+    filter : str
+        A Roman filter name (J129, H158, ...).
+    mjd : float
+        Start of the exposure (MJD).
+    exptime : float
+        Seconds.
+    bounds : tuple of int, optional
+        (xmin, xmax, ymin, ymax), 1-indexed inclusive pixels of a cutout;
+        None for the full 4088 x 4088 SCA.
+    expid : int
+        Identifier written to the header (a schedule row, say).
+    """
+
+    ra: float
+    dec: float
+    pa: float
+    sca: int
+    filter: str
+    mjd: float
+    exptime: float = 139.8
+    bounds: tuple | None = None
+    expid: int = -1
+
+    def __post_init__(self):
+        if self.filter not in FILTERS:
+            raise PerscliError(f"unknown filter {self.filter!r}: use one of {', '.join(FILTERS)}")
+        if not 1 <= int(self.sca) <= 18:
+            raise PerscliError(f"--sca {self.sca} is not a Roman SCA: use 1 to 18")
+        if not (math.isfinite(self.ra) and -90 <= self.dec <= 90 and math.isfinite(self.pa)):
+            raise PerscliError(f"pointing ra={self.ra} dec={self.dec} pa={self.pa} is not valid (degrees)")
+        if not self.exptime > 0:
+            raise PerscliError(f"exposure time {self.exptime} s must be positive")
+        if self.bounds is not None:
+            xmin, xmax, ymin, ymax = (int(v) for v in self.bounds)
+            if not (1 <= xmin <= xmax <= SCA_SIZE and 1 <= ymin <= ymax <= SCA_SIZE):
+                raise PerscliError(f"--bounds {self.bounds} must lie within 1..{SCA_SIZE} with min <= max")
+            self.bounds = (xmin, xmax, ymin, ymax)
+
+    @property
+    def full_bounds(self) -> tuple:
+        return self.bounds or (1, SCA_SIZE, 1, SCA_SIZE)
+
+    @property
+    def date(self) -> _dt.datetime:
+        return _dt.datetime(1858, 11, 17) + _dt.timedelta(days=self.mjd)
+
+    @property
+    def end(self) -> float:
+        return self.mjd + self.exptime / 86400.0
+
+
+class Optics:
+    """WCS, PSF, zeropoint and sky of one exposure (the GalSim Roman objects)."""
+
+    def __init__(self, exposure: Exposure):
+        import galsim
+        import galsim.roman as roman
+
+        self.exposure = exposure
+        self.bandpass = roman.getBandpasses(AB_zeropoint=True)[exposure.filter]
+        pointing = galsim.CelestialCoord(exposure.ra * galsim.degrees, exposure.dec * galsim.degrees)
+        self.wcs = roman.getWCS(world_pos=pointing, PA=exposure.pa * galsim.degrees, date=exposure.date,
+                                SCAs=exposure.sca)[exposure.sca]
+        self.zeropoint = self.bandpass.zeropoint
+        self.electrons_per_unit_flux = roman.collecting_area * exposure.exptime
+        self.psf_world = roman.getPSF(exposure.sca, exposure.filter,
+                                      wavelength=self.bandpass.effective_wavelength)
+        self.psf_pixels = galsim.PixelScale(roman.pixel_scale).toImage(self.psf_world)
+        self.centre = galsim.PositionD(SCA_SIZE / 2 + 0.5, SCA_SIZE / 2 + 0.5)
+        self.world_centre = self.wcs.toWorld(self.centre)
+
+    def electrons(self, mag) -> np.ndarray:
+        """Expected electrons over the exposure for AB magnitudes in this filter."""
+        return 10.0 ** (-0.4 * (np.asarray(mag, dtype=np.float64) - self.zeropoint)) * self.electrons_per_unit_flux
+
+    def sky_rate(self) -> float:
+        """Zodiacal (at the SCA centre) plus thermal background, e-/pixel/s."""
+        import galsim.roman as roman
+
+        zodi = roman.getSkyLevel(self.bandpass, world_pos=self.world_centre, exptime=1.0)
+        return float(zodi * self.wcs.pixelArea(self.centre) + roman.thermal_backgrounds[self.exposure.filter])
+
+    def positions(self, ra_deg, dec_deg):
+        """Image positions (x, y) of sky positions, GalSim convention (pixel centres at integers)."""
+        x, y = self.wcs.radecToxy(np.radians(ra_deg), np.radians(dec_deg), units="radians")
+        return np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+
+
+# -- the catalogue --------------------------------------------------------------------------------
+
+REQUIRED = ("id", "ra", "dec", "kind", "hlr", "e1", "e2")
+
+
+def read_truth(path: str, filter_name: str):
+    """The columns of a truth catalogue needed to draw ``filter_name``, as numpy arrays.
+
+    Raises
+    ------
+    PerscliError
+        Not a readable FITS table, a missing column, or non-finite values.
+    """
+    import os
+
+    from astropy.io import fits
+
+    if not os.path.exists(path):
+        raise PerscliError(f"{path}: no such file")
+    try:
+        with fits.open(path) as hdul:
+            tables = [h for h in hdul if isinstance(h, fits.BinTableHDU)]
+            if not tables:
+                raise PerscliError(f"{path}: no binary table: expected a truth catalogue (perscli catalog)")
+            data = tables[0].data
+            names = {n.lower(): n for n in data.columns.names}
+            mag = f"mag_{filter_name}".lower()
+            missing = [c for c in REQUIRED + (mag,) if c not in names]
+            if missing:
+                raise PerscliError(f"{path}: truth catalogue lacks column(s) {', '.join(missing)} "
+                                   "(make one with perscli catalog)")
+            cols = {c: np.array(data[names[c]]) for c in REQUIRED}
+            cols["mag"] = np.array(data[names[mag]], dtype=np.float64)
+    except PerscliError:
+        raise
+    except (OSError, ValueError, TypeError) as exc:
+        raise PerscliError(f"{path}: not a readable FITS table ({str(exc).splitlines()[0]})") from None
+    cols["kind"] = np.char.strip(np.char.lower(cols["kind"].astype(str)))
+    for c in ("ra", "dec", "hlr", "e1", "e2", "mag"):
+        cols[c] = np.asarray(cols[c], dtype=np.float64)
+        bad = ~np.isfinite(cols[c]) & (cols["kind"] == "galaxy" if c in ("hlr", "e1", "e2") else True)
+        if np.any(bad):
+            raise PerscliError(f"{path}: column {c} has {int(bad.sum())} non-finite value(s) "
+                               f"(first at id {cols['id'][bad][0]}); fix or drop those rows")
+    unknown = set(np.unique(cols["kind"])) - {"star", "galaxy"}
+    if unknown:
+        raise PerscliError(f"{path}: column kind has {sorted(unknown)}; expected 'star' or 'galaxy'")
+    return cols
+
+
+# -- drawing ------------------------------------------------------------------------------------
+
+def plan_objects(cols, optics: Optics, bounds):
+    """Which objects touch the image, with their positions, fluxes and stamp sizes."""
+    import galsim.roman as roman
+
+    x, y = optics.positions(cols["ra"], cols["dec"])
+    flux = optics.electrons(cols["mag"])
+    is_star = cols["kind"] == "star"
+    hlr_pix = cols["hlr"] / roman.pixel_scale
+    sizes = np.empty(len(x), dtype=np.int64)
+    for i in range(len(x)):
+        sizes[i] = star_stamp_size(flux[i]) if is_star[i] else galaxy_stamp_size(hlr_pix[i])
+    xmin, xmax, ymin, ymax = bounds
+    half = sizes / 2 + 1
+    keep = (x + half >= xmin) & (x - half <= xmax) & (y + half >= ymin) & (y - half <= ymax) & (flux > 0)
+    return np.flatnonzero(keep), x, y, flux, sizes
+
+
+_WORKER = {}
+
+
+def _init_worker(exposure: Exposure):
+    _WORKER["optics"] = Optics(exposure)
+    _WORKER["drawer"] = StampDrawer(_WORKER["optics"].psf_pixels)
+
+
+def _draw_one(args):
+    """One object's stamp: (index, stamp array, its lower-left pixel)."""
+    import galsim
+
+    index, x, y, flux, n, kind, hlr, e1, e2 = args
+    optics, drawer = _WORKER["optics"], _WORKER["drawer"]
+    profile = None
+    if kind == "galaxy":
+        gal = galsim.Exponential(half_light_radius=hlr, flux=1.0).shear(g1=e1, g2=e2)
+        profile = optics.wcs.local(galsim.PositionD(x, y)).toImage(gal)
+    ix, iy = int(math.floor(x + 0.5)), int(math.floor(y + 0.5))
+    stamp = drawer.stamp(n, x - ix, y - iy, flux, profile)
+    return index, stamp, ix - n // 2, iy - n // 2
+
+
+def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None):
+    """Expected electrons from the catalogue's objects on the exposure's pixels.
+
+    Stamps are added in catalogue order whatever the number of workers, so
+    the result is the same bytes for any ``workers``.
+
+    Returns
+    -------
+    (ndarray, int)
+        The image (float64, shape of the bounds) and the number of objects drawn.
+    """
+    optics = Optics(exposure)
+    xmin, xmax, ymin, ymax = exposure.full_bounds
+    image = np.zeros((ymax - ymin + 1, xmax - xmin + 1))
+    todo, x, y, flux, sizes = plan_objects(cols, optics, exposure.full_bounds)
+    jobs = [(int(i), float(x[i]), float(y[i]), float(flux[i]), int(sizes[i]), cols["kind"][i],
+             float(cols["hlr"][i]), float(cols["e1"][i]), float(cols["e2"][i])) for i in todo]
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"), initializer=_init_worker,
+                                   initargs=(exposure,))
+        stamps = pool.map(_draw_one, jobs, chunksize=max(1, len(jobs) // (8 * workers)))
+    else:
+        pool = None
+        _WORKER["optics"], _WORKER["drawer"] = optics, StampDrawer(optics.psf_pixels)
+        stamps = map(_draw_one, jobs)
+    try:
+        for done, (index, stamp, x0, y0) in enumerate(stamps, 1):
+            n = stamp.shape[0]
+            a0, a1 = max(x0, xmin), min(x0 + n, xmax + 1)
+            b0, b1 = max(y0, ymin), min(y0 + n, ymax + 1)
+            if a0 < a1 and b0 < b1:
+                image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += stamp[b0 - y0:b1 - y0, a0 - x0:a1 - x0]
+            if progress is not None:
+                progress(done, len(jobs))
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    return image, len(jobs), optics

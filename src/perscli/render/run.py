@@ -1,0 +1,173 @@
+"""``perscli render`` as a function: catalogue + exposure + detector model -> FITS frame."""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+
+from .. import PerscliError
+from ..detector.effects import DetectorModel, run_chain
+from ..io.fitsfile import OutHDU, format_card, image_cards
+from ..io.output import add_provenance, check_output, write_hdus
+from .exposure import Exposure, draw_sources, read_truth
+
+log = logging.getLogger(__name__)
+
+
+def _wcs_cards(optics, bounds) -> list:
+    """FITS WCS cards of the exposure's SCA for an image with these bounds."""
+    import galsim
+
+    xmin, xmax, ymin, ymax = bounds
+    header = {}
+    optics.wcs.writeToFitsHeader(header, galsim.BoundsI(xmin, xmax, ymin, ymax))
+    cards = []
+    for key, value in header.items():
+        if isinstance(value, tuple):
+            value, comment = value
+        else:
+            comment = None
+        if key in ("GS_XMIN", "GS_YMIN", "GS_WCS"):
+            continue
+        cards.append(format_card(key, value, comment))
+    return cards
+
+
+def _exposure_cards(exposure: Exposure, optics, seed: int, bunit: str, gain: float) -> list:
+    import datetime as _dt
+
+    xmin, _, ymin, _ = exposure.full_bounds
+    date_obs = (_dt.datetime(1858, 11, 17) + _dt.timedelta(days=exposure.mjd)).isoformat(timespec="milliseconds")
+    return [
+        format_card("BUNIT", bunit, "units of the data"),
+        format_card("GAIN", gain, "[e-/DN]"),
+        format_card("EXPTIME", exposure.exptime, "[s] exposure time"),
+        format_card("EXPSTART", exposure.mjd, "[MJD] exposure start"),
+        format_card("EXPEND", exposure.end, "[MJD] exposure end"),
+        format_card("DATE-OBS", date_obs, "UTC start of the exposure"),
+        format_card("TELESCOP", "ROMAN"),
+        format_card("INSTRUME", "WFI"),
+        format_card("SCA", exposure.sca, "sensor chip assembly"),
+        format_card("FILTER", exposure.filter),
+        format_card("EXPID", exposure.expid, "exposure identifier (e.g. schedule row)"),
+        format_card("RA_PNT", exposure.ra, "[deg] pointing of the focal plane"),
+        format_card("DEC_PNT", exposure.dec, "[deg] pointing of the focal plane"),
+        format_card("PA_PNT", exposure.pa, "[deg] observatory position angle"),
+        format_card("ZPT_AB", optics.zeropoint, "AB mag of 1 photon/cm^2/s"),
+        format_card("LTV1", float(1 - xmin), "cutout offset: image x = SCA x + LTV1"),
+        format_card("LTV2", float(1 - ymin), "cutout offset: image y = SCA y + LTV2"),
+        format_card("SEED", int(seed), "random seed"),
+    ]
+
+
+def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, seed: int,
+                previous=(), overwrite: bool = False, workers: int = 1, progress=None) -> dict:
+    """Render ``exposure`` of the truth catalogue ``truth`` and write ``dest``.
+
+    Parameters
+    ----------
+    truth : str
+        FITS truth catalogue (``perscli catalog``).
+    exposure : Exposure
+    dest : str
+        Output path or '-'.
+    model : DetectorModel
+    seed : int
+        Seed of every random stream; the same seed gives the same bytes
+        (apart from DATE and CHECKSUM).
+    previous : sequence of str
+        Earlier exposures of the same SCA area (frames perscli rendered: their
+        FLUENCE drives the persistence), for the persistence effect.
+    overwrite, workers, progress
+        As for every command.
+
+    Returns
+    -------
+    dict
+        Summary: objects drawn, sky rate, units, persistence maximum.
+    """
+    from ..io.frames import Frame, open_frame
+
+    check_output(dest, overwrite=overwrite, inputs=[truth, *previous])
+    cols = read_truth(truth, exposure.filter)
+    previous = list(previous)
+    if previous and not model.enabled("persistence"):
+        log.warning("--previous given but the persistence effect is off in the detector model: ignored")
+    opened = []
+    try:
+        for name in previous if model.enabled("persistence") else []:
+            opened.append(open_frame(name))
+        sources, nobj, optics = draw_sources(cols, exposure, workers=workers, progress=progress)
+        xmin, xmax, ymin, ymax = exposure.full_bounds
+        pers_info = []
+
+        def persistence():
+            from ..detector.apply import persistence_image, plan
+
+            current = Frame.planned("render", sources.shape, exposure.mjd, exposure.end, exposure.exptime,
+                                    offsets=(1 - xmin, 1 - ymin))
+            pmodel = model.persistence_model()
+            the_plan = plan(current, opened, pmodel)
+            pers_info.extend(the_plan.used)
+            return persistence_image(current, opened, pmodel, workers=workers)[0]
+
+        result = run_chain(sources, model, exptime=exposure.exptime, seed=seed, sky_rate=optics.sky_rate,
+                           persistence=persistence if opened else None)
+        gain = model.get("gain").params["gain"] if model.enabled("gain") else 1.0
+        common = _wcs_cards(optics, exposure.full_bounds)
+        sci_cards = common + _exposure_cards(exposure, optics, seed, result.unit, gain) + [
+            format_card("SKYRATE", result.sky_rate, "[e-/pixel/s] sky background used"),
+            format_card("NOBJ", nobj, "objects drawn")]
+        e_cards = common + _exposure_cards(exposure, optics, seed, "electron", 1.0)
+        hdus = [OutHDU([format_card("SIMPLE", True), format_card("BITPIX", 8), format_card("NAXIS", 0),
+                        format_card("EXTEND", True)])]
+
+        def image(data, name, cards, dtype=np.float32):
+            arr = np.asarray(data, dtype=np.dtype(dtype).newbyteorder(">"))
+            return OutHDU(image_cards(arr, cards, primary=False, extname=name), memoryview(arr).cast("B"))
+
+        hdus.append(image(result.sci, "SCI", sci_cards))
+        hdus.append(image(result.ideal, "IDEAL", e_cards))
+        hdus.append(image(result.fluence, "FLUENCE", e_cards))
+        if result.persistence is not None:
+            hdus.append(image(result.persistence, "PERSIST", e_cards))
+        _provenance(hdus[0], truth, exposure, model, seed, opened, pers_info)
+        write_hdus(hdus, dest, overwrite=overwrite)
+        return {"objects": nobj, "sky_rate": result.sky_rate, "unit": result.unit,
+                "persistence_max": float(result.persistence.max()) if result.persistence is not None else 0.0}
+    finally:
+        for frame in opened:
+            frame.close()
+
+
+def _datasum_of_table(path: str) -> int:
+    from ..io.fitsfile import Source, scan
+
+    src = Source(path, path=path)
+    try:
+        hdus = scan(src)
+        tables = [h for h in hdus if str(h.header.get("XTENSION", "")).strip() == "BINTABLE"]
+        return tables[0].datasum() if tables else 0
+    finally:
+        src.close()
+
+
+def _provenance(primary: OutHDU, truth, exposure: Exposure, model: DetectorModel, seed, opened, used):
+    params = {
+        "DETMODEL": (os.path.basename(model.source)[-68:], "detector model"),
+        "FILTER": exposure.filter, "SCA": exposure.sca,
+    }
+    for i, (name, enabled, p) in enumerate(model.describe(), 1):
+        text = ",".join(f"{k}={v}" for k, v in p.items())
+        params[f"EFF{i:02d}"] = (f"{name}{'' if enabled else ' off'} {text}".strip()[:68], "detector effect, in order")
+    inputs = [("TRUTH", truth, _datasum_of_table(truth))]
+    for i, frame in enumerate(opened, 1):
+        inputs.append((f"PRV{i:02d}", frame.name,
+                       frame.datasum(frame.provenance_hdu)))
+    for i, rec in enumerate(used, 1):
+        params[f"PSP{i:02d}DT"] = (round(rec.gap, 6), "[s] delay after an earlier exposure")
+    add_provenance(primary, step=f"render sca={exposure.sca} filter={exposure.filter} mjd={exposure.mjd} "
+                                 f"model={model.source} previous={len(opened)}",
+                   params=params, inputs=inputs, seed=seed)

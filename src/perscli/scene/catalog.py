@@ -1,0 +1,612 @@
+"""Truth catalogs: the galaxies and stars of a field, with magnitudes in every Roman filter.
+
+A field is a square of side ``size`` arcmin on the gnomonic (TAN) tangent
+plane at its centre, east-west and north-south sides: standard coordinates
+|xi|, |eta| <= tan(size/2), so the sides through the centre subtend exactly
+``size``.  Its area is the solid angle of that square,
+4 arcsin(a^2 / (1 + a^2)) with a = tan(size/2) (99.9999 arcmin^2 for 10').
+
+Positions are uniform in solid angle: points uniform in the tangent-plane
+square are kept with probability (1 + xi^2 + eta^2)^(-3/2), the ratio of the
+sphere's area element to the plane's, and deprojected.  (Uniform in the plane
+alone would over-weight the corners by 1.5 (xi^2 + eta^2): 6e-6 for 10', but
+1% for a 5-degree field.)  Counts are Poisson(density x area).
+
+**Galaxies** (:class:`GalaxyModel`): exponential profiles.  J129 (AB) from
+dN/dm ∝ 10^(0.28 m) for 20 <= J <= 25.5, the slope of deep near-infrared
+(J, H) galaxy counts fainter than ~20 mag (Windhorst et al. 2011, ApJS 193,
+27; CANDELS).  The paper drew its galaxies from a CANDELS-based catalogue
+that is not public; this law with the paper's 40 galaxies/arcmin^2 gives
+7.0 per arcmin^2 brighter than J = 23, 14.5 brighter than J = 24 and 28.7
+brighter than J = 25.  J - H ~ N(0.30, 0.15).  Half-light radius:
+log10(hlr / arcsec) ~ N(log10(0.35) - 0.08 (J - 23), 0.2), clipped to
+[0.08, 1.5] arcsec.  Intrinsic ellipticity: (e1, e2) each N(0, 0.27), the
+pair redrawn until |e| <= 0.7 (the paper's truncation); the truncated
+distribution has a per-component standard deviation of 0.2532.  e1, e2 are
+reduced-shear-style g (|g| = (a - b)/(a + b)), to be used as
+``galsim.Shear(g1=e1, g2=e2)``.  No shear is applied.
+
+**Stars** (:class:`StarModel`): point sources.  J129 (AB) from
+dN/dm ∝ 10^(0.15 m) for 10 <= J <= 24, an approximation to 2MASS and
+Besançon-model counts at high Galactic latitude: with the paper's
+2.5 stars/arcmin^2 it gives 215 stars per deg^2 brighter than J = 14
+(close to the ~200 per deg^2 of 2MASS and Besançon counts at high
+latitude), 1070 per deg^2 brighter than J = 18 and 0.61 per arcmin^2
+brighter than J = 20.  J - H ~ N(0.45, 0.15) clipped to [0, 1].
+
+**Gaia stars** (:func:`read_gaia_stars`), instead of model stars: Gaia DR2
+reference-catalog chunks (LSST format: coord_ra/coord_dec in radians,
+phot_{g,bp,rp}_mean_flux in nJy, AB).  AB magnitudes m = 31.4 - 2.5 log10(f/nJy)
+are moved to Gaia's Vega system with the differences of the DR2 zero points
+(Evans et al. 2018, A&A 616, A4; Gaia DR2 documentation, table 5.3):
+G 25.7934 (AB) vs 25.6884 (Vega), BP 25.3806 vs 25.3514, RP 25.1161 vs
+24.7619, so G_Vega = G_AB - 0.105 and (BP-RP)_Vega = (BP-RP)_AB + 0.325.
+2MASS J and H follow from the DR2 relations (Evans et al. 2018, table A.2):
+G - J = -0.01883 + 1.394 X - 0.07893 X^2 and
+G - H = -0.1621 + 1.968 X - 0.1328 X^2 with X = (BP-RP)_Vega, X clipped to
+the ranges over which they were fitted (table A.1): -0.5 to 5.5 for J, 0.25
+to 5.0 for H.  Then J_AB = J_Vega + 0.91 and H_AB = H_Vega + 1.39 (Blanton &
+Roweis 2007, AJ 133, 734), and 2MASS J, H stand for Roman J129, H158 (the
+bands are similar; colour terms of a few hundredths of a magnitude are
+neglected).  Stars without BP or RP flux (NaN or <= 0) get the median colour
+of the stars read that have both.  Positions are at the catalogue epoch
+(proper motions are not applied).
+
+**Other filters**: each magnitude is interpolated (or extrapolated) linearly
+in ln(effective wavelength) through J129 and H158 (wavelengths in
+:data:`perscli.scene.EFFECTIVE_WAVELENGTH_UM`): a power-law spectrum, simple
+but monotonic and exact at J129 and H158.
+
+The random numbers: ``numpy.random.Generator(PCG64)`` streams spawned from
+``SeedSequence(seed)``, one for galaxies and one for stars, so that changing
+the star model (or using Gaia) leaves the galaxies unchanged.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .. import PerscliError
+from . import EFFECTIVE_WAVELENGTH_UM, ROMAN_FILTERS, deproject, project, read_table
+
+log = logging.getLogger(__name__)
+
+#: arcmin^2 per steradian
+ARCMIN2_PER_SR = (180.0 * 60.0 / math.pi) ** 2
+
+#: Gaia DR2 zero points (Vega, AB), Evans et al. 2018 / Gaia DR2 documentation table 5.3
+GAIA_DR2_ZP = {"G": (25.6884, 25.7934), "BP": (25.3514, 25.3806), "RP": (24.7619, 25.1161)}
+
+#: Gaia DR2 to 2MASS, G - band = c0 + c1 X + c2 X^2 with X = BP-RP (Vega), and the range of X fitted
+GAIA_TO_2MASS = {"J": ((-0.01883, 1.394, -0.07893), (-0.5, 5.5)),
+                 "H": ((-0.1621, 1.968, -0.1328), (0.25, 5.0))}
+
+#: 2MASS AB - Vega (Blanton & Roweis 2007)
+TWOMASS_AB_MINUS_VEGA = {"J": 0.91, "H": 1.39}
+
+#: BP-RP (Vega) for Gaia stars without BP/RP when no star read has both: the median of the DR2 stars
+#: of ../shared/data/gaia (RA 10, Dec -44, Galactic latitude -73)
+DEFAULT_BP_RP = 1.43
+
+#: AB magnitude of 1 nJy
+AB_NJY_ZP = 31.4
+
+MAG_COLUMNS = tuple(f"mag_{f}" for f in ROMAN_FILTERS)
+
+COLUMNS = ("id", "ra", "dec", "kind", *MAG_COLUMNS, "hlr", "e1", "e2", "gaia_id")
+
+
+@dataclass(frozen=True)
+class GalaxyModel:
+    """The galaxy population (see the module docstring for the sources)."""
+
+    mag_slope: float = 0.28     #: d log10 N / dm of J129
+    mag_min: float = 20.0       #: brightest J129 (AB)
+    mag_max: float = 25.5       #: faintest J129 (AB)
+    jh_mean: float = 0.30       #: mean J - H
+    jh_sigma: float = 0.15      #: scatter of J - H
+    hlr_at_23: float = 0.35     #: median half-light radius at J = 23 (arcsec)
+    hlr_slope: float = -0.08    #: d log10(hlr) / dJ
+    hlr_sigma: float = 0.2      #: scatter of log10(hlr)
+    hlr_min: float = 0.08       #: clip (arcsec)
+    hlr_max: float = 1.5        #: clip (arcsec)
+    e_sigma: float = 0.27       #: per-component scatter of the intrinsic ellipticity g
+    e_max: float = 0.7          #: |g| above this is redrawn
+
+
+@dataclass(frozen=True)
+class StarModel:
+    """The model star population (see the module docstring)."""
+
+    mag_slope: float = 0.15
+    mag_min: float = 10.0
+    mag_max: float = 24.0
+    jh_mean: float = 0.45
+    jh_sigma: float = 0.15
+    jh_min: float = 0.0
+    jh_max: float = 1.0
+
+
+@dataclass(frozen=True)
+class Field:
+    """A square field on the tangent plane at (ra, dec).
+
+    Attributes
+    ----------
+    ra, dec : float
+        Centre in degrees.
+    size : float
+        Side in arcmin.
+    """
+
+    ra: float
+    dec: float
+    size: float = 10.0
+
+    def __post_init__(self):
+        if not (math.isfinite(self.ra) and math.isfinite(self.dec) and -90.0 <= self.dec <= 90.0):
+            raise PerscliError(f"field centre ({self.ra}, {self.dec}): give RA in degrees and Dec in "
+                               "[-90, 90] degrees")
+        if not (0.0 < self.size < 3600.0):
+            raise PerscliError(f"field size {self.size} arcmin: must be more than 0 and less than 3600 "
+                               "(60 degrees)")
+        object.__setattr__(self, "ra", float(self.ra) % 360.0)
+
+    @property
+    def half_width(self) -> float:
+        """Half-side in standard coordinates (radians on the tangent plane)."""
+        return math.tan(math.radians(self.size / 60.0) / 2.0)
+
+    @property
+    def area(self) -> float:
+        """Solid angle in arcmin^2."""
+        a2 = self.half_width ** 2
+        return 4.0 * math.asin(a2 / (1.0 + a2)) * ARCMIN2_PER_SR
+
+    def contains(self, ra, dec) -> np.ndarray:
+        """Which of the positions (degrees) lie inside the field."""
+        xi, eta = project(self.ra, self.dec, ra, dec)
+        a = self.half_width
+        with np.errstate(invalid="ignore"):
+            return (np.abs(xi) <= a) & (np.abs(eta) <= a)
+
+    def sample(self, rng: np.random.Generator, n: int) -> tuple:
+        """``n`` positions uniform in solid angle over the field: (ra, dec) in degrees."""
+        a = self.half_width
+        xi = np.empty(0)
+        eta = np.empty(0)
+        while xi.size < n:
+            m = int((n - xi.size) * 1.05) + 16
+            x = rng.uniform(-a, a, m)
+            y = rng.uniform(-a, a, m)
+            keep = rng.random(m) < (1.0 + x * x + y * y) ** -1.5
+            xi = np.concatenate([xi, x[keep]])
+            eta = np.concatenate([eta, y[keep]])
+        return deproject(self.ra, self.dec, xi[:n], eta[:n])
+
+
+# -- magnitude, size and shape laws -------------------------------------------------------------
+
+def power_law_magnitudes(rng: np.random.Generator, n: int, slope: float, m_min: float,
+                         m_max: float) -> np.ndarray:
+    """Magnitudes drawn from dN/dm ∝ 10^(slope m) on [m_min, m_max] (inverse CDF)."""
+    lo, hi = 10.0 ** (slope * m_min), 10.0 ** (slope * m_max)
+    return np.log10(lo + rng.random(n) * (hi - lo)) / slope
+
+
+def cumulative_fraction(m, slope: float, m_min: float, m_max: float):
+    """Fraction of a dN/dm ∝ 10^(slope m) population on [m_min, m_max] brighter than m."""
+    m = np.clip(m, m_min, m_max)
+    lo, hi = 10.0 ** (slope * m_min), 10.0 ** (slope * m_max)
+    return (10.0 ** (slope * m) - lo) / (hi - lo)
+
+
+def truncated_ellipticities(rng: np.random.Generator, n: int, sigma: float, e_max: float) -> tuple:
+    """(e1, e2), each N(0, sigma), pairs redrawn until |e| <= e_max."""
+    e = rng.normal(0.0, sigma, (n, 2))
+    bad = np.flatnonzero(np.hypot(e[:, 0], e[:, 1]) > e_max)
+    while bad.size:
+        e[bad] = rng.normal(0.0, sigma, (bad.size, 2))
+        bad = bad[np.hypot(e[bad, 0], e[bad, 1]) > e_max]
+    return e[:, 0].copy(), e[:, 1].copy()
+
+
+def truncated_sigma(sigma: float, e_max: float) -> float:
+    """Per-component standard deviation of :func:`truncated_ellipticities`.
+
+    |e|^2 of an isotropic 2-D Gaussian is exponential with mean 2 sigma^2;
+    the mean of an exponential truncated at T = e_max^2 is
+    2 sigma^2 - T exp(-T/2sigma^2) / (1 - exp(-T/2sigma^2)), half of it per
+    component.
+    """
+    mean = 2.0 * sigma ** 2
+    t = e_max ** 2
+    q = math.exp(-t / mean)
+    return math.sqrt((mean - t * q / (1.0 - q)) / 2.0)
+
+
+def filter_magnitudes(mag_j, mag_h) -> dict:
+    """Magnitudes in every Roman filter, linear in ln(wavelength) through J129 and H158."""
+    mag_j, mag_h = np.asarray(mag_j, dtype=np.float64), np.asarray(mag_h, dtype=np.float64)
+    lj, lh = math.log(EFFECTIVE_WAVELENGTH_UM["J129"]), math.log(EFFECTIVE_WAVELENGTH_UM["H158"])
+    out = {}
+    for name in ROMAN_FILTERS:
+        t = (math.log(EFFECTIVE_WAVELENGTH_UM[name]) - lj) / (lh - lj)
+        out[name] = mag_j + t * (mag_h - mag_j)
+    out["J129"], out["H158"] = mag_j.copy(), mag_h.copy()
+    return out
+
+
+def draw_galaxies(rng: np.random.Generator, fld: Field, density: float, model: GalaxyModel) -> dict:
+    """Poisson(density x area) galaxies of ``model`` in ``fld``: columns as arrays."""
+    n = int(rng.poisson(density * fld.area))
+    ra, dec = fld.sample(rng, n)
+    mag_j = power_law_magnitudes(rng, n, model.mag_slope, model.mag_min, model.mag_max)
+    mag_h = mag_j - rng.normal(model.jh_mean, model.jh_sigma, n)
+    log_hlr = rng.normal(math.log10(model.hlr_at_23) + model.hlr_slope * (mag_j - 23.0), model.hlr_sigma)
+    hlr = np.clip(10.0 ** log_hlr, model.hlr_min, model.hlr_max)
+    e1, e2 = truncated_ellipticities(rng, n, model.e_sigma, model.e_max)
+    return {"ra": ra, "dec": dec, "mag_j": mag_j, "mag_h": mag_h, "hlr": hlr, "e1": e1, "e2": e2,
+            "gaia_id": np.full(n, -1, dtype=np.int64)}
+
+
+def draw_stars(rng: np.random.Generator, fld: Field, density: float, model: StarModel) -> dict:
+    """Poisson(density x area) model stars in ``fld``: columns as arrays."""
+    n = int(rng.poisson(density * fld.area))
+    ra, dec = fld.sample(rng, n)
+    mag_j = power_law_magnitudes(rng, n, model.mag_slope, model.mag_min, model.mag_max)
+    jh = np.clip(rng.normal(model.jh_mean, model.jh_sigma, n), model.jh_min, model.jh_max)
+    return _point_sources(ra, dec, mag_j, mag_j - jh, np.full(n, -1, dtype=np.int64))
+
+
+def _point_sources(ra, dec, mag_j, mag_h, gaia_id) -> dict:
+    n = len(ra)
+    return {"ra": ra, "dec": dec, "mag_j": mag_j, "mag_h": mag_h, "hlr": np.zeros(n), "e1": np.zeros(n),
+            "e2": np.zeros(n), "gaia_id": gaia_id}
+
+
+# -- Gaia ---------------------------------------------------------------------------------------
+
+GAIA_COLUMNS = ("id", "coord_ra", "coord_dec", "phot_g_mean_flux", "phot_bp_mean_flux", "phot_rp_mean_flux")
+
+
+def ab_magnitude(flux_njy):
+    """AB magnitude of a flux density in nJy (NaN for fluxes that are not positive)."""
+    flux = np.asarray(flux_njy, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(flux > 0, AB_NJY_ZP - 2.5 * np.log10(np.where(flux > 0, flux, 1.0)), np.nan)
+
+
+def gaia_ab_to_vega(band: str, mag_ab):
+    """A Gaia DR2 AB magnitude in Gaia's Vega system (band 'G', 'BP' or 'RP')."""
+    vega, ab = GAIA_DR2_ZP[band]
+    return np.asarray(mag_ab) - (ab - vega)
+
+
+def gaia_to_2mass(g_vega, bp_rp_vega) -> tuple:
+    """2MASS (J, H) in Vega magnitudes from Gaia DR2 G and BP-RP (Vega), colours clipped to the fits' ranges."""
+    out = []
+    for band in ("J", "H"):
+        (c0, c1, c2), (lo, hi) = GAIA_TO_2MASS[band]
+        x = np.clip(bp_rp_vega, lo, hi)
+        out.append(np.asarray(g_vega) - (c0 + c1 * x + c2 * x * x))
+    return tuple(out)
+
+
+def gaia_roman_jh(g_njy, bp_njy, rp_njy, *, fallback_bp_rp: float | None = None) -> tuple:
+    """Roman (J129, H158) AB magnitudes of Gaia DR2 stars from their AB fluxes in nJy.
+
+    Parameters
+    ----------
+    g_njy, bp_njy, rp_njy : array_like
+        phot_{g,bp,rp}_mean_flux of an LSST-format Gaia DR2 reference catalog.
+    fallback_bp_rp : float, optional
+        BP-RP (Vega) for stars without BP or RP flux; default the median of
+        those with both (:data:`DEFAULT_BP_RP` if none has).
+
+    Returns
+    -------
+    mag_j, mag_h : ndarray
+        AB; NaN where G is not positive.
+    bp_rp : ndarray
+        BP-RP (Vega) used, before clipping.
+    has_colour : ndarray of bool
+        Stars with their own BP-RP.
+    """
+    g_vega = gaia_ab_to_vega("G", ab_magnitude(g_njy))
+    bp_rp = gaia_ab_to_vega("BP", ab_magnitude(bp_njy)) - gaia_ab_to_vega("RP", ab_magnitude(rp_njy))
+    has_colour = np.isfinite(bp_rp)
+    if fallback_bp_rp is None:
+        fallback_bp_rp = float(np.median(bp_rp[has_colour])) if has_colour.any() else DEFAULT_BP_RP
+    bp_rp = np.where(has_colour, bp_rp, fallback_bp_rp)
+    j_vega, h_vega = gaia_to_2mass(g_vega, bp_rp)
+    return j_vega + TWOMASS_AB_MINUS_VEGA["J"], h_vega + TWOMASS_AB_MINUS_VEGA["H"], bp_rp, has_colour
+
+
+@dataclass
+class GaiaStars:
+    """Gaia stars inside a field, with the bookkeeping written into the catalog header."""
+
+    columns: dict
+    inputs: list = field(default_factory=list)   #: (name, DATASUM) per file
+    n_read: int = 0            #: rows read (duplicates across files counted once)
+    n_no_flux: int = 0         #: rows without a positive G flux (dropped)
+    n_median_colour: int = 0   #: stars in the field given the median colour
+    median_bp_rp: float = DEFAULT_BP_RP
+
+
+def read_gaia_stars(paths, fld: Field, *, stdin=None) -> GaiaStars:
+    """The stars of Gaia DR2 reference-catalog chunks that lie inside ``fld``.
+
+    Parameters
+    ----------
+    paths : sequence of str
+        FITS files (LSST reference-catalog format), '-' for standard input.
+    fld : Field
+        Only stars inside it are kept.
+
+    Raises
+    ------
+    PerscliError
+        A file that cannot be read, lacks a column, or has positions or
+        fluxes in other units than radians and nJy.
+    """
+    chunks = {k: [] for k in GAIA_COLUMNS}
+    inputs = []
+    for name in paths:
+        table = read_table(name, what="Gaia reference catalog", stdin=stdin)
+        for col in GAIA_COLUMNS:
+            values = table.column(col, kind="integer" if col == "id" else "number", needed=GAIA_COLUMNS)
+            unit = table.unit(col)
+            expected = "rad" if col.startswith("coord") else ("nJy" if col.startswith("phot") else None)
+            if expected and unit and unit != expected:
+                raise PerscliError(f"{table.label}: column '{col}' is in '{unit}' but perscli reads Gaia "
+                                   f"reference catalogs with {col} in '{expected}' (LSST format): "
+                                   "check that this is such a catalog")
+            chunks[col].append(values)
+        inputs.append((name, table.datasum))
+    cols = {k: np.concatenate(v) if v else np.empty(0) for k, v in chunks.items()}
+    ids = cols["id"].astype(np.int64)
+    # chunks of a sky index do not overlap, but the same file given twice must not double its stars
+    _, first = np.unique(ids, return_index=True)
+    first.sort()
+    cols = {k: v[first] for k, v in cols.items()}
+    n_read = first.size
+    ra = np.degrees(cols["coord_ra"]) % 360.0
+    dec = np.degrees(cols["coord_dec"])
+    mag_j, mag_h, bp_rp, has_colour = gaia_roman_jh(cols["phot_g_mean_flux"], cols["phot_bp_mean_flux"],
+                                                    cols["phot_rp_mean_flux"])
+    median = float(np.median(bp_rp[has_colour])) if has_colour.any() else DEFAULT_BP_RP
+    bright = np.isfinite(mag_j)
+    keep = bright & fld.contains(ra, dec)
+    return GaiaStars(
+        columns=_point_sources(ra[keep], dec[keep], mag_j[keep], mag_h[keep], cols["id"][keep].astype(np.int64)),
+        inputs=inputs, n_read=int(n_read), n_no_flux=int((~bright).sum()),
+        n_median_colour=int((keep & ~has_colour).sum()), median_bp_rp=median)
+
+
+# -- the catalog --------------------------------------------------------------------------------
+
+#: header keyword -> comment, for the keywords :func:`make_truth_catalog` puts in ``meta``
+KEYWORD_COMMENTS = {
+    "FIELDRA": "[deg] field centre, RA",
+    "FIELDDEC": "[deg] field centre, Dec",
+    "FIELDSZ": "[arcmin] side of the square field (TAN plane)",
+    "FIELDAR": "[arcmin2] solid angle of the field",
+    "POSMODEL": "positions in the TAN square",
+    "GALDENS": "[arcmin-2] mean galaxy density (Poisson)",
+    "NGAL": "galaxies in the catalog",
+    "STARSRC": "stars: model or gaia",
+    "STARDENS": "[arcmin-2] mean model-star density (Poisson)",
+    "NSTAR": "stars in the catalog",
+    "GPROFILE": "galaxy light profile",
+    "GMAGSLP": "galaxies: dN/dm ~ 10^(GMAGSLP m), J129 AB",
+    "GMAGMIN": "galaxies: brightest J129 (AB)",
+    "GMAGMAX": "galaxies: faintest J129 (AB)",
+    "GJHMEAN": "galaxies: mean J-H",
+    "GJHSIG": "galaxies: scatter of J-H",
+    "GHLR23": "[arcsec] galaxies: median hlr at J=23",
+    "GHLRSLP": "galaxies: d log10(hlr)/dJ",
+    "GHLRSIG": "galaxies: scatter of log10(hlr)",
+    "GHLRMIN": "[arcsec] galaxies: smallest half-light radius",
+    "GHLRMAX": "[arcsec] galaxies: largest half-light radius",
+    "GESIG": "galaxies: per-component sigma of intrinsic g",
+    "GEMAX": "galaxies: |g| above this is redrawn",
+    "EDEFN": "e1, e2 as galsim.Shear(g1=e1, g2=e2)",
+    "SMAGSLP": "stars: dN/dm ~ 10^(SMAGSLP m), J129 AB",
+    "SMAGMIN": "stars: brightest J129 (AB)",
+    "SMAGMAX": "stars: faintest J129 (AB)",
+    "SJHMEAN": "stars: mean J-H",
+    "SJHSIG": "stars: scatter of J-H",
+    "SJHMIN": "stars: J-H clipped below",
+    "SJHMAX": "stars: J-H clipped above",
+    "GAIANIN": "Gaia rows read (distinct ids)",
+    "GAIANOG": "Gaia rows without G flux (dropped)",
+    "GAIANMED": "Gaia stars in the field given the median colour",
+    "GAIABPRP": "median BP-RP (Vega) of the Gaia stars read",
+    "COLMODEL": "other filters from J129 and H158",
+}
+
+_COLUMN_INFO = {
+    "id": (None, "unique object number"),
+    "ra": ("deg", "right ascension (ICRS)"),
+    "dec": ("deg", "declination (ICRS)"),
+    "kind": (None, "galaxy or star"),
+    "hlr": ("arcsec", "half-light radius (0 for stars)"),
+    "e1": (None, "intrinsic reduced shear g1 (galsim.Shear)"),
+    "e2": (None, "intrinsic reduced shear g2 (galsim.Shear)"),
+    "gaia_id": (None, "Gaia DR2 source id (-1: not from Gaia)"),
+    **{f"mag_{f}": ("mag", f"AB magnitude in {f}") for f in ROMAN_FILTERS},
+}
+
+_INPUT_STEM = re.compile(r"^GA\d{3}$")
+
+
+def make_truth_catalog(ra: float, dec: float, size: float = 10.0, *, galaxy_density: float = 40.0,
+                       star_density: float = 2.5, gaia=None, seed: int = 1,
+                       galaxy_model: GalaxyModel = GalaxyModel(), star_model: StarModel = StarModel(),
+                       stdin=None):
+    """A truth catalog of galaxies and stars for a square field.
+
+    Parameters
+    ----------
+    ra, dec : float
+        Field centre in degrees.
+    size : float
+        Side of the square field in arcmin.
+    galaxy_density : float
+        Mean number of galaxies per arcmin^2 (the paper: 40).
+    star_density : float
+        Mean number of model stars per arcmin^2 (the paper: 2.5); unused with ``gaia``.
+    gaia : sequence of str, optional
+        Gaia DR2 reference-catalog chunks: their stars in the field replace the model stars.
+    seed : int
+        Random seed; the same seed gives the same catalog.
+    galaxy_model, star_model : GalaxyModel, StarModel
+        Population parameters (defaults: the module docstring).
+    stdin : binary file, optional
+        Stream for a Gaia file given as '-'.
+
+    Returns
+    -------
+    astropy.table.Table
+        Columns :data:`COLUMNS` (galaxies first, then stars; ``id`` from 1),
+        with units; ``meta`` holds the header keywords (field, densities,
+        models, counts, Gaia inputs as GA001/GA001DS..., SEED).
+
+    Raises
+    ------
+    PerscliError
+        A negative density or seed, a bad field, or an unreadable Gaia file.
+    """
+    from astropy.table import Table
+
+    for label, value in (("galaxy density", galaxy_density), ("star density", star_density)):
+        if not (math.isfinite(value) and value >= 0):
+            raise PerscliError(f"{label} {value} per arcmin^2: must be a number >= 0")
+    if int(seed) < 0:
+        raise PerscliError(f"seed {seed}: must be an integer >= 0")
+    fld = Field(ra, dec, size)
+    gal_seq, star_seq = np.random.SeedSequence(int(seed)).spawn(2)
+    galaxies = draw_galaxies(np.random.Generator(np.random.PCG64(gal_seq)), fld, galaxy_density, galaxy_model)
+    meta = {
+        "FIELDRA": fld.ra, "FIELDDEC": float(dec), "FIELDSZ": float(size), "FIELDAR": round(fld.area, 6),
+        "POSMODEL": "uniform in solid angle",
+        "GALDENS": float(galaxy_density), "NGAL": len(galaxies["ra"]),
+    }
+    if gaia:
+        gaia_stars = read_gaia_stars(list(gaia), fld, stdin=stdin)
+        stars = gaia_stars.columns
+        meta.update({"STARSRC": "gaia", "NSTAR": len(stars["ra"])})
+    else:
+        gaia_stars = None
+        stars = draw_stars(np.random.Generator(np.random.PCG64(star_seq)), fld, star_density, star_model)
+        meta.update({"STARSRC": "model", "STARDENS": float(star_density), "NSTAR": len(stars["ra"])})
+    gm = asdict(galaxy_model)
+    meta.update({
+        "GPROFILE": "exponential", "GMAGSLP": gm["mag_slope"], "GMAGMIN": gm["mag_min"], "GMAGMAX": gm["mag_max"],
+        "GJHMEAN": gm["jh_mean"], "GJHSIG": gm["jh_sigma"], "GHLR23": gm["hlr_at_23"],
+        "GHLRSLP": gm["hlr_slope"], "GHLRSIG": gm["hlr_sigma"], "GHLRMIN": gm["hlr_min"],
+        "GHLRMAX": gm["hlr_max"], "GESIG": gm["e_sigma"], "GEMAX": gm["e_max"],
+        "EDEFN": "reduced shear g",
+    })
+    if gaia_stars is None:
+        sm = asdict(star_model)
+        meta.update({"SMAGSLP": sm["mag_slope"], "SMAGMIN": sm["mag_min"], "SMAGMAX": sm["mag_max"],
+                     "SJHMEAN": sm["jh_mean"], "SJHSIG": sm["jh_sigma"], "SJHMIN": sm["jh_min"],
+                     "SJHMAX": sm["jh_max"]})
+    else:
+        meta.update({"GAIANIN": gaia_stars.n_read, "GAIANOG": gaia_stars.n_no_flux,
+                     "GAIANMED": gaia_stars.n_median_colour, "GAIABPRP": round(gaia_stars.median_bp_rp, 6)})
+        for i, (name, datasum) in enumerate(gaia_stars.inputs, 1):
+            meta[f"GA{i:03d}"] = "stdin" if name == "-" else name
+            meta[f"GA{i:03d}DS"] = str(datasum)
+    meta["COLMODEL"] = "linear in ln(lambda)"
+    for name in ROMAN_FILTERS:
+        meta[f"LEFF{name}"] = EFFECTIVE_WAVELENGTH_UM[name]
+    meta["SEED"] = int(seed)
+
+    n_gal, n_star = len(galaxies["ra"]), len(stars["ra"])
+    both = {k: np.concatenate([galaxies[k], stars[k]]) for k in galaxies}
+    mags = filter_magnitudes(both["mag_j"], both["mag_h"])
+    data = {
+        "id": np.arange(1, n_gal + n_star + 1, dtype=np.int64),
+        "ra": both["ra"].astype(np.float64),
+        "dec": both["dec"].astype(np.float64),
+        "kind": np.array(["galaxy"] * n_gal + ["star"] * n_star, dtype="U6"),
+        **{f"mag_{f}": mags[f] for f in ROMAN_FILTERS},
+        "hlr": both["hlr"].astype(np.float64),
+        "e1": both["e1"].astype(np.float64),
+        "e2": both["e2"].astype(np.float64),
+        "gaia_id": both["gaia_id"].astype(np.int64),
+    }
+    table = Table(data, names=COLUMNS, meta=meta)
+    for name, (unit, desc) in _COLUMN_INFO.items():
+        if unit:
+            table[name].unit = unit
+        table[name].description = desc
+    return table
+
+
+def catalog_step(table) -> str:
+    """One line for the HISTORY card of a catalog."""
+    m = table.meta
+    stars = (f"gaia files={sum(1 for k in m if _INPUT_STEM.match(k))}" if m.get("STARSRC") == "gaia"
+             else f"star-density={m.get('STARDENS')}")
+    return (f"catalog ra={m['FIELDRA']} dec={m['FIELDDEC']} size={m['FIELDSZ']} "
+            f"galaxy-density={m['GALDENS']} {stars} galaxies={m['NGAL']} stars={m['NSTAR']}")
+
+
+def truth_hdulist(table):
+    """The FITS file of a truth catalog: an empty primary HDU and the 'TRUTH' table with provenance."""
+    from astropy.io import fits
+
+    from ..io.output import add_provenance
+
+    bare = table.copy(copy_data=False)
+    bare.meta.clear()
+    hdu = fits.table_to_hdu(bare)
+    hdu.name = "TRUTH"
+    for k, name in enumerate(table.colnames, 1):
+        hdu.header[f"TCOMM{k}"] = _COLUMN_INFO[name][1]
+    meta = dict(table.meta)
+    seed = meta.pop("SEED", None)
+    stems = [k for k in meta if _INPUT_STEM.match(k)]
+    inputs = [(k, meta.pop(k), meta.pop(f"{k}DS")) for k in stems]
+    params = {}
+    for key, value in meta.items():
+        comment = KEYWORD_COMMENTS.get(key)
+        if key.startswith("LEFF"):
+            comment = f"[um] effective wavelength of {key[4:]}"
+        params[key] = (value, comment) if comment else value
+    add_provenance(hdu.header, step=catalog_step(table), params=params, inputs=inputs, seed=seed)
+    return fits.HDUList([fits.PrimaryHDU(), hdu])
+
+
+def write_truth_catalog(table, dest: str, *, overwrite: bool = False, stdout=None) -> None:
+    """Write a catalog from :func:`make_truth_catalog` atomically (or to standard output for '-')."""
+    from ..io.output import write_fits
+
+    write_fits(truth_hdulist(table), dest, overwrite=overwrite, stdout=stdout)
+
+
+def make_truth_catalog_file(dest: str, ra: float, dec: float, size: float = 10.0, *, overwrite: bool = False,
+                            stdin=None, stdout=None, **kw):
+    """Check ``dest``, make a catalog (:func:`make_truth_catalog` arguments) and write it.
+
+    Returns
+    -------
+    astropy.table.Table
+        The catalog written.
+    """
+    from ..io.output import check_output
+
+    check_output(dest, overwrite=overwrite, inputs=list(kw.get("gaia") or ()))
+    table = make_truth_catalog(ra, dec, size, stdin=stdin, **kw)
+    write_truth_catalog(table, dest, overwrite=overwrite, stdout=stdout)
+    return table
