@@ -27,8 +27,8 @@ What it does:
    The GalSim and perscli repeats are interleaved.
 4. Checks agreement: ``perscli ... --time-model galsim --mode predict``
    against GalSim's added persistence computed on float64 images.
-5. Prints a table and writes ``benchmarks/RESULTS.md`` (full size only,
-   unless ``--results`` is given).
+5. Prints a table and writes its section of ``benchmarks/RESULTS.md`` (full size
+   only, unless ``--results`` is given); the other sections of the file are kept.
 """
 
 from __future__ import annotations
@@ -302,6 +302,49 @@ def machine() -> dict:
                 kernel=platform.release())
 
 
+# --------------------------------------------------------------------------------------------
+# RESULTS.md: each benchmark script owns one section
+# --------------------------------------------------------------------------------------------
+
+RESULTS_HEADER = """# Benchmark results
+
+Written by the scripts in `benchmarks/`; each replaces only its own section, between
+`<!-- NAME:begin -->` and `<!-- NAME:end -->` markers.  See `benchmarks/README.md`.
+"""
+
+
+def write_section(dest: Path, name: str, body: str, legacy_heading: str | None = None) -> None:
+    """Replace the section ``name`` of the results file ``dest``, keeping every other section.
+
+    The section is the text between ``<!-- name:begin -->`` and ``<!-- name:end -->``; it is
+    appended if absent.  ``legacy_heading``: a heading that started this section before the
+    markers existed; if found (and no markers are), the text from it up to the next marker
+    (or the end) is replaced.  A missing file is created with a common header.
+    """
+    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    block = f"{begin}\n{body.strip()}\n{end}"
+    text = dest.read_text() if dest.exists() else RESULTS_HEADER
+    i = text.find(begin)
+    j = text.find(end, i + 1) if i >= 0 else -1
+    if i >= 0 and j >= 0:
+        text = text[:i] + block + text[j + len(end):]
+    elif legacy_heading is not None and legacy_heading in text:
+        i = text.index(legacy_heading)
+        j = text.find("<!-- ", i)
+        j = len(text) if j < 0 else j
+        text = text[:i] + block + "\n\n" + text[j:]
+    else:
+        text = text.rstrip("\n") + "\n\n" + block + "\n"
+    # the common header (older files named only this script)
+    old = "Written by `benchmarks/bench_apply_persistence.py`; see `benchmarks/README.md`.\n"
+    if text.startswith("# Benchmark results") and old in text[:400]:
+        text = text.replace("# Benchmark results\n\n" + old, RESULTS_HEADER, 1)
+    text = text.rstrip("\n") + "\n"
+    tmp = dest.with_name(dest.name + ".part")
+    tmp.write_text(text)
+    os.replace(tmp, dest)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -434,11 +477,7 @@ def main(argv=None):
     v, m = versions(), machine()
     nhw = [s["above_half_well"] for s in stats]
     fmt_rss = lambda rss: f"{rss / mb:.0f} MB = {rss / frame_bytes:.2f} frames"  # noqa: E731
-    text = f"""# Benchmark results
-
-Written by `benchmarks/bench_apply_persistence.py`; see `benchmarks/README.md`.
-
-## apply-persistence vs galsim.roman.applyPersistence(method='fermi')
+    text = f"""## apply-persistence vs galsim.roman.applyPersistence(method='fermi')
 
 Reproduce with `make bench` (runs `.venv/bin/python benchmarks/bench_apply_persistence.py`).
 
@@ -474,8 +513,9 @@ Reproduce with `make bench` (runs `.venv/bin/python benchmarks/bench_apply_persi
 Per-repeat times (s): GalSim {', '.join(f'{t:.3f}' for t in g_times)}; perscli
 {', '.join(f'{t:.3f}' for t, _ in w1)}; perscli --workers 2 {', '.join(f'{t:.3f}' for t, _ in w2)}.
 {profile_md}"""
-    dest.write_text(text)
-    print(f"wrote {dest}")
+    # only this script's section: the other benchmarks' sections are kept
+    write_section(dest, "apply-persistence", text, legacy_heading="## apply-persistence vs")
+    print(f"wrote the apply-persistence section of {dest}")
     return 0 if ok else 1
 
 

@@ -63,7 +63,7 @@ def apply_persistence(current, previous, output, model_spec, params, mode, time_
       perscli apply-persistence exp4.fits exp3.fits --mode predict -o pers.fits
       perscli apply-persistence flt.fits prev_flt.fits --model pessimistic --param gamma=1.1 -o out.fits
       perscli apply-persistence raw.fits prev_raw.fits --combine max --mode subtract -o corrected.fits
-      cat exp4.fits | perscli apply-persistence - exp3.fits -o - | fitsheader -
+      cat exp4.fits | perscli apply-persistence - exp3.fits -o - | perscli apply-persistence - exp2.fits -o out.fits
     """
     from ..detector.apply import apply_persistence_files
     from ..detector.persistence import load_model

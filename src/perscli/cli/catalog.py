@@ -57,7 +57,7 @@ def catalog(ra, dec, size, galaxy_density, star_density, gaia, seed, output, ove
       perscli catalog --ra 10 --dec -44 -o truth.fits
       perscli catalog --ra 10 --dec -44 --size 150 --seed 7 -o field.fits
       perscli catalog --ra 10 --dec -44 --gaia 145649.fits --gaia 145650.fits -o truth.fits
-      perscli catalog --ra 10 --dec -44 --galaxy-density 0 -o - | fitsheader -
+      perscli catalog --ra 10 --dec -44 --galaxy-density 0 -o - | gzip > stars.fits.gz
     """
     from ..scene.catalog import make_truth_catalog_file
 

@@ -73,7 +73,7 @@ def pointings(ctx, schedule, plan, ra, dec, radius, filter_name, limit, after, n
       perscli pointings --schedule Roman_WAS_obseq_11_1_23.fits --ra 10 --dec -44 --radius 1 --filter J129 -o p.fits
       perscli pointings --schedule obseq.fits --ra 10 --dec -44 --radius 0.5 --limit 10 --after 61900 -o p.fits
       perscli pointings --plan --ra 10 --dec -44 --n 8 --dither 30 --seed 3 -o plan.fits
-      perscli pointings --plan --ra 10 --dec -44 --n 4 --exptime 60 --gap 10 --sca 7 -o - | fitsheader -
+      perscli pointings --plan --ra 10 --dec -44 --n 4 --exptime 60 --gap 10 --sca 7 -o - | gzip > plan.fits.gz
     """
     given = {name for name in ctx.params
              if ctx.get_parameter_source(name) not in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)}

@@ -70,7 +70,6 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
       perscli render truth.fits --pointings seq.fits --sca 7 --bounds 1 512 1 512 --seed 1 -o cutout.fits
     """
     from ..detector.effects import load_detector_model
-    from ..render.exposure import Exposure
     from ..render.run import render_file
 
     exposure = _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds)

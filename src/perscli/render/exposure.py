@@ -141,40 +141,28 @@ def read_truth(path: str, filter_name: str):
     PerscliError
         Not a readable FITS table, a missing column, or non-finite values.
     """
-    import os
+    from ..io.tables import read_table
 
-    from astropy.io import fits
-
-    if not os.path.exists(path):
-        raise PerscliError(f"{path}: no such file")
-    try:
-        with fits.open(path) as hdul:
-            tables = [h for h in hdul if isinstance(h, fits.BinTableHDU)]
-            if not tables:
-                raise PerscliError(f"{path}: no binary table: expected a truth catalogue (perscli catalog)")
-            data = tables[0].data
-            names = {n.lower(): n for n in data.columns.names}
-            mag = f"mag_{filter_name}".lower()
-            missing = [c for c in REQUIRED + (mag,) if c not in names]
-            if missing:
-                raise PerscliError(f"{path}: truth catalogue lacks column(s) {', '.join(missing)} "
-                                   "(make one with perscli catalog)")
-            cols = {c: np.array(data[names[c]]) for c in REQUIRED}
-            cols["mag"] = np.array(data[names[mag]], dtype=np.float64)
-    except PerscliError:
-        raise
-    except (OSError, ValueError, TypeError) as exc:
-        raise PerscliError(f"{path}: not a readable FITS table ({str(exc).splitlines()[0]})") from None
-    cols["kind"] = np.char.strip(np.char.lower(cols["kind"].astype(str)))
+    table = read_table(path, what="truth catalogue (perscli catalog)")
+    mag = f"mag_{filter_name}"
+    needed = REQUIRED + (mag,)
+    kinds = {"id": "integer", "kind": "text"}
+    cols = {c: table.column(c, kind=kinds.get(c, "number"), needed=needed) for c in REQUIRED}
+    cols["mag"] = table.column(mag, needed=needed).astype(np.float64)
+    cols["kind"] = np.char.lower(cols["kind"])
+    label = table.label
     for c in ("ra", "dec", "hlr", "e1", "e2", "mag"):
         cols[c] = np.asarray(cols[c], dtype=np.float64)
-        bad = ~np.isfinite(cols[c]) & (cols["kind"] == "galaxy" if c in ("hlr", "e1", "e2") else True)
+        bad = ~np.isfinite(cols[c])
+        if c in ("hlr", "e1", "e2"):
+            bad &= cols["kind"] == "galaxy"
         if np.any(bad):
-            raise PerscliError(f"{path}: column {c} has {int(bad.sum())} non-finite value(s) "
-                               f"(first at id {cols['id'][bad][0]}); fix or drop those rows")
-    unknown = set(np.unique(cols["kind"])) - {"star", "galaxy"}
+            raise PerscliError(f"{label}: column {mag if c == 'mag' else c} has {int(bad.sum())} non-finite "
+                               f"value(s) (first at id {cols['id'][bad][0]}); fix or drop those rows")
+    unknown = set(np.unique(cols["kind"]).tolist()) - {"star", "galaxy"}
     if unknown:
-        raise PerscliError(f"{path}: column kind has {sorted(unknown)}; expected 'star' or 'galaxy'")
+        raise PerscliError(f"{label}: column kind has {sorted(unknown)}; expected 'star' or 'galaxy'")
+    cols["datasum"] = table.datasum
     return cols
 
 

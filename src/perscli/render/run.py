@@ -7,7 +7,6 @@ import os
 
 import numpy as np
 
-from .. import PerscliError
 from ..detector.effects import DetectorModel, run_chain
 from ..io.fitsfile import OutHDU, format_card, image_cards
 from ..io.output import add_provenance, check_output, write_hdus
@@ -133,7 +132,7 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         hdus.append(image(result.fluence, "FLUENCE", e_cards))
         if result.persistence is not None:
             hdus.append(image(result.persistence, "PERSIST", e_cards))
-        _provenance(hdus[0], truth, exposure, model, seed, opened, pers_info)
+        _provenance(hdus[0], truth, cols["datasum"], exposure, model, seed, opened, pers_info)
         write_hdus(hdus, dest, overwrite=overwrite)
         return {"objects": nobj, "sky_rate": result.sky_rate, "unit": result.unit,
                 "persistence_max": float(result.persistence.max()) if result.persistence is not None else 0.0}
@@ -142,19 +141,8 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
             frame.close()
 
 
-def _datasum_of_table(path: str) -> int:
-    from ..io.fitsfile import Source, scan
-
-    src = Source(path, path=path)
-    try:
-        hdus = scan(src)
-        tables = [h for h in hdus if str(h.header.get("XTENSION", "")).strip() == "BINTABLE"]
-        return tables[0].datasum() if tables else 0
-    finally:
-        src.close()
-
-
-def _provenance(primary: OutHDU, truth, exposure: Exposure, model: DetectorModel, seed, opened, used):
+def _provenance(primary: OutHDU, truth, truth_datasum, exposure: Exposure, model: DetectorModel, seed, opened,
+                used):
     params = {
         "DETMODEL": (os.path.basename(model.source)[-68:], "detector model"),
         "FILTER": exposure.filter, "SCA": exposure.sca,
@@ -162,7 +150,7 @@ def _provenance(primary: OutHDU, truth, exposure: Exposure, model: DetectorModel
     for i, (name, enabled, p) in enumerate(model.describe(), 1):
         text = ",".join(f"{k}={v}" for k, v in p.items())
         params[f"EFF{i:02d}"] = (f"{name}{'' if enabled else ' off'} {text}".strip()[:68], "detector effect, in order")
-    inputs = [("TRUTH", truth, _datasum_of_table(truth))]
+    inputs = [("TRUTH", truth, truth_datasum)]
     for i, frame in enumerate(opened, 1):
         inputs.append((f"PRV{i:02d}", frame.name,
                        frame.datasum(frame.provenance_hdu)))

@@ -64,7 +64,6 @@ the star model (or using Gaia) leaves the galaxies unchanged.
 
 from __future__ import annotations
 
-import logging
 import math
 import re
 from dataclasses import asdict, dataclass, field
@@ -72,9 +71,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .. import PerscliError
-from . import EFFECTIVE_WAVELENGTH_UM, ROMAN_FILTERS, deproject, project, read_table
-
-log = logging.getLogger(__name__)
+from ..io.tables import read_table
+from . import EFFECTIVE_WAVELENGTH_UM, ROMAN_FILTERS, deproject, project
 
 #: arcmin^2 per steradian
 ARCMIN2_PER_SR = (180.0 * 60.0 / math.pi) ** 2

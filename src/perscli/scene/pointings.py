@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PerscliError
-from . import check_filter, deproject, read_table, separation
+from ..io.tables import read_table
+from . import check_filter, deproject, separation
 
 DAY = 86400.0
 

@@ -1,0 +1,467 @@
+"""The detector chain (perscli.detector.effects): each effect does what its definition says,
+in physical order, with its own random stream; detector-model YAML files and --set overrides."""
+
+import numpy as np
+import pytest
+
+from perscli import PerscliError
+from perscli.detector import effects
+from perscli.detector.effects import (DEFAULTS, ORDER, DetectorModel, Effect, apply_ipc, load_detector_model,
+                                      run_chain)
+
+T = 139.8
+
+
+def only(*names, **params):
+    """A model with just these effects on (Roman defaults, ``params`` = {name: {key: value}})."""
+    effs = []
+    for name in names:
+        p = dict(DEFAULTS[name])
+        p.update(params.get(name, {}))
+        effs.append(Effect(name, p))
+    return DetectorModel(effs, source="test")
+
+
+def never(*args, **kw):
+    raise AssertionError("must not be called")
+
+
+@pytest.fixture(scope="module")
+def sources():
+    """A smooth field of source electrons (0 .. ~2e5) with a bright peak, 64 x 64."""
+    y, x = np.mgrid[0:64, 0:64]
+    img = 2.0e5 * np.exp(-((x - 30.3) ** 2 + (y - 33.7) ** 2) / (2 * 2.5 ** 2))
+    img += 50.0 * (1 + np.sin(x / 5.0))
+    return img
+
+
+# -- run_chain, effect by effect ----------------------------------------------------------------
+
+def test_empty_chain_is_identity(sources):
+    r = run_chain(sources, DetectorModel([]), exptime=T, seed=1, sky_rate=never, persistence=never)
+    assert np.array_equal(r.sci, sources) and np.array_equal(r.ideal, sources)
+    assert np.array_equal(r.fluence, sources)
+    assert r.unit == "electron" and r.persistence is None and r.sky_rate == 0.0
+    assert r.sci is not sources                      # the input is not modified in place
+
+
+def test_all_effects_off_is_identity(sources):
+    model = load_detector_model("roman", [f"{name}=off" for name in ORDER])
+    r = run_chain(sources, model, exptime=T, seed=1, sky_rate=never, persistence=never)
+    assert np.array_equal(r.sci, sources)
+    assert r.unit == "electron"
+
+
+def test_sky_auto_adds_rate_times_exptime(sources):
+    r = run_chain(sources, only("sky"), exptime=T, seed=1, sky_rate=lambda: 1.25)
+    np.testing.assert_allclose(r.sci - sources, 1.25 * T, rtol=1e-12)
+    assert r.sky_rate == 1.25
+    # the ideal frame holds the sky too
+    np.testing.assert_allclose(r.ideal, sources + 1.25 * T, rtol=1e-12)
+
+
+def test_sky_level_number_overrides_auto(sources):
+    r = run_chain(sources, only("sky", sky={"level": 2.0}), exptime=T, seed=1, sky_rate=never)
+    np.testing.assert_allclose(r.sci - sources, 2.0 * T, rtol=1e-12)
+    assert r.sky_rate == 2.0
+    r = run_chain(sources, only("sky"), exptime=T, seed=1, sky_rate=3.5)      # a plain number works too
+    np.testing.assert_allclose(r.sci - sources, 3.5 * T, rtol=1e-12)
+
+
+def test_sky_off_does_not_ask_for_the_sky(sources):
+    model = load_detector_model("roman", ["sky=off", "persistence=off"])
+    r = run_chain(sources, model, exptime=T, seed=1, sky_rate=never)
+    assert r.sky_rate == 0.0
+
+
+def test_poisson_integers_with_variance_equal_to_mean():
+    lam = np.full((200, 200), 37.5)
+    r = run_chain(lam, only("poisson"), exptime=T, seed=3)
+    assert np.array_equal(r.sci, np.round(r.sci))
+    n = lam.size
+    assert abs(r.sci.mean() - 37.5) < 5 * np.sqrt(37.5 / n)
+    assert abs(r.sci.var() / 37.5 - 1) < 5 * np.sqrt(2.0 / n)
+    assert np.array_equal(r.ideal, lam)             # IDEAL is the expectation, before the noise
+
+
+def test_poisson_clips_negative_expectations():
+    img = np.array([[-5.0, 0.0], [-1e-9, 0.0]])
+    r = run_chain(img, only("poisson"), exptime=T, seed=1)
+    assert np.array_equal(r.sci, np.zeros((2, 2)))
+
+
+def test_poisson_ideal_is_sources_plus_sky(sources):
+    r = run_chain(sources, only("sky", "poisson", "dark", "read_noise"), exptime=T, seed=4, sky_rate=1.0)
+    np.testing.assert_allclose(r.ideal, sources + T, rtol=1e-12)
+    # residuals normalised by the expected noise are unit normal
+    z = (r.sci - r.ideal - DEFAULTS["dark"]["current"] * T) / np.sqrt(r.ideal + 8.5 ** 2 + 0.015 * T)
+    assert abs(z.mean()) < 5 / 64 and abs(z.std() - 1) < 0.05
+
+
+@pytest.mark.parametrize("alpha, base_flux", [(0.0065, 1.0), (0.05, 3.0)])
+def test_reciprocity_formula(sources, alpha, base_flux):
+    img = sources.copy()
+    img[0, :3] = [0.0, -4.0, 1e-3]
+    r = run_chain(img, only("reciprocity", reciprocity={"alpha": alpha, "base_flux": base_flux}),
+                  exptime=T, seed=1)
+    pos = img > 0
+    expect = img.copy()
+    expect[pos] = img[pos] * (1 + alpha * np.log10(img[pos] / (base_flux * T)))
+    np.testing.assert_allclose(r.sci, expect, rtol=1e-13)
+    assert r.sci[0, 0] == 0.0 and r.sci[0, 1] == -4.0           # zero and negative pixels left alone
+    # the bright peak gains, faint pixels (below base_flux * t) lose
+    assert r.sci.max() > img.max() and r.sci[0, 2] < img[0, 2]
+
+
+def test_dark_adds_poisson_current():
+    img = np.zeros((200, 200))
+    r = run_chain(img, only("dark", dark={"current": 0.2}), exptime=T, seed=9)
+    mean = 0.2 * T
+    assert np.array_equal(r.sci, np.round(r.sci)) and r.sci.min() >= 0
+    n = img.size
+    assert abs(r.sci.mean() - mean) < 5 * np.sqrt(mean / n)
+    assert abs(r.sci.var() / mean - 1) < 5 * np.sqrt(2.0 / n)
+    assert np.array_equal(r.ideal, img)              # dark is not part of IDEAL
+
+
+def test_persistence_added_and_part_of_fluence(sources):
+    pers = np.linspace(0, 30, sources.size).reshape(sources.shape)
+    calls = []
+
+    def persistence():
+        calls.append(1)
+        return pers
+
+    model = only("persistence", "nonlinearity")
+    r = run_chain(sources, model, exptime=T, seed=1, persistence=persistence)
+    assert calls == [1]
+    np.testing.assert_array_equal(r.persistence, pers)
+    np.testing.assert_allclose(r.fluence, sources + pers, rtol=1e-14)       # charge before nonlinearity
+    beta = DEFAULTS["nonlinearity"]["beta"]
+    np.testing.assert_allclose(r.sci, r.fluence + beta * r.fluence ** 2, rtol=1e-13)
+    # the effect switched off: the callable is not even called
+    off = DetectorModel([Effect("persistence", dict(DEFAULTS["persistence"]), enabled=False)])
+    r = run_chain(sources, off, exptime=T, seed=1, persistence=never)
+    assert r.persistence is None and np.array_equal(r.sci, sources)
+
+
+@pytest.mark.parametrize("beta", [-6.0e-7, -2.0e-6, 1.0e-7])
+def test_nonlinearity_formula_and_fluence_is_before_it(sources, beta):
+    r = run_chain(sources, only("sky", "nonlinearity", nonlinearity={"beta": beta}), exptime=T, seed=1,
+                  sky_rate=0.5)
+    x = sources + 0.5 * T
+    np.testing.assert_allclose(r.fluence, x, rtol=1e-14)
+    np.testing.assert_allclose(r.sci, x + beta * x * x, rtol=1e-13)
+
+
+def test_fluence_excludes_everything_after_persistence(sources):
+    model = load_detector_model("roman", ["poisson=off", "dark=off"])
+    r = run_chain(sources, model, exptime=T, seed=1, sky_rate=1.0)
+    x = sources + T
+    x = x * (1 + 0.0065 * np.log10(x / T))
+    np.testing.assert_allclose(r.fluence, x, rtol=1e-13)         # sky + reciprocity, nothing later
+    assert not np.allclose(r.sci, r.fluence)
+
+
+def _galsim_ipc(img):
+    import galsim
+    import galsim.roman
+
+    im = galsim.Image(np.array(img, dtype=np.float64))
+    im.applyIPC(galsim.roman.ipc_kernel, edge_treatment="extend")
+    return im.array
+
+
+def test_ipc_roman_kernel_is_galsims():
+    import galsim.roman
+
+    np.testing.assert_array_equal(effects.roman_ipc_kernel(), galsim.roman.ipc_kernel.array)
+    assert abs(effects.roman_ipc_kernel().sum() - 1) < 1e-12
+
+
+def test_ipc_single_pixel_spreads_over_3x3_conserving_charge():
+    img = np.zeros((9, 11))
+    img[4, 5] = 1.0e4
+    r = run_chain(img, only("ipc"), exptime=T, seed=1)
+    k = effects.roman_ipc_kernel()
+    block = r.sci[3:6, 4:7] / 1.0e4
+    # the kernel, in one orientation or the other (the orientation is checked against GalSim below)
+    assert np.allclose(block, k, rtol=1e-12) or np.allclose(block, k[::-1, ::-1], rtol=1e-12)
+    assert np.count_nonzero(r.sci) == 9
+    assert abs(r.sci.sum() - 1.0e4) < 1e-8
+    np.testing.assert_allclose(r.fluence, img)                  # IPC acts after the charge is collected
+
+
+def test_ipc_custom_kernel_orientation_in_perscli_convention():
+    """A one-sided kernel: kernel[j, i] is the fraction of a pixel's charge landing (i-1, j-1) away."""
+    kernel = [[0.0, 0.0, 0.0], [0.0, 0.9, 0.1], [0.0, 0.0, 0.0]]
+    img = np.zeros((5, 5))
+    img[2, 2] = 100.0
+    r = run_chain(img, only("ipc", ipc={"kernel": kernel}), exptime=T, seed=1)
+    assert r.sci[2, 2] == pytest.approx(90.0) and r.sci[2, 3] == pytest.approx(10.0)
+    assert r.sci.sum() == pytest.approx(100.0)
+
+
+def test_ipc_edges_extend_a_uniform_frame_unchanged():
+    img = np.full((6, 7), 123.0)
+    np.testing.assert_allclose(apply_ipc(img, effects.roman_ipc_kernel()), img, rtol=1e-13)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "BUG: src/perscli/detector/effects.py:255-265 (apply_ipc) convolves (kernel[j, i] = charge sent to "
+    "offset (i-1, j-1)), but galsim.roman.ipc_kernel is defined for GalSim's Image.applyIPC, where "
+    "kernel(1,1) is the contribution *from* the bottom-left neighbour (a correlation): the Roman "
+    "kernel, which is not symmetric, is applied flipped (e.g. 0.01463 instead of 0.01295 leaks to the "
+    "right). Fix: out += kernel[j, i] * padded[j:j + ny, i:i + nx] and fix the docstring; note also "
+    "that GalSim's 'extend' zero-pads, unlike the edge padding here (the docstring says it is GalSim's)."))
+def test_ipc_matches_galsim_apply_ipc_in_the_interior(sources):
+    r = run_chain(sources, only("ipc"), exptime=T, seed=1)
+    np.testing.assert_allclose(r.sci[1:-1, 1:-1], _galsim_ipc(sources)[1:-1, 1:-1], rtol=1e-12)
+
+
+def test_read_noise_gaussian_sigma():
+    img = np.full((200, 200), 500.0)
+    r = run_chain(img, only("read_noise", read_noise={"sigma": 5.0}), exptime=T, seed=2)
+    d = r.sci - img
+    n = img.size
+    assert abs(d.mean()) < 5 * 5.0 / np.sqrt(n)
+    assert abs(d.std() / 5.0 - 1) < 5 / np.sqrt(2 * n)
+    assert not np.array_equal(d, np.round(d))                     # not quantised
+    # fourth moment of a Gaussian: 3 sigma^4
+    assert abs(np.mean(d ** 4) / (3 * 5.0 ** 4) - 1) < 0.05
+
+
+def test_gain_divides_and_sets_dn(sources):
+    r = run_chain(sources, only("gain", gain={"gain": 2.5}), exptime=T, seed=1)
+    np.testing.assert_allclose(r.sci, sources / 2.5, rtol=1e-15)
+    assert r.unit == "DN"
+    np.testing.assert_array_equal(r.ideal, sources)            # IDEAL stays in electrons
+    np.testing.assert_array_equal(r.fluence, sources)
+
+
+def test_quantize_rounds_to_nearest_integer(sources):
+    noisy = run_chain(sources, only("read_noise", "gain", gain={"gain": 1.7}), exptime=T, seed=5)
+    q = run_chain(sources, only("read_noise", "gain", "quantize", gain={"gain": 1.7}), exptime=T, seed=5)
+    assert np.array_equal(q.sci, np.round(q.sci))
+    assert np.all(np.abs(q.sci - noisy.sci) <= 0.5)
+    np.testing.assert_array_equal(q.sci, np.round(noisy.sci))
+    assert q.unit == "DN"
+
+
+def test_default_chain_without_noise_is_the_composition_in_physical_order(sources):
+    """sky -> reciprocity -> nonlinearity -> ipc -> gain -> quantize, written out by hand."""
+    model = load_detector_model("roman", ["poisson=off", "dark=off", "read_noise=off", "gain.gain=1.6"])
+    r = run_chain(sources, model, exptime=T, seed=1, sky_rate=0.8)
+    x = sources + 0.8 * T
+    x = x * (1 + 0.0065 * np.log10(x / T))
+    x = x - 6.0e-7 * x * x
+    x = apply_ipc(x, effects.roman_ipc_kernel())
+    np.testing.assert_array_equal(r.sci, np.round(x / 1.6))
+    assert r.unit == "DN" and r.sky_rate == 0.8
+
+
+# -- random streams ------------------------------------------------------------------------------
+
+def test_same_seed_same_frame_different_seed_different(sources):
+    model = load_detector_model("roman", ["persistence=off"])
+    a = run_chain(sources, model, exptime=T, seed=11, sky_rate=1.0)
+    b = run_chain(sources, model, exptime=T, seed=11, sky_rate=1.0)
+    c = run_chain(sources, model, exptime=T, seed=12, sky_rate=1.0)
+    np.testing.assert_array_equal(a.sci, b.sci)
+    assert np.mean(a.sci != c.sci) > 0.9
+
+
+def test_each_effect_has_its_own_stream(sources):
+    """Switching dark on adds exactly its own realisation; the Poisson and read noise do not change."""
+    base = only("sky", "poisson", "read_noise")
+    with_dark = only("sky", "poisson", "dark", "read_noise", dark={"current": 0.1})
+    a = run_chain(sources, base, exptime=T, seed=21, sky_rate=1.0)
+    b = run_chain(sources, with_dark, exptime=T, seed=21, sky_rate=1.0)
+    d = b.sci - a.sci
+    np.testing.assert_allclose(d, np.round(d), atol=1e-6)          # an integer Poisson draw per pixel
+    mean = 0.1 * T
+    assert d.min() >= -1e-6
+    assert abs(d.mean() - mean) < 5 * np.sqrt(mean / d.size)
+    assert abs(d.var() / mean - 1) < 5 * np.sqrt(2.0 / d.size)
+    # the same with read noise off: SCI(dark) - SCI(no dark) is the same realisation
+    a2 = run_chain(sources, only("sky", "poisson"), exptime=T, seed=21, sky_rate=1.0)
+    b2 = run_chain(sources, only("sky", "poisson", "dark", dark={"current": 0.1}), exptime=T, seed=21,
+                   sky_rate=1.0)
+    np.testing.assert_allclose(b2.sci - a2.sci, d, atol=1e-6)
+
+
+def test_persistence_on_or_off_leaves_the_noise_alone(sources):
+    pers = np.zeros_like(sources)
+    pers[10:20, 10:20] = 7.0
+    model = load_detector_model("roman", ["nonlinearity=off", "ipc=off", "quantize=off", "gain.gain=2"])
+    a = run_chain(sources, model, exptime=T, seed=5, sky_rate=1.0, persistence=lambda: pers)
+    model_off = load_detector_model("roman", ["nonlinearity=off", "ipc=off", "quantize=off", "gain.gain=2",
+                                              "persistence=off"])
+    b = run_chain(sources, model_off, exptime=T, seed=5, sky_rate=1.0, persistence=never)
+    np.testing.assert_allclose(a.sci - b.sci, pers / 2.0, atol=1e-9)
+
+
+# -- detector models ------------------------------------------------------------------------------
+
+def write(tmp_path, text, name="model.yaml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+def test_default_model_is_galsims_roman_chain():
+    import galsim.roman as roman
+
+    for spec in (None, "roman", "default"):
+        m = load_detector_model(spec)
+        assert [e.name for e in m.effects] == list(ORDER)
+        assert all(e.enabled for e in m.effects)
+        assert m.source == "roman"
+    m = load_detector_model()
+    assert m.get("reciprocity").params["alpha"] == roman.reciprocity_alpha
+    assert m.get("dark").params["current"] == roman.dark_current
+    assert m.get("nonlinearity").params["beta"] == roman.nonlinearity_beta
+    assert m.get("read_noise").params["sigma"] == roman.read_noise
+    assert m.get("gain").params["gain"] == roman.gain
+    # each call is a fresh copy: changing one does not change the defaults
+    m.get("dark").params["current"] = 99.0
+    assert load_detector_model().get("dark").params["current"] == roman.dark_current
+    assert DEFAULTS["dark"]["current"] == roman.dark_current
+
+
+def test_yaml_list_in_physical_order(tmp_path):
+    path = write(tmp_path, "effects:\n  - sky: {level: 1.5}\n  - poisson\n  - dark: {current: 0.1}\n"
+                           "  - read_noise: {sigma: 4}\n  - quantize: {}\n")
+    m = load_detector_model(path)
+    assert [e.name for e in m.effects] == ["sky", "poisson", "dark", "read_noise", "quantize"]
+    assert m.get("sky").params == {"level": 1.5}
+    assert m.get("read_noise").params == {"sigma": 4}
+    assert not m.enabled("ipc") and not m.enabled("gain") and m.get("ipc") is None
+    assert m.source == path
+    # the chain follows the file: no gain, so electrons
+    r = run_chain(np.zeros((4, 4)), m, exptime=T, seed=1, sky_rate=never)
+    assert r.unit == "electron" and r.sky_rate == 1.5
+
+
+def test_sample_detector_model_is_the_default_chain():
+    from conftest import SAMPLE_DATA
+
+    path = SAMPLE_DATA / "roman_detector.yaml"
+    if not path.exists():
+        pytest.skip("sample_data/roman_detector.yaml not present")
+    m = load_detector_model(str(path))
+    assert m.describe() == load_detector_model("roman").describe()
+
+
+def test_yaml_mapping_form_and_defaults_for_missing_parameters(tmp_path):
+    path = write(tmp_path, "reciprocity: {alpha: 0.01}\nnonlinearity:\ngain: {gain: 2}\n")
+    m = load_detector_model(path)
+    assert [e.name for e in m.effects] == ["reciprocity", "nonlinearity", "gain"]
+    assert m.get("reciprocity").params == {"alpha": 0.01, "base_flux": 1.0}
+    assert m.get("nonlinearity").params == {"beta": -6.0e-7}
+
+
+def test_yaml_enabled_false_is_respected(tmp_path):
+    path = write(tmp_path, "effects:\n  - sky: {level: 1.0}\n  - dark: {current: 5, enabled: false}\n"
+                           "  - gain: {gain: 2, enabled: true}\n")
+    m = load_detector_model(path)
+    assert not m.enabled("dark") and m.get("dark") is not None and m.get("dark").params == {"current": 5}
+    assert m.enabled("gain")
+    r = run_chain(np.zeros((8, 8)), m, exptime=10.0, seed=1)
+    np.testing.assert_array_equal(r.sci, np.full((8, 8), 5.0))       # 1.0 * 10 / 2, no dark
+    # described as off for the provenance
+    assert ("dark", False, {"current": 5}) in m.describe()
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("effects:\n  - dark\n  - sky\n", "physical order"),
+    ("effects:\n  - ipc\n  - nonlinearity\n", "physical order"),
+    ("gain: {}\nread_noise: {}\n", "physical order"),
+    ("effects:\n  - sky\n  - blur: {}\n", "unknown effect 'blur'"),
+    ("effects:\n  - sky\n  - sky\n", "listed twice"),
+    ("effects:\n  - read_noise: {sigma: 3, rms: 2}\n", "unknown parameter(s) rms"),
+    ("effects:\n  - read_noise: {sigma: -1}\n", "must not be negative"),
+    ("effects:\n  - read_noise: {sigma: lots}\n", "must be a finite number"),
+    ("effects:\n  - gain: {gain: 0}\n", "must be positive"),
+    ("effects:\n  - dark: {current: .nan}\n", "finite number"),
+    ("effects:\n  - dark: {enabled: maybe}\n", "enabled must be true or false"),
+    ("effects:\n  - ipc: {kernel: [[1, 0], [0, 1]]}\n", "3x3"),
+    ("effects:\n  - ipc: {kernel: galsim}\n", "3x3"),
+    ("effects:\n  - persistence: {base: awful}\n", "base must be one of"),
+    ("effects:\n  - persistence: {Q: 1}\n", "unknown persistence parameter"),
+    ("effects:\n  - {sky: {}, dark: {}}\n", "one-key mapping"),
+    ("effects: 3\n", "expected 'effects:'"),
+    ("effects:\n  - sky: [\n", "not valid YAML"),
+])
+def test_bad_yaml_models_rejected(tmp_path, text, needle):
+    path = write(tmp_path, text)
+    with pytest.raises(PerscliError) as err:
+        load_detector_model(path)
+    assert needle in str(err.value)
+    assert path in str(err.value)
+
+
+def test_missing_model_file(tmp_path):
+    with pytest.raises(PerscliError, match="not found"):
+        load_detector_model(str(tmp_path / "nope.yaml"))
+
+
+def test_overrides_set_parameters_and_switch_effects():
+    m = load_detector_model("roman", ["read_noise.sigma=5", "ipc=off", "sky.level=0.25", "gain.gain=2.5"])
+    assert m.get("read_noise").params["sigma"] == 5
+    assert not m.enabled("ipc")
+    assert m.get("sky").params["level"] == 0.25
+    assert m.get("gain").params["gain"] == 2.5
+    m = load_detector_model("roman", ["dark=off", "dark=on", "quantize=false", "quantize=TRUE"])
+    assert m.enabled("dark") and m.enabled("quantize")
+    m = load_detector_model("roman", ["ipc.kernel=[[0,0,0],[0,1,0],[0,0,0]]"])
+    assert m.get("ipc").params["kernel"] == [[0, 0, 0], [0, 1, 0], [0, 0, 0]]
+    m = load_detector_model("roman", ["persistence.base=pessimistic", "persistence.gamma=1.1"])
+    pm = m.persistence_model()
+    assert pm.A == 0.086 and pm.gamma == 1.1 and pm.x0 == 1.37e5
+
+
+def test_override_adds_a_missing_effect_in_its_place(tmp_path):
+    path = write(tmp_path, "effects:\n  - sky: {level: 1}\n  - gain: {gain: 2}\n")
+    m = load_detector_model(path, ["read_noise.sigma=3", "ipc=on"])
+    assert [e.name for e in m.effects] == ["sky", "ipc", "read_noise", "gain"]
+    assert m.enabled("read_noise") and m.enabled("ipc")
+    assert m.get("ipc").params == DEFAULTS["ipc"]
+    # switching off an effect the file does not list keeps it off
+    m = load_detector_model(path, ["dark=off"])
+    assert not m.enabled("dark")
+
+
+def test_override_of_a_disabled_parameter_enables_the_effect(tmp_path):
+    path = write(tmp_path, "effects:\n  - read_noise: {sigma: 2, enabled: false}\n")
+    m = load_detector_model(path, ["read_noise.sigma=4"])
+    assert m.enabled("read_noise") and m.get("read_noise").params["sigma"] == 4
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("blur=off", "unknown effect 'blur'"),
+    ("blur.size=3", "unknown effect 'blur'"),
+    ("read_noise.rms=3", "unknown parameter(s) rms"),
+    ("read_noise", "EFFECT.KEY=VALUE"),
+    ("dark=maybe", "dark=on or dark=off"),
+    ("gain.gain=-1", "must be positive"),
+    ("gain.gain=0", "must be positive"),
+    ("read_noise.sigma=abc", "finite number"),
+    ("sky.level=-2", "must not be negative"),
+    ("ipc.kernel=[1,2,3]", "3x3"),
+    ("persistence.base=awful", "base must be one of"),
+    ("persistence.bogus=1", "unknown persistence parameter"),
+])
+def test_bad_overrides_rejected(text, needle):
+    with pytest.raises(PerscliError) as err:
+        load_detector_model("roman", [text])
+    assert needle in str(err.value)
+
+
+def test_persistence_model_of_the_default_chain_is_typical():
+    from perscli.detector.persistence import PRESETS
+
+    pm = load_detector_model().persistence_model()
+    assert pm.kind == "fermi"
+    for key, value in PRESETS["typical"].items():
+        assert getattr(pm, key) == value

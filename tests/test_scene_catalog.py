@@ -1,0 +1,487 @@
+"""perscli.scene.catalog and ``perscli catalog``: counts, magnitude laws, sizes, shapes, positions,
+Gaia stars and their colours, reproducibility, errors."""
+
+import math
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from scipy import stats
+
+from perscli import PerscliError
+from perscli.scene import ROMAN_FILTERS, project
+from perscli.scene.catalog import (Field, GalaxyModel, cumulative_fraction, draw_galaxies, filter_magnitudes,
+                                   make_truth_catalog, power_law_magnitudes, truncated_ellipticities,
+                                   truncated_sigma)
+
+from fits_factory import invoke, listing, raw_cards_masked, snapshot
+
+RA, DEC = 10.0, -44.0
+
+
+@pytest.fixture(scope="module")
+def big():
+    """A 30' x 30' field (900 arcmin^2): ~36,000 galaxies and, at 100 per arcmin^2, ~90,000 stars."""
+    return make_truth_catalog(RA, DEC, 30.0, star_density=100.0, seed=11)
+
+
+def galaxies(table):
+    return table[table["kind"] == "galaxy"]
+
+
+def stars(table):
+    return table[table["kind"] == "star"]
+
+
+def fitted_slope(mags, lo, hi, width=0.5):
+    """d log10 N / dm of a histogram, weighted least squares on log counts."""
+    edges = np.arange(lo, hi + 1e-9, width)
+    counts, _ = np.histogram(mags, edges)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    slope, _ = np.polyfit(centres, np.log10(counts), 1, w=np.sqrt(counts))
+    return slope
+
+
+def gnomonic(ra0, dec0, ra, dec):
+    """Standard coordinates (radians) by the textbook formulas, independent of perscli.scene.project."""
+    a0, d0, a, d = map(np.radians, (ra0, dec0, ra, dec))
+    cos_c = np.sin(d0) * np.sin(d) + np.cos(d0) * np.cos(d) * np.cos(a - a0)
+    xi = np.cos(d) * np.sin(a - a0) / cos_c
+    eta = (np.cos(d0) * np.sin(d) - np.sin(d0) * np.cos(d) * np.cos(a - a0)) / cos_c
+    return xi, eta
+
+
+def box_solid_angle(x1, x2, y1, y2):
+    """Solid angle of [x1, x2] x [y1, y2] on the gnomonic plane (unit distance)."""
+    f = lambda x, y: math.atan(x * y / math.sqrt(1 + x * x + y * y))   # noqa: E731
+    return f(x2, y2) - f(x1, y2) - f(x2, y1) + f(x1, y1)
+
+
+# -- the field ---------------------------------------------------------------------------------
+
+def test_field_area_is_the_solid_angle_of_the_square():
+    fld = Field(RA, DEC, 10.0)
+    assert fld.area == pytest.approx(100.0, rel=1e-5)
+    big_field = Field(RA, DEC, 2400.0)                   # 40 degrees: far from flat
+    a = math.tan(math.radians(20.0))
+    assert big_field.area == pytest.approx(4 * box_solid_angle(0, a, 0, a) * (180 * 60 / math.pi) ** 2)
+    assert 0.95 < big_field.area / 2400.0 ** 2 < 0.97      # a square of 40 degrees is not 1600 deg^2
+
+
+@pytest.mark.parametrize("size", [-1.0, 0.0, 3600.0])
+def test_field_size_out_of_range(size):
+    with pytest.raises(PerscliError, match="field size"):
+        Field(RA, DEC, size)
+
+
+def test_positions_inside_the_field_and_uniform(big):
+    fld = Field(RA, DEC, 30.0)
+    assert fld.contains(big["ra"], big["dec"]).all()
+    xi, eta = gnomonic(RA, DEC, big["ra"], big["dec"])
+    a = fld.half_width
+    assert np.abs(xi).max() <= a * (1 + 1e-12) and np.abs(eta).max() <= a * (1 + 1e-12)
+    # reaches the edges: not a smaller square
+    assert np.abs(xi).max() > 0.99 * a and np.abs(eta).max() > 0.99 * a
+    for coord in (xi, eta):
+        assert stats.kstest(coord, stats.uniform(loc=-a, scale=2 * a).cdf).pvalue > 1e-3
+    n = len(big)
+    quadrants = np.histogram2d(xi, eta, bins=[[-a, 0, a], [-a, 0, a]])[0].ravel()
+    assert np.all(np.abs(quadrants - n / 4) < 4 * np.sqrt(n / 4)), quadrants
+
+
+def test_positions_are_uniform_in_solid_angle_on_a_wide_field():
+    """On a 40-degree field, uniform on the plane would put 1.4x more objects per steradian in the corners."""
+    fld = Field(RA, DEC, 2400.0)
+    rng = np.random.Generator(np.random.PCG64(5))
+    ra, dec = fld.sample(rng, 60000)
+    xi, eta = project(RA, DEC, ra, dec)
+    a = fld.half_width
+    h = a / 4
+    centre = (np.abs(xi) < h) & (np.abs(eta) < h)
+    corner = (xi > a - 2 * h) & (eta > a - 2 * h)
+    density_centre = centre.sum() / box_solid_angle(-h, h, -h, h)
+    density_corner = corner.sum() / box_solid_angle(a - 2 * h, a, a - 2 * h, a)
+    assert density_corner / density_centre == pytest.approx(1.0, abs=0.08)
+
+
+@pytest.mark.parametrize("ra, dec", [(0.0, 0.0), (359.99, 30.0), (123.0, 89.95), (200.0, -89.99)])
+def test_fields_across_ra_zero_and_at_the_poles(ra, dec):
+    table = make_truth_catalog(ra, dec, 20.0, galaxy_density=5.0, seed=2)
+    assert len(table) > 1000
+    assert np.all((table["ra"] >= 0) & (table["ra"] < 360))
+    assert Field(ra, dec, 20.0).contains(table["ra"], table["dec"]).all()
+    xi, eta = project(ra, dec, table["ra"], table["dec"])
+    a = Field(ra, dec, 20.0).half_width
+    assert np.abs(xi).max() > 0.98 * a and np.abs(eta).max() > 0.98 * a
+
+
+# -- counts ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_counts_are_poisson_with_the_densities(seed):
+    table = make_truth_catalog(RA, DEC, 10.0, seed=seed)
+    for kind, mean in (("galaxy", 40.0 * 100.0), ("star", 2.5 * 100.0)):
+        n = int((table["kind"] == kind).sum())
+        assert abs(n - mean) < 4 * math.sqrt(mean), (kind, n)
+    assert table.meta["NGAL"] == (table["kind"] == "galaxy").sum()
+    assert table.meta["NSTAR"] == (table["kind"] == "star").sum()
+
+
+def test_zero_density_gives_no_objects():
+    table = make_truth_catalog(RA, DEC, 10.0, galaxy_density=0.0, star_density=0.0, seed=1)
+    assert len(table) == 0 and table.meta["NGAL"] == 0
+
+
+@pytest.mark.parametrize("key", ["galaxy_density", "star_density"])
+def test_negative_density_is_an_error_in_the_library(key):
+    with pytest.raises(PerscliError, match="density -1"):
+        make_truth_catalog(RA, DEC, 10.0, **{key: -1.0})
+
+
+# -- magnitudes --------------------------------------------------------------------------------
+
+def test_galaxy_magnitudes_follow_the_power_law(big):
+    j = galaxies(big)["mag_J129"]
+    assert j.min() >= 20.0 and j.max() <= 25.5
+    assert fitted_slope(j, 20.0, 25.5) == pytest.approx(0.28, abs=0.015)
+
+
+def test_star_magnitudes_follow_the_power_law(big):
+    j = stars(big)["mag_J129"]
+    assert j.min() >= 10.0 and j.max() <= 24.0
+    assert fitted_slope(j, 14.0, 24.0) == pytest.approx(0.15, abs=0.015)
+
+
+def test_documented_counts():
+    """The numbers the docstrings quote."""
+    stars_brighter_than_14 = 2.5 * 3600 * cumulative_fraction(14.0, 0.15, 10.0, 24.0)
+    assert stars_brighter_than_14 == pytest.approx(215, abs=1)
+    galaxies_brighter_than_24 = 40.0 * cumulative_fraction(24.0, 0.28, 20.0, 25.5)
+    assert galaxies_brighter_than_24 == pytest.approx(14.5, abs=0.05)
+
+
+def test_drawn_counts_brighter_than_a_magnitude_match_the_law(big):
+    n = len(galaxies(big))
+    expected = n * cumulative_fraction(24.0, 0.28, 20.0, 25.5)
+    observed = (galaxies(big)["mag_J129"] < 24.0).sum()
+    assert abs(observed - expected) < 4 * math.sqrt(expected)
+
+
+def test_power_law_sampler_on_its_own():
+    m = power_law_magnitudes(np.random.default_rng(3), 200000, 0.4, 18.0, 22.0)
+    assert fitted_slope(m, 18.0, 22.0, width=0.25) == pytest.approx(0.4, abs=0.01)
+
+
+def test_colours(big):
+    g, s = galaxies(big), stars(big)
+    jh = g["mag_J129"] - g["mag_H158"]
+    assert np.mean(jh) == pytest.approx(0.30, abs=0.005) and np.std(jh) == pytest.approx(0.15, abs=0.005)
+    sjh = s["mag_J129"] - s["mag_H158"]
+    assert sjh.min() >= 0.0 and sjh.max() <= 1.0
+    assert np.median(sjh) == pytest.approx(0.45, abs=0.01)
+
+
+def test_other_filters_are_linear_in_log_wavelength():
+    mags = filter_magnitudes([20.0], [19.5])
+    lam = {"J129": 1.293, "H158": 1.577, "R062": 0.620, "K213": 2.125, "W146": 1.464}
+    for name in ("R062", "K213", "W146"):
+        t = math.log(lam[name] / lam["J129"]) / math.log(lam["H158"] / lam["J129"])
+        assert mags[name][0] == pytest.approx(20.0 - 0.5 * t, abs=1e-12)
+    assert mags["J129"][0] == 20.0 and mags["H158"][0] == 19.5
+    assert mags["R062"][0] > mags["Z087"][0] > mags["Y106"][0] > 20.0 > mags["W146"][0] > 19.5
+
+
+def test_every_roman_filter_has_a_column(big):
+    for name in ROMAN_FILTERS:
+        assert np.all(np.isfinite(big[f"mag_{name}"]))
+
+
+# -- sizes and shapes --------------------------------------------------------------------------
+
+def test_half_light_radii(big):
+    g, s = galaxies(big), stars(big)
+    assert g["hlr"].min() >= 0.08 and g["hlr"].max() <= 1.5
+    assert np.all(s["hlr"] == 0) and np.all(s["e1"] == 0) and np.all(s["e2"] == 0)
+    near23 = np.abs(g["mag_J129"] - 23.0) < 0.25
+    assert np.median(g["hlr"][near23]) == pytest.approx(0.35, rel=0.05)
+    faint = np.abs(g["mag_J129"] - 25.0) < 0.25
+    # median log size falls by 0.08 dex per magnitude
+    assert np.median(np.log10(g["hlr"][faint])) - np.median(np.log10(g["hlr"][near23])) == pytest.approx(
+        -0.16, abs=0.03)
+
+
+def test_truncated_sigma_matches_a_monte_carlo():
+    e = np.random.default_rng(0).normal(0, 0.27, (2_000_000, 2))
+    e = e[np.hypot(e[:, 0], e[:, 1]) <= 0.7]
+    assert truncated_sigma(0.27, 0.7) == pytest.approx(np.std(e[:, 0]), abs=0.001)
+    assert truncated_sigma(0.27, 0.7) == pytest.approx(0.2532, abs=1e-4)
+
+
+def test_ellipticities_are_truncated_at_0_7(big):
+    g = galaxies(big)
+    e = np.hypot(g["e1"], g["e2"])
+    assert e.max() <= 0.7
+    assert e.max() > 0.68                                      # the truncation is reached, not a tighter cut
+    expected = truncated_sigma(0.27, 0.7)
+    for comp in (g["e1"], g["e2"]):
+        assert np.std(comp) == pytest.approx(expected, abs=0.004)
+        assert abs(np.mean(comp)) < 4 * expected / math.sqrt(len(comp))
+    assert np.std(g["e1"]) < 0.262                             # narrower than the untruncated 0.27
+
+
+def test_redraws_keep_every_pair_isotropic():
+    e1, e2 = truncated_ellipticities(np.random.default_rng(1), 100000, 0.5, 0.7)   # half the pairs redrawn
+    assert np.hypot(e1, e2).max() <= 0.7
+    angle = np.arctan2(e2, e1)
+    assert stats.kstest(angle, stats.uniform(loc=-np.pi, scale=2 * np.pi).cdf).pvalue > 1e-3
+
+
+# -- reproducibility ---------------------------------------------------------------------------
+
+def test_same_seed_same_bytes_other_seed_other_catalog(tmp_path):
+    out1, out2, out3 = (tmp_path / f"{k}.fits" for k in "abc")
+    for out, seed in ((out1, "4"), (out2, "4"), (out3, "5")):
+        result = invoke("catalog", "--ra", RA, "--dec", DEC, "--size", 5, "--seed", seed, "-o", out)
+        assert result.exit_code == 0, result.output
+    assert raw_cards_masked(out1) == raw_cards_masked(out2)
+    with fits.open(out1) as a, fits.open(out3) as c:
+        assert a["TRUTH"].header["SEED"] == 4 and c["TRUTH"].header["SEED"] == 5
+        assert not np.array_equal(a["TRUTH"].data["ra"][:10], c["TRUTH"].data["ra"][:10])
+
+
+def test_galaxies_do_not_depend_on_the_star_model():
+    a = galaxies(make_truth_catalog(RA, DEC, 5.0, star_density=2.5, seed=9))
+    b = galaxies(make_truth_catalog(RA, DEC, 5.0, star_density=7.0, seed=9))
+    assert len(a) == len(b) and np.array_equal(a["ra"], b["ra"]) and np.array_equal(a["e1"], b["e1"])
+
+
+def test_model_parameters_are_used_and_recorded():
+    table = make_truth_catalog(RA, DEC, 5.0, seed=1, galaxy_model=GalaxyModel(mag_min=22.0, e_max=0.3))
+    g = galaxies(table)
+    assert g["mag_J129"].min() >= 22.0 and np.hypot(g["e1"], g["e2"]).max() <= 0.3
+    assert table.meta["GMAGMIN"] == 22.0 and table.meta["GEMAX"] == 0.3
+
+
+def test_draw_galaxies_uses_only_its_generator():
+    fld = Field(RA, DEC, 3.0)
+    a = draw_galaxies(np.random.default_rng(2), fld, 40.0, GalaxyModel())
+    b = draw_galaxies(np.random.default_rng(2), fld, 40.0, GalaxyModel())
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+
+
+# -- the output file ---------------------------------------------------------------------------
+
+def test_output_file_columns_units_and_header(tmp_path):
+    out = tmp_path / "truth.fits"
+    result = invoke("catalog", "--ra", RA, "--dec", DEC, "--size", 4, "--seed", 3, "-o", out)
+    assert result.exit_code == 0, result.output
+    assert result.stdout == "" and result.stderr == ""
+    with fits.open(out, checksum=True) as hdul:
+        hdu = hdul["TRUTH"]
+        data, hdr = hdu.data, hdu.header
+        names = data.columns.names
+        for col in ("id", "ra", "dec", "kind", "hlr", "e1", "e2", "gaia_id", *(f"mag_{f}" for f in ROMAN_FILTERS)):
+            assert col in names
+        units = {c.name: c.unit for c in data.columns}
+        assert units["ra"] == "deg" and units["dec"] == "deg" and units["hlr"] == "arcsec"
+        assert units["mag_J129"] == "mag"
+        assert data.columns["id"].format == "K" and data.columns["ra"].format == "D"
+        assert len(np.unique(data["id"])) == len(data)
+        assert set(np.char.strip(data["kind"])) == {"galaxy", "star"}
+        assert np.all(data["gaia_id"] == -1)
+        assert hdr["FIELDRA"] == RA and hdr["FIELDDEC"] == DEC and hdr["FIELDSZ"] == 4.0
+        assert hdr["GALDENS"] == 40.0 and hdr["STARDENS"] == 2.5 and hdr["STARSRC"] == "model"
+        assert hdr["GMAGSLP"] == 0.28 and hdr["SMAGSLP"] == 0.15 and hdr["GESIG"] == 0.27
+        assert hdr["SEED"] == 3 and hdr["CREATOR"].startswith("perscli ")
+        assert "catalog ra=10.0" in str(hdr["HISTORY"])
+        assert "CHECKSUM" in hdr and "DATASUM" in hdr
+
+
+def test_catalog_to_stdout(tmp_path):
+    result = invoke("catalog", "--ra", RA, "--dec", DEC, "--size", 2, "-o", "-")
+    assert result.exit_code == 0
+    path = tmp_path / "s.fits"
+    path.write_bytes(result.stdout_bytes)
+    with fits.open(path) as hdul:
+        assert hdul["TRUTH"].header["NGAL"] == (np.char.strip(hdul["TRUTH"].data["kind"]) == "galaxy").sum()
+
+
+# -- Gaia --------------------------------------------------------------------------------------
+
+def gaia_file(path, rows, *, units=("rad", "nJy"), drop=None):
+    """A Gaia DR2 chunk in the LSST reference-catalog layout: rows of (id, ra, dec, G, BP, RP) (deg, AB mag)."""
+    rows = np.array(rows, dtype=np.float64)
+    flux = lambda m: np.where(np.isfinite(m), 10 ** ((31.4 - m) / 2.5), 0.0)   # noqa: E731
+    ra_unit, flux_unit = units
+    scale = 1.0 if ra_unit == "deg" else np.pi / 180
+    cols = [fits.Column("id", "K", array=rows[:, 0].astype(np.int64)),
+            fits.Column("coord_ra", "D", unit=ra_unit, array=rows[:, 1] * scale),
+            fits.Column("coord_dec", "D", unit=ra_unit, array=rows[:, 2] * scale),
+            fits.Column("phot_g_mean_flux", "D", unit=flux_unit, array=flux(rows[:, 3])),
+            fits.Column("phot_bp_mean_flux", "D", unit=flux_unit, array=flux(rows[:, 4])),
+            fits.Column("phot_rp_mean_flux", "D", unit=flux_unit, array=flux(rows[:, 5]))]
+    cols = [c for c in cols if c.name != drop]
+    fits.HDUList([fits.PrimaryHDU(), fits.BinTableHDU.from_columns(cols)]).writeto(path)
+    return str(path)
+
+
+# (BP-RP)_AB of a star whose Gaia (Vega) BP-RP is 1: the DR2 zero points 25.3514/25.3806 (BP) and 24.7619/25.1161 (RP)
+BPRP_AB_OF_VEGA_1 = 1.0 + ((25.3806 - 25.3514) - (25.1161 - 24.7619))
+
+
+def test_gaia_colour_of_a_bp_rp_1_star_by_hand(tmp_path):
+    rp = 15.0 - 0.5
+    path = gaia_file(tmp_path / "g.fits", [(42, RA, DEC, 15.0, rp + BPRP_AB_OF_VEGA_1, rp)])
+    table = make_truth_catalog(RA, DEC, 1.0, galaxy_density=0.0, gaia=[path])
+    assert len(table) == 1 and table["gaia_id"][0] == 42 and table["kind"][0] == "star"
+    # G_Vega = 15 - 0.105; 2MASS J = G - (-0.01883 + 1.394 - 0.07893); J_AB = J_Vega + 0.91
+    expected_j = 15.0 - 0.105 - (-0.01883 + 1.394 - 0.07893) + 0.91
+    expected_h = 15.0 - 0.105 - (-0.1621 + 1.968 - 0.1328) + 1.39
+    assert table["mag_J129"][0] == pytest.approx(expected_j, abs=1e-9)
+    assert table["mag_H158"][0] == pytest.approx(expected_h, abs=1e-9)
+    assert expected_j == pytest.approx(14.50876, abs=1e-5)
+    assert table["hlr"][0] == 0 and table["e1"][0] == 0
+
+
+def test_gaia_stars_without_colour_get_the_median_and_colours_are_clipped(tmp_path):
+    def star(i, x_vega, g=16.0, dra=0.0):
+        rp = 15.0
+        return (i, RA + dra, DEC, g, rp + x_vega - 0.325, rp)
+    rows = [star(1, 1.0), star(2, 1.5), star(3, 2.0), (4, RA, DEC, 16.0, np.nan, 15.0),
+            star(5, 7.0), star(6, 1.0, g=np.nan), star(7, 1.0, dra=1.0)]
+    path = gaia_file(tmp_path / "g.fits", rows)
+    table = make_truth_catalog(RA, DEC, 2.0, galaxy_density=0.0, gaia=[path])
+    by_id = {int(r["gaia_id"]): r for r in table}
+    assert set(by_id) == {1, 2, 3, 4, 5}                 # 6 has no G flux, 7 is outside the field
+    # the median BP-RP of every row read with BP and RP (1, 1.5, 2, 7, 1, 1) is 1.25
+    j4 = 16.0 - 0.105 - (-0.01883 + 1.394 * 1.25 - 0.07893 * 1.25 ** 2) + 0.91
+    assert by_id[4]["mag_J129"] == pytest.approx(j4, abs=1e-6)
+    j5 = 16.0 - 0.105 - (-0.01883 + 1.394 * 5.5 - 0.07893 * 5.5 ** 2) + 0.91   # 7 clipped to 5.5 for J
+    h5 = 16.0 - 0.105 - (-0.1621 + 1.968 * 5.0 - 0.1328 * 5.0 ** 2) + 1.39     # and to 5.0 for H
+    assert by_id[5]["mag_J129"] == pytest.approx(j5, abs=1e-6)
+    assert by_id[5]["mag_H158"] == pytest.approx(h5, abs=1e-6)
+    assert table.meta["GAIANMED"] == 1 and table.meta["GAIANOG"] == 1 and table.meta["GAIANIN"] == 7
+    assert table.meta["GAIABPRP"] == pytest.approx(1.25, abs=1e-6)
+
+
+def test_gaia_file_given_twice_counts_its_stars_once(tmp_path):
+    path = gaia_file(tmp_path / "g.fits", [(1, RA, DEC, 16, 16.5, 15.5), (2, RA, DEC + 0.001, 17, 17.5, 16.5)])
+    table = make_truth_catalog(RA, DEC, 1.0, galaxy_density=0.0, gaia=[path, path])
+    assert sorted(table["gaia_id"]) == [1, 2]
+
+
+def test_real_gaia_chunks(shared_data, tmp_path):
+    files = sorted(str(p) for p in (shared_data / "gaia").glob("*.fits"))
+    assert len(files) == 2
+    ra0, dec0, size = 10.3, -44.5, 40.0
+    out = tmp_path / "truth.fits"
+    result = invoke("catalog", "--ra", ra0, "--dec", dec0, "--size", size, "--galaxy-density", 1,
+                    *sum((["--gaia", f] for f in files), []), "-o", out)
+    assert result.exit_code == 0, result.output
+    # the Gaia stars inside the field, found here without perscli
+    ids, g_ab, bprp_ab = [], [], []
+    for f in files:
+        with fits.open(f) as hdul:
+            d = hdul[1].data
+            xi, eta = gnomonic(ra0, dec0, np.degrees(d["coord_ra"]), np.degrees(d["coord_dec"]))
+            half = math.tan(math.radians(size / 60) / 2)
+            inside = (np.abs(xi) <= half) & (np.abs(eta) <= half)
+            ids.extend(d["id"][inside])
+            g_ab.extend(31.4 - 2.5 * np.log10(d["phot_g_mean_flux"][inside]))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                bprp_ab.extend(-2.5 * np.log10(d["phot_bp_mean_flux"][inside] / d["phot_rp_mean_flux"][inside]))
+    with fits.open(out) as hdul:
+        data, hdr = hdul["TRUTH"].data, hdul["TRUTH"].header
+    s = data[np.char.strip(data["kind"]) == "star"]
+    assert len(s) == len(ids) > 100
+    assert sorted(s["gaia_id"]) == sorted(ids)
+    assert hdr["STARSRC"] == "gaia" and hdr["NSTAR"] == len(ids)
+    assert hdr["GA001"] == "145649.fits" and hdr["GA002"] == "145650.fits"
+    assert hdr["GA001DS"].isdigit()
+    # J - G of stars with their own colour: from about -0.4 (blue) to -1.8 (red M dwarfs), AB
+    g_of = dict(zip(ids, g_ab))
+    x_of = dict(zip(ids, bprp_ab))
+    for row in s[:50]:
+        x = x_of[row["gaia_id"]] + 0.325
+        if not np.isfinite(x):
+            continue
+        j_expected = g_of[row["gaia_id"]] - 0.105 - (-0.01883 + 1.394 * min(max(x, -0.5), 5.5)
+                                                     - 0.07893 * min(max(x, -0.5), 5.5) ** 2) + 0.91
+        assert row["mag_J129"] == pytest.approx(j_expected, abs=1e-6)
+        assert -2.5 < row["mag_J129"] - g_of[row["gaia_id"]] < 0.5
+
+
+# -- command-line errors -----------------------------------------------------------------------
+
+def expect_error(tmp_path, args, *needles):
+    """A one-line data error (exit 1), no output file, inputs unchanged."""
+    inputs = [str(a) for a in args if str(a).endswith(".fits")]
+    before, files = snapshot(*inputs), listing(tmp_path)
+    result = invoke("catalog", "--ra", RA, "--dec", DEC, *args, "-o", tmp_path / "out.fits")
+    assert result.exit_code == 1, (result.exit_code, result.output)
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    assert result.stdout == ""
+    assert listing(tmp_path) == files and snapshot(*inputs) == before
+    return lines[0]
+
+
+def expect_usage_error(tmp_path, args, *needles):
+    files = listing(tmp_path)
+    result = invoke("catalog", *args)
+    assert result.exit_code == 2, (result.exit_code, result.output)
+    assert "Usage:" in result.stderr
+    for needle in needles:
+        assert needle in result.stderr
+    assert listing(tmp_path) == files
+
+
+def test_gaia_file_that_is_not_fits(tmp_path):
+    bad = tmp_path / "bad.fits"
+    bad.write_bytes(b"not a catalog\n" * 300)
+    expect_error(tmp_path, ["--gaia", bad], str(bad), "not a FITS file")
+
+
+def test_gaia_file_that_does_not_exist(tmp_path):
+    expect_error(tmp_path, ["--gaia", tmp_path / "nope.fits"], "nope.fits", "no such file")
+
+
+def test_gaia_file_without_a_column(tmp_path):
+    path = gaia_file(tmp_path / "g.fits", [(1, RA, DEC, 16, 16.5, 15.5)], drop="phot_bp_mean_flux")
+    expect_error(tmp_path, ["--gaia", path], path, "'phot_bp_mean_flux'", "check that this is a Gaia")
+
+
+def test_gaia_file_in_degrees(tmp_path):
+    path = gaia_file(tmp_path / "g.fits", [(1, RA, DEC, 16, 16.5, 15.5)], units=("deg", "nJy"))
+    expect_error(tmp_path, ["--gaia", path], path, "'coord_ra'", "'deg'", "'rad'")
+
+
+def test_gaia_file_that_is_an_image(tmp_path):
+    path = tmp_path / "img.fits"
+    fits.PrimaryHDU(np.zeros((4, 4))).writeto(path)
+    expect_error(tmp_path, ["--gaia", path], str(path), "no binary table")
+
+
+def test_existing_output_without_overwrite(tmp_path):
+    out = tmp_path / "out.fits"
+    out.write_bytes(b"keep")
+    result = invoke("catalog", "--ra", RA, "--dec", DEC, "-o", out)
+    assert result.exit_code == 1 and "--overwrite" in result.stderr
+    assert out.read_bytes() == b"keep"
+    assert invoke("catalog", "--ra", RA, "--dec", DEC, "--size", 1, "-o", out, "--overwrite").exit_code == 0
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--ra", RA, "--dec", DEC, "--galaxy-density", "-1", "-o", "OUT"], "--galaxy-density"),
+    (["--ra", RA, "--dec", DEC, "--star-density", "-0.5", "-o", "OUT"], "--star-density"),
+    (["--ra", RA, "--dec", DEC, "--size", "0", "-o", "OUT"], "--size"),
+    (["--ra", RA, "--dec", "95", "-o", "OUT"], "--dec"),
+    (["--ra", RA, "--dec", DEC, "--seed", "-3", "-o", "OUT"], "--seed"),
+    (["--dec", DEC, "-o", "OUT"], "--ra"),
+    (["--ra", RA, "--dec", DEC], "--output"),
+])
+def test_usage_errors(tmp_path, args, needle):
+    """Option values out of range are usage errors (exit 2), as --gain 0 is for apply-persistence."""
+    expect_usage_error(tmp_path, [tmp_path / "x.fits" if a == "OUT" else a for a in args], needle)

@@ -1,0 +1,335 @@
+"""perscli.scene.pointings and ``perscli pointings``: selection from a real schedule, planned dithers,
+the pointings table, and errors."""
+
+import math
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from perscli import PerscliError
+from perscli.scene.pointings import (Pointing, Schedule, plan_dithers, read_pointings, read_schedule,
+                                     select_covering, write_pointings)
+
+from fits_factory import invoke, listing, raw_cards_masked, snapshot
+
+RA, DEC = 10.0, -44.0
+DAY = 86400.0
+
+
+def distance(ra1, dec1, ra2, dec2):
+    """Great-circle distance in degrees (haversine), independent of perscli.scene.separation."""
+    a1, d1, a2, d2 = map(np.radians, (ra1, dec1, ra2, dec2))
+    h = np.sin((d2 - d1) / 2) ** 2 + np.cos(d1) * np.cos(d2) * np.sin((a2 - a1) / 2) ** 2
+    return np.degrees(2 * np.arcsin(np.sqrt(h)))
+
+
+def schedule_file(path, rows=None, *, drop=None, text=None, extra=()):
+    """A small schedule: rows of (date, exptime, ra, dec, pa, filter); ``text`` makes that column a string."""
+    if rows is None:
+        rows = [(60000.0 + i * 169.8 / DAY, 139.8, RA + 0.3 * (i % 4), DEC, 10.0 * i, f) for i, f in
+                enumerate(["J129", "H158", "J129", "J129", "Y106", "J129", "J129", "F184"])]
+    cols = []
+    for k, (name, fmt) in enumerate([("date", "D"), ("exptime", "D"), ("ra", "D"), ("dec", "D"), ("pa", "D"),
+                                     ("filter", "4A")]):
+        values = [r[k] for r in rows]
+        if name == text:
+            cols.append(fits.Column(name, "8A", array=np.array([str(v)[:8] for v in values])))
+        elif name != drop:
+            cols.append(fits.Column(name, fmt, array=np.array(values)))
+    cols.extend(extra)
+    fits.HDUList([fits.PrimaryHDU(), fits.BinTableHDU.from_columns(cols)]).writeto(path)
+    return str(path)
+
+
+@pytest.fixture
+def was(shared_data):
+    """The real Roman Wide Area Survey schedule (skipped without ../shared/data)."""
+    return str(shared_data / "roman" / "Roman_WAS_obseq_11_1_23.fits")
+
+
+# -- selection from a real schedule ------------------------------------------------------------
+
+def test_real_schedule_selection_around_the_gaia_field(was, tmp_path):
+    out = tmp_path / "p.fits"
+    result = invoke("pointings", "--schedule", was, "--ra", RA, "--dec", DEC, "--radius", 1, "--filter", "J129",
+                    "-o", out)
+    assert result.exit_code == 0, result.output
+    with fits.open(was) as hdul:
+        sched = hdul[1].data
+    with fits.open(out, checksum=True) as hdul:
+        p, hdr = hdul["POINTINGS"].data, hdul["POINTINGS"].header
+    assert 200 < len(p) < 400                              # 284 J129 exposures (NOTES.md: ~240)
+    assert np.all(np.diff(p["mjd"]) > 0)                   # time order
+    assert np.all(distance(RA, DEC, p["ra"], p["dec"]) <= 1.0)
+    assert set(np.char.strip(p["filter"])) == {"J129"}
+    assert np.all(p["sca"] == 0)
+    # expid is the schedule row, and the row's values are copied
+    rows = sched[p["expid"]]
+    assert np.array_equal(rows["date"], p["mjd"]) and np.array_equal(rows["ra"], p["ra"])
+    assert np.array_equal(rows["pa"], p["pa"]) and np.array_equal(rows["exptime"], p["exptime"])
+    # nothing is missed: every J129 row within 1 degree is there
+    near = (distance(RA, DEC, sched["ra"], sched["dec"]) <= 1.0) & (np.char.strip(sched["filter"]) == "J129")
+    assert set(np.flatnonzero(near)) == set(p["expid"])
+    assert hdr["PTRADIUS"] == 1.0 and hdr["PTFILTER"] == "J129" and hdr["PTNSCHED"] == 16956
+    assert hdr["SCHED"] == "Roman_WAS_obseq_11_1_23.fits" and hdr["SCHEDDS"].isdigit()
+    # consecutive exposures of one visit: 139.8 s long, the next ~30 s after the end
+    starts = np.diff(p["mjd"]) * DAY
+    assert np.median(starts) == pytest.approx(169.8, abs=1.0)
+
+
+def test_real_schedule_all_filters_limit_after_and_sca(was):
+    sched = read_schedule(was)
+    assert len(sched) == 16956
+    every = select_covering(sched, RA, DEC, 1.0)
+    assert len({p.filter for p in every}) == 6 and len(every) > 1000
+    first = select_covering(sched, RA, DEC, 1.0, limit=5, sca=7)
+    assert first == [Pointing(**{**p.__dict__, "sca": 7}) for p in every[:5]]
+    later = select_covering(sched, RA, DEC, 1.0, after=every[2].mjd)
+    assert later[0] == every[3] and all(p.mjd > every[2].mjd for p in later)
+
+
+def test_filter_is_not_case_sensitive(tmp_path):
+    sched = read_schedule(schedule_file(tmp_path / "s.fits"))
+    upper = select_covering(sched, RA, DEC, 1.0, filter="J129")
+    assert [p.expid for p in upper] == [0, 2, 3, 5, 6]
+    assert select_covering(sched, RA, DEC, 1.0, filter="j129") == upper
+
+
+def test_radius_cuts_by_great_circle_distance(tmp_path):
+    # rows at RA 10, 10.3, 10.6, 10.9 at Dec -44: 0, 0.216, 0.431, 0.647 degrees away
+    sched = read_schedule(schedule_file(tmp_path / "s.fits"))
+    got = {p.expid for p in select_covering(sched, RA, DEC, 0.3)}
+    assert got == {i for i in range(8) if i % 4 in (0, 1)}
+
+
+def test_rows_out_of_time_order_are_sorted(tmp_path):
+    rows = [(60000.3, 100.0, RA, DEC, 0.0, "J129"), (60000.1, 100.0, RA, DEC, 0.0, "J129"),
+            (60000.2, 100.0, RA, DEC, 0.0, "J129")]
+    sched = read_schedule(schedule_file(tmp_path / "s.fits", rows))
+    assert [p.expid for p in select_covering(sched, RA, DEC, 1.0)] == [1, 2, 0]
+
+
+def test_empty_selection_is_a_warning_and_an_empty_table(tmp_path):
+    path = schedule_file(tmp_path / "s.fits")
+    out = tmp_path / "p.fits"
+    result = invoke("pointings", "--schedule", path, "--ra", 100, "--dec", 20, "--radius", 1, "-o", out)
+    assert result.exit_code == 0
+    assert "perscli: warning:" in result.stderr and "no exposure" in result.stderr
+    with fits.open(out) as hdul:
+        assert len(hdul["POINTINGS"].data) == 0 and hdul["POINTINGS"].header["NEXP"] == 0
+
+
+# -- planned dithers ---------------------------------------------------------------------------
+
+def test_plan_spacing_offsets_and_columns(tmp_path):
+    out = tmp_path / "plan.fits"
+    result = invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 12, "--dither", 30, "--filter", "h158",
+                    "--start", 61000.5, "--exptime", 100, "--gap", 20, "--pa", 45, "--sca", 3, "--seed", 4,
+                    "-o", out)
+    assert result.exit_code == 0, result.output
+    with fits.open(out) as hdul:
+        p, hdr = hdul["POINTINGS"].data, hdul["POINTINGS"].header
+    assert len(p) == 12 and list(p["expid"]) == list(range(12))
+    assert p["mjd"][0] == 61000.5
+    assert np.allclose(np.diff(p["mjd"]) * DAY, 120.0, atol=1e-4)
+    assert np.all(p["exptime"] == 100.0) and np.all(p["pa"] == 45.0) and np.all(p["sca"] == 3)
+    assert set(np.char.strip(p["filter"])) == {"H158"}
+    # offsets on the tangent plane, east and north, within +-30"
+    a0, d0 = math.radians(RA), math.radians(DEC)
+    a, d = np.radians(p["ra"]), np.radians(p["dec"])
+    cos_c = np.sin(d0) * np.sin(d) + np.cos(d0) * np.cos(d) * np.cos(a - a0)
+    xi = np.degrees(np.cos(d) * np.sin(a - a0) / cos_c) * 3600
+    eta = np.degrees((np.cos(d0) * np.sin(d) - np.sin(d0) * np.cos(d) * np.cos(a - a0)) / cos_c) * 3600
+    assert np.abs(xi).max() <= 30.0 + 1e-6 and np.abs(eta).max() <= 30.0 + 1e-6
+    assert np.abs(xi).max() > 10.0 and np.abs(eta).max() > 10.0          # they do dither
+    assert len(set(np.round(xi, 6))) == 12
+    assert hdr["PTMODE"] == "plan" and hdr["PTDITHER"] == 30.0 and hdr["SEED"] == 4
+
+
+def test_plan_defaults_are_the_survey_cadence():
+    plan = plan_dithers(RA, DEC, 3)
+    assert [p.exptime for p in plan] == [139.8] * 3
+    assert (plan[1].mjd - plan[0].end) * DAY == pytest.approx(30.0, abs=1e-4)
+    assert {p.filter for p in plan} == {"J129"} and {p.sca for p in plan} == {0}
+
+
+def test_plan_without_dither_points_at_the_centre():
+    plan = plan_dithers(RA, DEC, 4, dither=0.0)
+    assert all(p.ra == pytest.approx(RA, abs=1e-12) and p.dec == pytest.approx(DEC, abs=1e-12) for p in plan)
+
+
+def test_plan_same_seed_same_bytes_other_seed_other_offsets(tmp_path):
+    outs = [tmp_path / f"{k}.fits" for k in "abc"]
+    for out, seed in zip(outs, (8, 8, 9)):
+        args = ["pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 5, "--dither", 20, "--seed", seed, "-o", out]
+        assert invoke(*args).exit_code == 0
+    assert raw_cards_masked(outs[0]) == raw_cards_masked(outs[1])
+    with fits.open(outs[0]) as a, fits.open(outs[2]) as c:
+        assert not np.array_equal(a[1].data["ra"], c[1].data["ra"])
+        assert np.array_equal(a[1].data["mjd"], c[1].data["mjd"])
+
+
+def test_plan_library_errors():
+    with pytest.raises(PerscliError, match="unknown filter 'J130'"):
+        plan_dithers(RA, DEC, 2, filter="J130")
+    with pytest.raises(PerscliError, match="SCA 19"):
+        plan_dithers(RA, DEC, 2, sca=19)
+    with pytest.raises(PerscliError, match="gap -1"):
+        plan_dithers(RA, DEC, 2, gap=-1.0)
+
+
+# -- the pointings table -----------------------------------------------------------------------
+
+def test_write_and_read_back(tmp_path):
+    plan = plan_dithers(RA, DEC, 6, dither=15.0, filter="W146", sca=12, seed=3)
+    out = str(tmp_path / "p.fits")
+    write_pointings(plan, out, step="test")
+    assert read_pointings(out) == plan
+    with fits.open(out) as hdul:
+        cols = hdul["POINTINGS"].columns
+        assert cols.names == ["expid", "mjd", "exptime", "ra", "dec", "pa", "filter", "sca"]
+        assert {c.name: c.unit for c in cols}["mjd"] == "d" and {c.name: c.unit for c in cols}["ra"] == "deg"
+
+
+def test_read_pointings_names_a_missing_column(tmp_path):
+    path = schedule_file(tmp_path / "s.fits")
+    with pytest.raises(PerscliError, match="no column 'expid'"):
+        read_pointings(path)
+
+
+def test_schedule_from_stdin(tmp_path):
+    path = schedule_file(tmp_path / "s.fits")
+    out = tmp_path / "p.fits"
+    with open(path, "rb") as fh:
+        result = invoke("pointings", "--schedule", "-", "--ra", RA, "--dec", DEC, "--radius", 1, "-o", out,
+                        input=fh.read())
+    assert result.exit_code == 0, result.output
+    with fits.open(out) as hdul:
+        assert len(hdul[1].data) == 8 and hdul[1].header["SCHED"] == "stdin"
+
+
+# -- command-line errors -----------------------------------------------------------------------
+
+def expect_error(tmp_path, args, *needles):
+    """A one-line data error (exit 1), no output file, inputs unchanged."""
+    inputs = [str(a) for a in args if str(a).endswith(".fits")]
+    before, files = snapshot(*inputs), listing(tmp_path)
+    result = invoke("pointings", *args, "-o", tmp_path / "out.fits")
+    assert result.exit_code == 1, (result.exit_code, result.output)
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    assert result.stdout == ""
+    assert listing(tmp_path) == files and snapshot(*inputs) == before
+    return lines[0]
+
+
+@pytest.mark.parametrize("column", ["date", "exptime", "ra", "dec", "pa", "filter"])
+def test_schedule_missing_a_column(tmp_path, column):
+    path = schedule_file(tmp_path / "s.fits", drop=column)
+    expect_error(tmp_path, ["--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1],
+                 path, f"no column '{column}'", "date, exptime, ra, dec, pa, filter", "check that this is a schedule")
+
+
+def test_schedule_column_of_the_wrong_type(tmp_path):
+    path = schedule_file(tmp_path / "s.fits", text="ra")
+    expect_error(tmp_path, ["--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1],
+                 path, "column 'ra'", "holds text", "must hold numbers")
+
+
+def test_schedule_filter_column_of_numbers(tmp_path):
+    rows = [(60000.0, 139.8, RA, DEC, 0.0, 1.0)]
+    path = tmp_path / "s.fits"
+    cols = [fits.Column(n, "D", array=np.array([v])) for n, v in zip(("date", "exptime", "ra", "dec", "pa",
+                                                                        "filter"), rows[0])]
+    fits.HDUList([fits.PrimaryHDU(), fits.BinTableHDU.from_columns(cols)]).writeto(path)
+    expect_error(tmp_path, ["--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1],
+                 str(path), "column 'filter'", "must hold text")
+
+
+def test_schedule_that_is_not_fits(tmp_path):
+    bad = tmp_path / "bad.fits"
+    bad.write_bytes(b"date,exptime,ra,dec,pa,filter\n" * 200)
+    expect_error(tmp_path, ["--schedule", bad, "--ra", RA, "--dec", DEC, "--radius", 1], str(bad), "not a FITS file")
+
+
+def test_schedule_truncated(tmp_path):
+    path = schedule_file(tmp_path / "s.fits")
+    raw = open(path, "rb").read()
+    with open(path, "wb") as fh:
+        fh.write(raw[:2880 * 2 + 100])
+    expect_error(tmp_path, ["--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1], path, "truncated")
+
+
+def test_unknown_filter(tmp_path):
+    path = schedule_file(tmp_path / "s.fits")
+    msg = expect_error(tmp_path, ["--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1, "--filter", "J130"],
+                       "unknown filter 'J130'", "valid are R062, Z087, Y106, J129, H158, F184, K213, W146")
+    assert msg
+    expect_error(tmp_path, ["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--filter", "Ks"], "unknown filter 'Ks'")
+
+
+def test_missing_schedule_file(tmp_path):
+    expect_error(tmp_path, ["--schedule", tmp_path / "nope.fits", "--ra", RA, "--dec", DEC, "--radius", 1],
+                 "nope.fits", "no such file")
+
+
+def expect_usage_error(tmp_path, args, *needles):
+    files = listing(tmp_path)
+    result = invoke("pointings", *args, "-o", tmp_path / "out.fits")
+    assert result.exit_code == 2, (result.exit_code, result.output)
+    assert "Usage:" in result.stderr and result.stdout == ""
+    for needle in needles:
+        assert needle in result.stderr, (needle, result.stderr)
+    assert listing(tmp_path) == files
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--ra", RA, "--dec", DEC], "either --schedule FILE or --plan"),
+    (["--plan", "--schedule", "S", "--ra", RA, "--dec", DEC, "--n", 2], "either --schedule FILE or --plan"),
+    (["--plan", "--ra", RA, "--dec", DEC], "--n"),
+    (["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--radius", 1], "--radius is for --schedule"),
+    (["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--limit", 3], "--limit is for --schedule"),
+    (["--schedule", "S", "--ra", RA, "--dec", DEC], "--radius"),
+    (["--schedule", "S", "--ra", RA, "--dec", DEC, "--radius", 1, "--dither", 5], "--dither is for --plan"),
+    (["--schedule", "S", "--ra", RA, "--dec", DEC, "--radius", 1, "--seed", 5], "--seed is for --plan"),
+    (["--schedule", "S", "--ra", RA, "--dec", DEC, "--radius", 0], "--radius"),
+    (["--plan", "--ra", RA, "--dec", DEC, "--n", 0], "--n"),
+    (["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 19], "--sca"),
+    (["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--gap", -1], "--gap"),
+    (["--plan", "--ra", RA, "--dec", -91, "--n", 2], "--dec"),
+    (["--plan", "--dec", DEC, "--n", 2], "--ra"),
+])
+def test_usage_errors(tmp_path, args, needle):
+    args = [schedule_file(tmp_path / "s.fits") if a == "S" else a for a in args]
+    expect_usage_error(tmp_path, args, needle)
+
+
+def test_schedule_dataclass_length():
+    s = Schedule(*(np.zeros(3) for _ in range(5)), filter=np.array(["J129"] * 3))
+    assert len(s) == 3
+
+
+PERSCLI = shutil.which("perscli", path=os.path.dirname(sys.executable)) or shutil.which("perscli")
+
+
+@pytest.mark.skipif(PERSCLI is None, reason="perscli console script not installed")
+def test_schedule_through_real_pipes(tmp_path):
+    """A schedule read from a real pipe and the table written to one, as in a shell script."""
+    path = schedule_file(tmp_path / "s.fits")
+    piped, direct = tmp_path / "piped.fits", tmp_path / "direct.fits"
+    cmd = (f"cat {path} | {PERSCLI} pointings --schedule - --ra {RA} --dec {DEC} --radius 0.3 --filter J129 -o - "
+           f"| cat > {piped}")
+    proc = subprocess.run(["bash", "-o", "pipefail", "-c", cmd], capture_output=True, text=True)
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    assert invoke("pointings", "--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 0.3, "--filter", "J129",
+                  "-o", direct).exit_code == 0
+    with fits.open(piped, checksum=True) as a, fits.open(direct) as b:
+        assert list(a["POINTINGS"].data["expid"]) == [0, 5]
+        assert a["POINTINGS"].data.tobytes() == b["POINTINGS"].data.tobytes()
