@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.perscli-installed
 
-.PHONY: demo test bench man samples clean
+.PHONY: demo demo-field test bench man samples clean
 
 $(STAMP): pyproject.toml setup.py src/perscli/_kernels.c
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -21,6 +21,30 @@ demo: $(STAMP)
 	$(BIN)/perscli -v apply-persistence sample_data/exp4.fits sample_data/exp1.fits \
 	    sample_data/exp2.fits sample_data/exp3.fits --mode predict -o demo_output/exp4_predicted.fits --overwrite
 	@echo "demo outputs in demo_output/"
+
+# A small real field: Gaia DR2 stars plus simulated galaxies, observed by three
+# consecutive J129 exposures of the public Roman WAS schedule (rows 4182-4184,
+# 170 s apart) on the same 2048x2048 pixels of SCA 1; the third exposure is
+# rendered with and without the persistence of the first two.
+SHARED ?= ../shared/data
+FIELD  := demo_output/field
+demo-field: $(STAMP)
+	@test -d $(SHARED)/gaia || { echo "demo-field needs $(SHARED) (Gaia chunks, Roman schedule)"; exit 1; }
+	mkdir -p $(FIELD)
+	$(BIN)/perscli pointings --schedule $(SHARED)/roman/Roman_WAS_obseq_11_1_23.fits --ra 9.98 --dec -43.86 \
+	    --radius 0.04 --filter J129 --limit 3 --sca 1 -o $(FIELD)/pointings.fits --overwrite
+	$(BIN)/perscli catalog --ra 10.0477 --dec -43.7909 --size 20 --gaia $(SHARED)/gaia/145650.fits \
+	    --seed 1 -o $(FIELD)/truth.fits --overwrite
+	$(BIN)/perscli -v render $(FIELD)/truth.fits --pointings $(FIELD)/pointings.fits --row 0 --bounds 1 2048 1 2048 \
+	    --seed 1 -o $(FIELD)/exp1.fits --overwrite
+	$(BIN)/perscli -v render $(FIELD)/truth.fits --pointings $(FIELD)/pointings.fits --row 1 --bounds 1 2048 1 2048 \
+	    --seed 2 --previous $(FIELD)/exp1.fits -o $(FIELD)/exp2.fits --overwrite
+	$(BIN)/perscli -v render $(FIELD)/truth.fits --pointings $(FIELD)/pointings.fits --row 2 --bounds 1 2048 1 2048 \
+	    --seed 3 --previous $(FIELD)/exp1.fits --previous $(FIELD)/exp2.fits -o $(FIELD)/exp3.fits --overwrite \
+	    --plot $(FIELD)/exp3.png
+	$(BIN)/perscli -v render $(FIELD)/truth.fits --pointings $(FIELD)/pointings.fits --row 2 --bounds 1 2048 1 2048 \
+	    --seed 3 --set persistence=off -o $(FIELD)/exp3_nopersist.fits --overwrite
+	@echo "field demo outputs in $(FIELD)/"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

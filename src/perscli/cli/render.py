@@ -39,12 +39,13 @@ log = logging.getLogger("perscli")
 @click.option("--seed", type=click.IntRange(min=0), required=True, metavar="S",
               help="Seed of every random stream: same seed, same bytes; one effect's noise does not depend "
                    "on which other effects are on.")
+@click.option("--plot", metavar="PNG", help="Also write a picture of the frame and of its persistence.")
 @output_opt
 @overwrite_opt
 @workers_opt
 @report_errors
 def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds, model_spec, settings,
-           previous, seed, output, overwrite, workers):
+           previous, seed, plot, output, overwrite, workers):
     """Draw a Roman SCA exposure of TRUTH.fits through a detector model.
 
     Optics from GalSim's Roman module: the SCA's WCS for the pointing, its PSF
@@ -72,10 +73,12 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     from ..detector.effects import load_detector_model
     from ..render.run import render_file
 
+    if plot is not None and not plot.lower().endswith(".png"):
+        raise click.UsageError("--plot needs a .png file name")
     exposure = _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds)
     model = load_detector_model(model_spec, settings)
     summary = render_file(truth, exposure, output, model=model, seed=seed, previous=previous,
-                          overwrite=overwrite, workers=workers, progress=progress_reporter("objects"))
+                          overwrite=overwrite, workers=workers, progress=progress_reporter("objects"), plot=plot)
     log.info("%s: %d objects, sky %.3f e-/pixel/s, units %s, persistence max %.3g e-",
              "stdout" if output == "-" else output, summary["objects"], summary["sky_rate"], summary["unit"],
              summary["persistence_max"])

@@ -62,7 +62,8 @@ def _exposure_cards(exposure: Exposure, optics, seed: int, bunit: str, gain: flo
 
 
 def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, seed: int,
-                previous=(), overwrite: bool = False, workers: int = 1, progress=None) -> dict:
+                previous=(), overwrite: bool = False, workers: int = 1, progress=None,
+                plot: str | None = None) -> dict:
     """Render ``exposure`` of the truth catalogue ``truth`` and write ``dest``.
 
     Parameters
@@ -81,6 +82,8 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         FLUENCE drives the persistence), for the persistence effect.
     overwrite, workers, progress
         As for every command.
+    plot : str, optional
+        Also write a PNG of the frame and its persistence.
 
     Returns
     -------
@@ -134,6 +137,11 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
             hdus.append(image(result.persistence, "PERSIST", e_cards))
         _provenance(hdus[0], truth, cols["datasum"], exposure, model, seed, opened, pers_info)
         write_hdus(hdus, dest, overwrite=overwrite)
+        if plot:
+            from .plots import frame_figure
+
+            frame_figure(result.sci, plot, persist=result.persistence, unit=result.unit,
+                         title=f"SCA {exposure.sca} {exposure.filter} MJD {exposure.mjd:.5f} seed {seed}")
         return {"objects": nobj, "sky_rate": result.sky_rate, "unit": result.unit,
                 "persistence_max": float(result.persistence.max()) if result.persistence is not None else 0.0}
     finally:
