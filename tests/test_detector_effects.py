@@ -184,39 +184,34 @@ def test_ipc_single_pixel_spreads_over_3x3_conserving_charge():
     img[4, 5] = 1.0e4
     r = run_chain(img, only("ipc"), exptime=T, seed=1)
     k = effects.roman_ipc_kernel()
-    block = r.sci[3:6, 4:7] / 1.0e4
-    # the kernel, in one orientation or the other (the orientation is checked against GalSim below)
-    assert np.allclose(block, k, rtol=1e-12) or np.allclose(block, k[::-1, ::-1], rtol=1e-12)
+    # GalSim's convention: kernel[j, i] is what a pixel receives from its neighbour at (i-1, j-1),
+    # so a lone bright pixel shows the kernel flipped
+    np.testing.assert_allclose(r.sci[3:6, 4:7] / 1.0e4, k[::-1, ::-1], rtol=1e-12)
     assert np.count_nonzero(r.sci) == 9
     assert abs(r.sci.sum() - 1.0e4) < 1e-8
     np.testing.assert_allclose(r.fluence, img)                  # IPC acts after the charge is collected
+    # the Roman kernel is not symmetric: the orientation matters
+    assert abs(r.sci[4, 4] - r.sci[4, 6]) > 1e-3 * 1.0e4
 
 
-def test_ipc_custom_kernel_orientation_in_perscli_convention():
-    """A one-sided kernel: kernel[j, i] is the fraction of a pixel's charge landing (i-1, j-1) away."""
+def test_ipc_custom_kernel_orientation():
+    """A one-sided kernel: each pixel receives 10 % of its right-hand neighbour's signal."""
     kernel = [[0.0, 0.0, 0.0], [0.0, 0.9, 0.1], [0.0, 0.0, 0.0]]
     img = np.zeros((5, 5))
     img[2, 2] = 100.0
     r = run_chain(img, only("ipc", ipc={"kernel": kernel}), exptime=T, seed=1)
-    assert r.sci[2, 2] == pytest.approx(90.0) and r.sci[2, 3] == pytest.approx(10.0)
+    assert r.sci[2, 2] == pytest.approx(90.0) and r.sci[2, 1] == pytest.approx(10.0)
     assert r.sci.sum() == pytest.approx(100.0)
 
 
-def test_ipc_edges_extend_a_uniform_frame_unchanged():
-    img = np.full((6, 7), 123.0)
-    np.testing.assert_allclose(apply_ipc(img, effects.roman_ipc_kernel()), img, rtol=1e-13)
-
-
-@pytest.mark.xfail(strict=True, reason=(
-    "BUG: src/perscli/detector/effects.py:255-265 (apply_ipc) convolves (kernel[j, i] = charge sent to "
-    "offset (i-1, j-1)), but galsim.roman.ipc_kernel is defined for GalSim's Image.applyIPC, where "
-    "kernel(1,1) is the contribution *from* the bottom-left neighbour (a correlation): the Roman "
-    "kernel, which is not symmetric, is applied flipped (e.g. 0.01463 instead of 0.01295 leaks to the "
-    "right). Fix: out += kernel[j, i] * padded[j:j + ny, i:i + nx] and fix the docstring; note also "
-    "that GalSim's 'extend' zero-pads, unlike the edge padding here (the docstring says it is GalSim's)."))
-def test_ipc_matches_galsim_apply_ipc_in_the_interior(sources):
+def test_ipc_matches_galsim_apply_ipc(sources):
     r = run_chain(sources, only("ipc"), exptime=T, seed=1)
-    np.testing.assert_allclose(r.sci[1:-1, 1:-1], _galsim_ipc(sources)[1:-1, 1:-1], rtol=1e-12)
+    np.testing.assert_allclose(r.sci, _galsim_ipc(sources), rtol=1e-12)
+    # a uniform frame: unchanged inside; the edges receive nothing from beyond (GalSim's 'extend')
+    img = np.full((6, 7), 123.0)
+    out = apply_ipc(img, effects.roman_ipc_kernel())
+    np.testing.assert_allclose(out[1:-1, 1:-1], 123.0, rtol=1e-13)
+    np.testing.assert_allclose(out, _galsim_ipc(img), rtol=1e-13)
 
 
 def test_read_noise_gaussian_sigma():
@@ -419,6 +414,24 @@ def test_overrides_set_parameters_and_switch_effects():
     m = load_detector_model("roman", ["persistence.base=pessimistic", "persistence.gamma=1.1"])
     pm = m.persistence_model()
     assert pm.A == 0.086 and pm.gamma == 1.1 and pm.x0 == 1.37e5
+
+
+
+def test_override_accepts_scientific_notation_without_a_point():
+    m = load_detector_model("roman", ["nonlinearity.beta=-6e-7", "dark.current=2e-2"])
+    assert m.get("nonlinearity").params["beta"] == -6e-7
+    assert m.get("dark").params["current"] == 0.02
+
+
+def test_yaml_accepts_scientific_notation_without_a_point(tmp_path):
+    m = load_detector_model(write(tmp_path, "effects:\n  - nonlinearity: {beta: -6e-7}\n"))
+    assert m.get("nonlinearity").params["beta"] == -6e-7
+
+
+def test_override_accepts_scientific_notation_with_a_point():
+    m = load_detector_model("roman", ["nonlinearity.beta=-6.0e-7", "dark.current=2.0e-2"])
+    assert m.get("nonlinearity").params["beta"] == -6e-7
+    assert m.get("dark").params["current"] == 0.02
 
 
 def test_override_adds_a_missing_effect_in_its_place(tmp_path):

@@ -127,6 +127,11 @@ def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str =
         if prev.shape != current.shape:
             raise PerscliError(f"{prev.label}: image shape {prev.shape} differs from {current.label}'s "
                                f"{current.shape}; earlier exposures must be of the same detector area")
+        detectors = [f.keyword("SCA", f.keyword("DETECTOR")) for f in (prev, current)]
+        if None not in detectors and str(detectors[0]).strip() != str(detectors[1]).strip():
+            raise PerscliError(f"{prev.label}: detector SCA/DETECTOR={detectors[0]} differs from "
+                               f"{current.label}'s {detectors[1]}: persistence stays on the detector that saw "
+                               "the light; give earlier exposures of the same detector")
         offsets = [(f.keyword("LTV1"), f.keyword("LTV2")) for f in (prev, current)]
         if None not in offsets[0] + offsets[1] and offsets[0] != offsets[1]:
             raise PerscliError(f"{prev.label}: subarray offset LTV1/LTV2={offsets[0]} differs from "

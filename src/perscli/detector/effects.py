@@ -58,7 +58,7 @@ DEFAULTS = {
 DESCRIPTIONS = {
     "sky": "zodiacal and thermal background, e-/pixel/s ('auto': galsim.roman.getSkyLevel + thermal)",
     "poisson": "Poisson noise of the collected charge",
-    "reciprocity": "reciprocity failure x (1 + alpha log10(x / (base_flux t)))",
+    "reciprocity": "reciprocity failure x (1 + alpha log10(x / (base_flux t))) (GalSim: its power-law form)",
     "dark": "dark current (e-/pixel/s) with its Poisson noise",
     "persistence": "persistence of earlier exposures (perscli's Fermi model, exact time integral)",
     "nonlinearity": "classical nonlinearity x + beta x^2",
@@ -233,6 +233,12 @@ def _validate(eff: Effect, where: str) -> None:
             if arr is None or arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
                 raise PerscliError(f"{where}: ipc.kernel must be 'roman' or a 3x3 list of numbers")
             continue
+        if isinstance(value, str):
+            # YAML 1.1 reads '-6e-7' (no decimal point) as text: accept any number Python can parse
+            try:
+                value = eff.params[key] = float(value)
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
             raise PerscliError(f"{where}: {eff.name}.{key}={value!r} must be a finite number")
         if key in ("gain", "base_flux") and value <= 0:
@@ -253,15 +259,20 @@ def roman_ipc_kernel() -> np.ndarray:
 
 
 def apply_ipc(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """Convolve with a 3x3 kernel, extending the edge pixels (GalSim's 'extend')."""
-    padded = np.pad(image, 1, mode="edge")
+    """Interpixel capacitance with a 3x3 kernel, as GalSim's ``Image.applyIPC(edge_treatment='extend')``.
+
+    ``kernel[j, i]`` is the fraction of the signal of the neighbour at offset
+    (i - 1, j - 1) that appears in a pixel (GalSim's definition, so the
+    asymmetric Roman kernel is applied as GalSim applies it); outside the
+    image there is no charge (zero padding).
+    """
+    padded = np.pad(image, 1, mode="constant")
     out = np.zeros_like(image)
     ny, nx = image.shape
-    # kernel[j, i] is the fraction of a pixel's charge that lands (i-1, j-1) pixels away
     for j in range(3):
         for i in range(3):
             if kernel[j, i] != 0.0:
-                out += kernel[j, i] * padded[2 - j:2 - j + ny, 2 - i:2 - i + nx]
+                out += kernel[j, i] * padded[j:j + ny, i:i + nx]
     return out
 
 
@@ -324,7 +335,9 @@ def run_chain(sources: np.ndarray, model: DetectorModel, *, exptime: float, seed
                 ideal = img.copy()
             img = _stream(seed, "poisson").poisson(np.clip(img, 0.0, None)).astype(np.float64)
         elif eff.name == "reciprocity":
-            # GalSim's law (Image.addReciprocityFailure); zero and negative pixels are left alone
+            # the empirical law itself, x (1 + alpha log10(x / (base_flux t))); GalSim's
+            # Image.addReciprocityFailure uses its power-law approximation x (x/x0)^(alpha/ln 10),
+            # 3e-4 apart at 1e6 e-.  Zero and negative pixels are left alone.
             pos = img > 0
             img[pos] *= 1.0 + p["alpha"] * np.log10(img[pos] / (p["base_flux"] * exptime))
         elif eff.name == "dark":

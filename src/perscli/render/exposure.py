@@ -176,12 +176,15 @@ def plan_objects(cols, optics: Optics, bounds):
     flux = optics.electrons(cols["mag"])
     is_star = cols["kind"] == "star"
     hlr_pix = cols["hlr"] / roman.pixel_scale
-    sizes = np.empty(len(x), dtype=np.int64)
-    for i in range(len(x)):
-        sizes[i] = star_stamp_size(flux[i]) if is_star[i] else galaxy_stamp_size(hlr_pix[i])
     xmin, xmax, ymin, ymax = bounds
+    # no stamp is larger than 2048 pixels: only objects within that margin need a size
+    near = np.flatnonzero((x + 1025 >= xmin) & (x - 1025 <= xmax) & (y + 1025 >= ymin) & (y - 1025 <= ymax))
+    sizes = np.zeros(len(x), dtype=np.int64)
+    for i in near:
+        sizes[i] = star_stamp_size(flux[i]) if is_star[i] else galaxy_stamp_size(hlr_pix[i])
     half = sizes / 2 + 1
-    keep = (x + half >= xmin) & (x - half <= xmax) & (y + half >= ymin) & (y - half <= ymax) & (flux > 0)
+    keep = (sizes > 0) & (x + half >= xmin) & (x - half <= xmax) & (y + half >= ymin) & (y - half <= ymax)
+    keep &= flux > 0
     return np.flatnonzero(keep), x, y, flux, sizes
 
 

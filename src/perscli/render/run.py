@@ -28,7 +28,8 @@ def _wcs_cards(optics, bounds) -> list:
             value, comment = value
         else:
             comment = None
-        if key in ("GS_XMIN", "GS_YMIN", "GS_WCS"):
+        if key in ("GS_XMIN", "GS_YMIN", "GS_WCS", "TELESCOP", "INSTRUME"):
+            # GalSim's own markers, and instrument names that _exposure_cards writes
             continue
         cards.append(format_card(key, value, comment))
     return cards
@@ -109,7 +110,7 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
             from ..detector.apply import persistence_image, plan
 
             current = Frame.planned("render", sources.shape, exposure.mjd, exposure.end, exposure.exptime,
-                                    offsets=(1 - xmin, 1 - ymin))
+                                    offsets=(1 - xmin, 1 - ymin), sca=exposure.sca)
             pmodel = model.persistence_model()
             the_plan = plan(current, opened, pmodel)
             pers_info.extend(the_plan.used)
