@@ -355,8 +355,8 @@ RENDER_PHASES = [
     ("draw_sources (optics, plan, stamps, adding them)", "draw_sources", "exposure.py"),
     ("- Optics (WCS, bandpass, getPSF; includes importing galsim)", "__init__", "render/exposure.py"),
     ("- StampDrawer.stamp x objects", "stamp", "draw.py"),
-    ("  - PSF x pixel transfer tables (once per stamp size)", "table", "draw.py"),
-    ("  - GSObject.drawKImage (galaxies; the PSF for the tables)", "drawKImage", "galsim/gsobject.py"),
+    ("-- PSF x pixel transfer tables (once per stamp size)", "table", "draw.py"),
+    ("-- GSObject.drawKImage (galaxies; the PSF for the tables)", "drawKImage", "galsim/gsobject.py"),
     ("run_chain (detector effects)", "run_chain", "effects.py"),
     ("- IPC (3x3 convolution)", "apply_ipc", "effects.py"),
     ("write_hdus (SCI, IDEAL, FLUENCE; checksums)", "write_hdus", "output.py"),
@@ -618,7 +618,7 @@ def main(argv=None):
         (rp, rtot), (gp, gtot) = profile
         profile_md = ("\n### Where the time goes (render)\n\n"
                       f"`perscli render` (`--workers 1`) under cProfile ({rtot:.2f} s inside Python, profiler "
-                      "overhead included; nested phases are marked with `-`; an import done inside a function "
+                      "overhead included; nested phases are marked with `-` and `--`; an import done inside a function "
                       "counts in both rows):\n\n"
                       "| phase | seconds | share |\n|---|---:|---:|\n"
                       + "".join(f"| {label} | {t:.2f} | {100 * t / rtot:.0f} % |\n" for label, t in rp)
@@ -687,9 +687,10 @@ Reproduce with `make bench-render` (runs `.venv/bin/python benchmarks/bench_rend
      This is the difference at the stamp edges and the total-flux difference.
   2. *GalSim's galaxy maxk*: with the default `maxk_threshold=1e-3` GalSim cuts each galaxy's Fourier
      transform where it falls below 1e-3, which for the larger galaxies (hlr >~ 0.5") is below the
-     PSF's band limit (6.0 rad/pixel): the power it drops is up to ~2e-3 of the peak.  perscli uses the
-     analytic transform over the whole band the PSF passes.  With `maxk_threshold={ACCURATE_MAXK:g}`
-     this difference goes away.
+     PSF's band limit ({optics.psf_pixels.maxk:.1f} rad/pixel): the power it drops reaches
+     {rows['inner'].max():.1e} of the peak in the central half of a stamp.  perscli uses the analytic
+     transform over the whole band the PSF passes.  With `maxk_threshold={ACCURATE_MAXK:g}` this
+     difference goes away (central half: {inner_acc:.1e}, the period alone).
   Drawing a subset of {len(sp)} objects with perscli's drawer on GalSim's own N and cropping the centre,
   against the tightened GalSim: max difference **{sp_max:.1e}** of the peak (required < {SAME_PERIOD_TOL:g}):
   the algorithms give the same pixel values.

@@ -219,8 +219,9 @@ def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None):
 
     Returns
     -------
-    (ndarray, int)
-        The image (float64, shape of the bounds) and the number of objects drawn.
+    (ndarray, int, Optics)
+        The image (float64, shape of the bounds), the number of objects drawn,
+        and the optics (WCS, PSF, zeropoint, sky) used.
     """
     optics = Optics(exposure)
     xmin, xmax, ymin, ymax = exposure.full_bounds
