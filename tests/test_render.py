@@ -760,3 +760,25 @@ def test_error_bad_bounds(tmp_path, truth_file, bounds):
     i = args.index("--bounds")
     args[i + 1:i + 5] = bounds
     expect_error(tmp_path, args, "--bounds", "min <= max")
+
+
+def test_exposure_from_a_row_of_the_real_schedule(shared_data, tmp_path):
+    """render takes a row of the public Roman schedule directly (date, exptime, ra, dec, pa, filter)."""
+    from astropy.io import fits as _fits
+    from click.testing import CliRunner as _Runner
+
+    from perscli.cli.main import cli as _cli
+
+    schedule = shared_data / "roman" / "Roman_WAS_obseq_11_1_23.fits"
+    row = _fits.getdata(schedule)[4183]
+    truth = tmp_path / "t.fits"
+    r = _Runner().invoke(_cli, ["catalog", "--ra", str(row["ra"]), "--dec", str(row["dec"]), "--size", "2",
+                                "--seed", "5", "-o", str(truth)])
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "e.fits"
+    r = _Runner().invoke(_cli, ["render", str(truth), "--pointings", str(schedule), "--row", "4183", "--sca", "3",
+                                "--bounds", "1", "64", "1", "64", "--seed", "1", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    hdr = _fits.getheader(out, "SCI")
+    assert hdr["EXPSTART"] == row["date"] and hdr["EXPTIME"] == row["exptime"]
+    assert hdr["FILTER"] == row["filter"].strip() and hdr["EXPID"] == 4183 and hdr["PA_PNT"] == row["pa"]

@@ -15,9 +15,10 @@ log = logging.getLogger("perscli")
 @click.command("render", short_help="Draw a Roman SCA exposure of a truth catalogue through a detector model.")
 @click.argument("truth", metavar="TRUTH.fits")
 @click.option("--pointings", "pointings_file", metavar="FILE",
-              help="A pointings table (perscli pointings) to take the exposure from; see --row.")
+              help="A pointings table (perscli pointings) or a survey schedule (date, exptime, ra, dec, pa, "
+                   "filter) to take the exposure from; see --row.")
 @click.option("--row", type=click.IntRange(min=0), default=0, show_default=True, metavar="N",
-              help="Row of --pointings (0 is the first).")
+              help="Row of --pointings (0 is the first; for a schedule, its row number).")
 @click.option("--ra", type=float, metavar="DEG", help="Pointing centre of the focal plane, right ascension.")
 @click.option("--dec", type=float, metavar="DEG", help="Pointing centre of the focal plane, declination.")
 @click.option("--pa", type=float, metavar="DEG", help="Observatory position angle (GalSim's convention).")

@@ -278,7 +278,10 @@ def write_pointings(pointings, dest: str, *, overwrite: bool = False, stdout=Non
 
 
 def read_pointings(path: str, *, stdin=None) -> list:
-    """Read a pointings table written by :func:`write_pointings` (the first binary table of the file).
+    """Read a pointings table written by :func:`write_pointings`, or a survey schedule.
+
+    A schedule (columns date, exptime, ra, dec, pa, filter, like the public
+    Roman WAS sequence) gives one pointing per row, expid = row number, no SCA.
 
     Raises
     ------
@@ -286,6 +289,13 @@ def read_pointings(path: str, *, stdin=None) -> list:
         Unreadable file, or a column of :data:`POINTING_COLUMNS` missing or of the wrong type.
     """
     table = read_table(path, what="pointings table", stdin=stdin)
+    names = {n.lower() for n in table.data.columns.names}
+    if "mjd" not in names and "date" in names:
+        cols = {name: table.column(name, kind=kind, needed=tuple(SCHEDULE_COLUMNS))
+                for name, kind in SCHEDULE_COLUMNS.items()}
+        return [Pointing(expid=i, mjd=float(cols["date"][i]), exptime=float(cols["exptime"][i]),
+                         ra=float(cols["ra"][i]), dec=float(cols["dec"][i]), pa=float(cols["pa"][i]),
+                         filter=str(cols["filter"][i]), sca=0) for i in range(len(table))]
     kinds = {"expid": "integer", "sca": "integer", "filter": "text"}
     cols = {name: table.column(name, kind=kinds.get(name, "number"), needed=tuple(POINTING_COLUMNS))
             for name in POINTING_COLUMNS}
