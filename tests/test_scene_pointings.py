@@ -196,10 +196,22 @@ def test_write_and_read_back(tmp_path):
         assert {c.name: c.unit for c in cols}["mjd"] == "d" and {c.name: c.unit for c in cols}["ra"] == "deg"
 
 
-def test_read_pointings_names_a_missing_column(tmp_path):
+def test_read_pointings_takes_a_schedule_row_by_row(tmp_path):
     path = schedule_file(tmp_path / "s.fits")
-    with pytest.raises(PerscliError, match="no column 'expid'"):
-        read_pointings(path)
+    with fits.open(path) as hdul:
+        rows = hdul[1].data
+        pointings = read_pointings(path)
+        assert len(pointings) == len(rows)
+        assert [p.expid for p in pointings] == list(range(len(rows)))
+        assert pointings[3].mjd == rows["date"][3] and pointings[3].sca == 0
+
+
+def test_read_pointings_names_a_missing_column(tmp_path):
+    path = tmp_path / "bad.fits"
+    fits.BinTableHDU.from_columns([fits.Column("expid", "K", array=np.arange(3)),
+                                   fits.Column("exptime", "D", array=np.ones(3))]).writeto(path)
+    with pytest.raises(PerscliError, match="no column 'mjd'"):
+        read_pointings(str(path))
 
 
 def test_schedule_from_stdin(tmp_path):
