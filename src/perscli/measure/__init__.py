@@ -1,0 +1,1 @@
+"""Galaxy shape measurement: exact exponential-mixture fits through the PSF."""
