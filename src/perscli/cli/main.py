@@ -9,6 +9,7 @@ import click
 from .. import __version__
 from .apply_persistence import apply_persistence
 from .render import render
+from .measure import measure
 from .catalog import catalog
 from .pointings import pointings
 
@@ -49,6 +50,7 @@ def cli(ctx, verbose, quiet):
 
 cli.add_command(apply_persistence)
 cli.add_command(render)
+cli.add_command(measure)
 cli.add_command(catalog)
 cli.add_command(pointings)
 

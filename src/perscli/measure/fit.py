@@ -88,7 +88,7 @@ class ExpModel:
 
     def _fold_ifft(self, fields: np.ndarray) -> np.ndarray:
         """(m, L*M, L*M) complex spectra -> (m, n, n) real images cropped from the FFT grid."""
-        m, big = fields.shape[0], fields.shape[-1]
+        m = fields.shape[0]
         size, alias = self.size, self.alias
         folded = fields.reshape(m, alias, size, alias, size).sum(axis=(1, 3))
         images = np.fft.ifft2(folded, axes=(-2, -1)).real
@@ -185,12 +185,14 @@ def fit_exp(image: np.ndarray, weight: np.ndarray, model: ExpModel, start, *, ma
     if npix < 20:
         return FitResult(theta, np.full(6, np.nan), np.nan, 0, 0, FLAG_FEW_PIXELS, 0.0)
 
-    def evaluate(th):
-        mdl, jac = model.image(th, jacobian=True)
-        r = (data - mdl) * sw
-        return r, jac * sw[..., None]
+    def residual(th):
+        return (data - model.image(th)) * sw
 
-    r, J = evaluate(theta)
+    def jacobian(th):
+        mdl, jac = model.image(th, jacobian=True)
+        return (data - mdl) * sw, jac * sw[..., None]
+
+    r, J = jacobian(theta)
     nfev = 1
     chi2 = float(np.sum(r * r))
     lam = 1e-3
@@ -215,14 +217,16 @@ def fit_exp(image: np.ndarray, weight: np.ndarray, model: ExpModel, start, *, ma
                 if lam > 1e12:
                     break
                 continue
-            r_new, J_new = evaluate(trial)
+            # the Jacobian only where a step is accepted: rejected trials cost one model image
+            r_new = residual(trial)
             nfev += 1
             chi2_new = float(np.sum(r_new * r_new))
             if chi2_new <= chi2:
                 scale = np.maximum(np.abs(theta), np.array([1.0, 1.0, 1.0, 1.0, 1e-3, 1e-3]))
                 small = np.all(np.abs(step) <= xtol * scale)
                 flat = (chi2 - chi2_new) <= ftol * max(chi2, 1e-300)
-                theta, r, J, chi2 = trial, r_new, J_new, chi2_new
+                r, J = jacobian(trial)
+                theta, chi2 = trial, chi2_new
                 lam = max(lam / 10.0, 1e-12)
                 if small or flat:
                     converged = True
