@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.perscli-installed
 
-.PHONY: demo demo-field test bench bench-render man samples clean
+.PHONY: demo demo-field test bench bench-render bench-measure man samples clean
 
 $(STAMP): pyproject.toml setup.py src/perscli/_kernels.c
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -49,13 +49,17 @@ demo-field: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-# Both benchmarks (several minutes); each rewrites only its own section of benchmarks/RESULTS.md.
+# All benchmarks (several minutes); each rewrites only its own section of benchmarks/RESULTS.md.
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_apply_persistence.py
 	$(BIN)/python benchmarks/bench_render.py
+	$(BIN)/python benchmarks/bench_measure.py
 
 bench-render: $(STAMP)
 	$(BIN)/python benchmarks/bench_render.py
+
+bench-measure: $(STAMP)
+	$(BIN)/python benchmarks/bench_measure.py
 
 man: $(STAMP)
 	$(BIN)/python -m perscli.cli.manpages man

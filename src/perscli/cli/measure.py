@@ -27,11 +27,13 @@ log = logging.getLogger("perscli")
               help="Background per pixel in the frame's units [default: SKYRATE x EXPTIME + dark].")
 @click.option("--read-noise", type=click.FloatRange(min=0), default=8.5, show_default=True, metavar="E",
               help="Read noise (electrons) of the noise model, when the frame has no weight HDU.")
+@click.option("--blend-radius", type=click.FloatRange(min=0), default=4.0, show_default=True, metavar="PIXELS",
+              help="Flag objects with another catalogue object this close (0: never).")
 @output_opt
 @overwrite_opt
 @workers_opt
 @report_errors
-def measure(frames, catalog, psf, method, stamp, sky, read_noise, output, overwrite, workers):
+def measure(frames, catalog, psf, method, stamp, sky, read_noise, blend_radius, output, overwrite, workers):
     """Measure the shapes of the catalogue's objects on each FRAME.
 
     The exponential profile is the 6-Gaussian mixture of Hogg & Lang, with
@@ -42,13 +44,16 @@ def measure(frames, catalog, psf, method, stamp, sky, read_noise, output, overwr
     catalogue's size and flux) and the weights (WHT/VAR/ERR HDU, else sky, dark
     and read noise from the header) never depend on the frame's pixel noise,
     so shape changes between two frames that differ by a small pattern are
-    that pattern's alone (linear down to ~1e-10).
+    that pattern's alone (linear down to ~1e-10).  Only when the catalogue has
+    no magnitude for the frame's FILTER is the start flux solved from the data.
 
     Output: a SHAPES table, one row per object per frame (frame = its index):
     id, frame, x, y (FITS pixels), ra, dec, g1, g2, T (pixel^2), flux, their
     errors, s2n, chi2, nfev and flags (1 no convergence, 2 stamp off the frame
     edge, 4 T <= 0, 8 flux <= 0, 16 too few pixels, 32 |g| reached 1, 64 no
-    errors, 128 HSM failed, 256 object off the frame); with several frames a
+    errors, 128 HSM failed, 256 object off the frame, 512 a catalogue neighbour
+    within --blend-radius, 1024 centre moved > 3 pixels from the catalogue
+    position, 2048 S/N below 5); with several frames a
     COMBINED table: per object the inverse-variance weighted mean g over the
     frames where its fit has no flag.
 
@@ -61,7 +66,7 @@ def measure(frames, catalog, psf, method, stamp, sky, read_noise, output, overwr
     from ..measure.shapes import measure_files
 
     summary = measure_files(frames, catalog, output, psf=psf, method=method, stamp=stamp, sky=sky,
-                            read_noise=read_noise, workers=workers, overwrite=overwrite,
+                            read_noise=read_noise, blend_radius=blend_radius, workers=workers, overwrite=overwrite,
                             progress=progress_reporter("objects"))
     log.info("%s: %d rows (%d without flags) from %d frame(s)", "stdout" if output == "-" else output,
              summary["rows"], summary["good"], summary["frames"])

@@ -35,9 +35,17 @@ FLAGS = {
     64: "normal matrix singular: no errors",
     128: "HSM failed",
     256: "object outside the frame",
+    512: "another catalogue object within --blend-radius pixels",
+    1024: "centre moved more than 3 pixels from the catalogue position",
+    2048: "S/N below 5",
 }
 FLAG_OFF_FRAME = 256
 FLAG_HSM = 128
+FLAG_BLEND = 512
+FLAG_MOVED = 1024
+FLAG_LOW_SN = 2048
+MAX_MOVE = 3.0
+MIN_S2N = 5.0
 
 #: mean of the mixture's second moment per axis in units of r_e^2: T = 2 r_e^2 * this
 _MIXTURE_MOMENT = float(np.sum(P_EXP * (np.array([0.05072, 0.13756, 0.28781, 0.53195, 0.91209, 1.50157]) ** 2)))
@@ -192,10 +200,13 @@ def read_positions(path: str):
 
 
 def start_point(cat, i, x, y, frame, pixel_scale):
-    """The fit's starting point: from the catalogue and the frame's header only."""
+    """The fit's starting point from the catalogue and the frame's header only.
+
+    Returns the start and whether its flux came from the catalogue (a
+    magnitude through ZPT_AB); without one the caller solves for the flux.
+    """
     hlr = float(cat["hlr"][i]) if "hlr" in cat and np.isfinite(cat["hlr"][i]) and cat["hlr"][i] > 0 else 0.3
     T0 = 2.0 * (hlr / pixel_scale) ** 2 * _MIXTURE_MOMENT
-    flux0 = 1000.0
     zpt, filt = frame.keyword("ZPT_AB"), frame.keyword("FILTER")
     mag_col = f"mag_{str(filt).strip().lower()}" if filt else None
     if zpt is not None and mag_col in cat and frame.exptime:
@@ -203,11 +214,35 @@ def start_point(cat, i, x, y, frame, pixel_scale):
 
         electrons = 10 ** (-0.4 * (cat[mag_col][i] - float(zpt))) * roman.collecting_area * frame.exptime
         flux0 = electrons / (frame.gain or 1.0) if frame.unit == "DN" else electrons
-    return (x, y, 0.0, 0.0, T0, flux0)
+        if np.isfinite(flux0) and flux0 > 1e-6:
+            return (x, y, 0.0, 0.0, T0, float(flux0)), True
+    return (x, y, 0.0, 0.0, T0, 1.0), False
+
+
+def _linear_flux(model, start, img, wt) -> float:
+    """Least-squares flux of the start profile (flux is a linear parameter), for starts without a catalogue flux."""
+    unit = model.image(start)
+    num, den = float(np.sum(wt * img * unit)), float(np.sum(wt * unit * unit))
+    flux = num / den if den > 0 else 0.0
+    return flux if np.isfinite(flux) and flux > 0 else 1000.0
+
+
+def blended(x, y, radius: float) -> np.ndarray:
+    """True for catalogue objects with another object within ``radius`` pixels."""
+    from scipy.spatial import cKDTree
+
+    pts = np.column_stack([x, y])
+    ok = np.all(np.isfinite(pts), axis=1)
+    out = np.zeros(len(x), dtype=bool)
+    if ok.sum() > 1 and radius > 0:
+        tree = cKDTree(pts[ok])
+        counts = np.array([len(n) for n in tree.query_ball_point(pts[ok], radius)])
+        out[np.flatnonzero(ok)] = counts > 1
+    return out
 
 
 def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, read_noise=8.5,
-                  progress=None) -> dict:
+                  blend_radius=4.0, progress=None) -> dict:
     """Measure every catalogue object on one frame.
 
     Returns
@@ -264,6 +299,7 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
 
         psf_image = galsim.Convolve(prof, galsim.Pixel(1.0)).drawImage(nx=stamp, ny=stamp, scale=1.0, method="no_pixel")
     half = stamp // 2
+    blends = blended(np.asarray(x, dtype=float), np.asarray(y, dtype=float), blend_radius)
     for i in range(n):
         # 0-indexed array coordinates of the object (FITS pixel 1 is index 0)
         xi, yi = float(x[i]) - 1.0, float(y[i]) - 1.0
@@ -278,8 +314,11 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
         img[b0 - y0:b1 - y0, a0 - x0:a1 - x0] = data[b0:b1, a0:a1] - noise.background
         wt[b0 - y0:b1 - y0, a0 - x0:a1 - x0] = weights[b0:b1, a0:a1]
         edge = FLAG_EDGE if (a0, b0, a1, b1) != (x0, y0, x0 + stamp, y0 + stamp) else 0
+        edge |= FLAG_BLEND if blends[i] else 0
         if method == "exp":
-            start = start_point(cat, i, xi - x0, yi - y0, frame, pixel_scale)
+            start, from_catalogue = start_point(cat, i, xi - x0, yi - y0, frame, pixel_scale)
+            if not from_catalogue:
+                start = start[:5] + (_linear_flux(model, start, img, wt),)
             res = fit_exp(img, wt, model, start)
             th, er = res.theta, res.errors
             cols["x"][i], cols["y"][i] = th[0] + x0 + 1.0, th[1] + y0 + 1.0
@@ -288,7 +327,9 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
                 cols[f"{key}_err"][i] = er[j]
             cols["x_err"][i], cols["y_err"][i] = er[0], er[1]
             cols["s2n"][i], cols["chi2"][i], cols["nfev"][i] = res.s2n, res.chi2, res.nfev
-            cols["flags"][i] = res.flags | edge
+            moved = math.hypot(th[0] - start[0], th[1] - start[1]) > MAX_MOVE
+            cols["flags"][i] = (res.flags | edge | (FLAG_MOVED if moved else 0)
+                                | (FLAG_LOW_SN if not res.s2n >= MIN_S2N else 0))
         else:
             _hsm(img, wt, psf_image, cols, i, x0, y0, edge)
         if progress is not None:
@@ -309,6 +350,11 @@ def _hsm(img, wt, psf_image, cols, i, x0, y0, edge):
     except (galsim.GalSimHSMError, galsim.GalSimError, RuntimeError):
         cols["flags"][i] = FLAG_HSM | edge
         return
+    try:
+        # EstimateShear leaves moments_centroid unset: the adaptive moments give the centre
+        centre = galsim.hsm.FindAdaptiveMom(galsim.Image(img, scale=1.0), strict=True).moments_centroid
+    except (galsim.GalSimHSMError, galsim.GalSimError, RuntimeError):
+        centre = None
     e1, e2 = res.corrected_e1, res.corrected_e2
     e = math.hypot(e1, e2)
     # REGAUSS returns a distortion e; g = e / (1 + sqrt(1 - e^2)) has the same direction
@@ -316,8 +362,9 @@ def _hsm(img, wt, psf_image, cols, i, x0, y0, edge):
     cols["g1"][i], cols["g2"][i] = e1 * factor, e2 * factor
     cols["T"][i] = 2.0 * res.moments_sigma ** 2
     cols["flux"][i] = res.moments_amp
-    cols["x"][i] = res.moments_centroid.x + x0  # galsim image origin 1 maps to stamp index 0
-    cols["y"][i] = res.moments_centroid.y + y0
+    if centre is not None:
+        # GalSim's image origin (1, 1) is stamp index 0, i.e. FITS pixel x0 + 1 of the frame
+        cols["x"][i], cols["y"][i] = centre.x + x0, centre.y + y0
     cols["g1_err"][i] = cols["g2_err"][i] = res.corrected_shape_err if res.corrected_shape_err > 0 else np.nan
     cols["flags"][i] = edge | (FLAG_HSM if res.correction_status != 0 else 0)
 
@@ -338,7 +385,7 @@ def _subset(cat, index):
 
 
 def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp", stamp=48, sky=None,
-                  read_noise=8.5, workers=1, overwrite=False, progress=None) -> dict:
+                  read_noise=8.5, blend_radius=4.0, workers=1, overwrite=False, progress=None) -> dict:
     """``perscli measure`` as a function: shapes of the catalogue's objects on each frame.
 
     Writes a FITS file with a SHAPES table (one row per object per frame,
@@ -365,7 +412,7 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
     check_output(dest, overwrite=overwrite, inputs=[catalog, *frames])
     cat = read_positions(catalog)
     tables, inputs, noise_sources = [], [("CAT", catalog, cat["datasum"])], []
-    kwargs = dict(psf=psf, method=method, stamp=stamp, sky=sky, read_noise=read_noise)
+    kwargs = dict(psf=psf, method=method, stamp=stamp, sky=sky, read_noise=read_noise, blend_radius=blend_radius)
     for k, name in enumerate(frames):
         frame = open_frame(name)
         try:
@@ -401,7 +448,8 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
     params = {"METHOD": (method, "exp (mixture fit) or hsm (REGAUSS)"),
               "PSF": (psf if psf == "roman" else psf.split("/")[-1], "PSF source"),
               "STAMP": (stamp, "[pix] stamp side"), "RDNOISE": (read_noise, "[e-] read noise of the noise model"),
-              "NFRAMES": (len(frames), "frames measured"), "XTOL": (1e-10, "relative step tolerance")}
+              "NFRAMES": (len(frames), "frames measured"), "XTOL": (1e-10, "relative step tolerance"),
+              "BLENDRAD": (blend_radius, "[pix] neighbour distance flagged as a blend")}
     for bit, text in FLAGS.items():
         params[f"FLAG{int(math.log2(bit)):02d}"] = (bit, text[:47])
     for k, noise in enumerate(noise_sources, 1):
