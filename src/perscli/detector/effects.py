@@ -140,15 +140,9 @@ def load_detector_model(spec: str | None = None, overrides=()) -> DetectorModel:
 
 
 def _from_yaml(path: str) -> DetectorModel:
-    import yaml
+    from ..io.config import load_yaml
 
-    try:
-        with open(path) as fh:
-            doc = yaml.safe_load(fh)
-    except FileNotFoundError:
-        raise PerscliError(f"{path}: detector model file not found") from None
-    except yaml.YAMLError as exc:
-        raise PerscliError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    doc = load_yaml(path, "detector model")
     if isinstance(doc, dict) and "effects" in doc:
         doc = doc["effects"]
     if isinstance(doc, dict):

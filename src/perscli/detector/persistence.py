@@ -206,15 +206,9 @@ def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence
 
 
 def _model_from_yaml(path: str) -> PersistenceModel:
-    import yaml
+    from ..io.config import load_yaml
 
-    try:
-        with open(path) as fh:
-            doc = yaml.safe_load(fh)
-    except FileNotFoundError:
-        raise PerscliError(f"{path}: persistence model file not found") from None
-    except yaml.YAMLError as exc:
-        raise PerscliError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    doc = load_yaml(path, "persistence model")
     if isinstance(doc, Mapping) and isinstance(doc.get("persistence"), Mapping):
         doc = doc["persistence"]
     if isinstance(doc, Mapping) and isinstance(doc.get("effects"), list):
