@@ -10,6 +10,7 @@ from .. import __version__
 from .apply_persistence import apply_persistence
 from .render import render
 from .measure import measure
+from .budget import budget
 from .catalog import catalog
 from .pointings import pointings
 
@@ -51,6 +52,7 @@ def cli(ctx, verbose, quiet):
 cli.add_command(apply_persistence)
 cli.add_command(render)
 cli.add_command(measure)
+cli.add_command(budget)
 cli.add_command(catalog)
 cli.add_command(pointings)
 

@@ -54,8 +54,11 @@ def render_page(command: click.Command, name: str, parent: click.Context | None 
         ".SH DESCRIPTION",
         _paragraphs(command.help or ""),
     ]
-    options = [p.get_help_record(ctx) for p in command.get_params(ctx) if isinstance(p, click.Option)]
+    # command.params, not get_params(): click caches the help option on the command with the
+    # names of whichever context asked first (a test invoking the command alone, say)
+    options = [p.get_help_record(ctx) for p in command.params if isinstance(p, click.Option)]
     options = [rec for rec in options if rec]
+    options.append((", ".join(ctx.help_option_names), "Show this message and exit."))
     if options:
         parts.append(".SH OPTIONS")
         for flags, text in options:

@@ -1,0 +1,101 @@
+"""``perscli budget``: the Roman additive shear budget as xi+(theta), and a measured xi+ against it."""
+
+from __future__ import annotations
+
+import logging
+
+import click
+
+from .helpers import report_errors
+from .options import output_opt, overwrite_opt
+
+log = logging.getLogger("perscli")
+
+# the names of perscli.stats.budget.BANDS, repeated here so that --help does not import scipy
+BAND_NAMES = ("dore2018", "troxel2021", "hirata")
+
+
+@click.command("budget", short_help="Compare a measured xi+ with the Roman additive shear budget.")
+@click.argument("xi", required=False, metavar="[XI.fits]")
+@click.option("--bands", type=click.Choice(BAND_NAMES), default="dore2018", show_default=True,
+              help="Additive shear rms per multipole band: dore2018 (HLIS requirement, Dore et al. 2018), "
+                   "troxel2021 (7.0e-5 in the first band) or hirata (Hirata's allocation).")
+@click.option("--modes", type=click.Choice(["E", "EB"], case_sensitive=False), default="E", show_default=True,
+              metavar="E|EB",
+              help="E: the budget is for E modes only; EB: B modes get the same budget, which doubles xi+.")
+@click.option("--sigma", "n_sigma", type=click.FloatRange(min=0), default=2.0, show_default=True, metavar="N",
+              help="A bin exceeds the budget when |xi+| - N sigma_xip > |budget|.")
+@click.option("--theta-range", type=(click.FloatRange(min=0, min_open=True), click.FloatRange(min=0, min_open=True)),
+              default=None, metavar="ARCMIN ARCMIN",
+              help="Without XI: smallest and largest separation of the table [default: 0.1 300].")
+@click.option("--nbins", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Without XI: number of log-spaced separations [default: 50].")
+@click.option("--plot", metavar="PNG", default=None,
+              help="Also draw xi+ with error bars against the budget (log theta, symlog xi+, linear range shaded).")
+@click.option("--check", is_flag=True, default=False,
+              help="Exit with status 1 (after writing the outputs) if any bin exceeds the budget.")
+@output_opt
+@overwrite_opt
+@click.pass_context
+@report_errors
+def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, check, output, overwrite):
+    """The Roman additive shear budget as xi+(theta), and a measured xi+ against it.
+
+    The HLIS requirement (Dore et al. 2018) allows an additive shear rms per
+    component of 7.5e-5, 9.9e-5, 1.4e-4 and 1.9e-4 in the multipole bands
+    31-99, 100-315, 316-999 and 1000-3161.  Inside band a the budget's
+    spectrum is C_l = A_a^2 4pi / (l(l+1)) / N_a, N_a = sum over the band of
+    (2l+1)/(l(l+1)), and xi+(theta) = sum over integer l of (2l+1)/(4pi) C_l
+    J0(l theta): 6.81e-8 at 1', 1.87e-8 at 10', 8.4e-10 at 100' (E modes;
+    --modes EB doubles it).  The budget changes sign beyond ~170'.
+
+    Without XI: the budget on log-spaced separations (--theta-range, --nbins).
+
+    With XI, a `perscli correlate` table (TreeCorr's GG columns; separation
+    meanr, else r_nom, in SEP_UNIT, default arcmin; '-' for standard input):
+    the budget at its separations, ratio = xip / budget and its error
+    sigma_xip / |budget|, and per bin whether |xip| - N sigma_xip > |budget|
+    (--sigma N).  Bins without pairs (weight 0) are skipped.  A one-line
+    verdict goes to stderr, e.g. 'below budget by 1.8 orders of magnitude at
+    worst (theta = 0.5 arcmin)', and into the header (VERDICT).
+
+    Output: a FITS table 'BUDGET': theta, xip_budget, and with XI also xip,
+    sigma_xip, ratio, sigma_ratio, exceeds; the bands, modes and --sigma in
+    the header (BUDBANDS, BUDMODES, BUDSIGMA, BUDA1-4).  --check: exit status
+    1 if any bin exceeds the budget, after writing the outputs.
+
+    \b
+    Examples:
+      perscli budget -o budget.fits --plot budget.png
+      perscli budget xi.fits -o cmp.fits --plot xi_vs_budget.png --check
+      perscli budget xi.fits --bands hirata --modes EB --sigma 3 -o cmp.fits
+      perscli correlate shapes.fits -o - | perscli budget - -o cmp.fits
+    """
+    if xi is not None and (theta_range is not None or nbins is not None):
+        raise click.UsageError("--theta-range and --nbins are for the budget alone; with XI the separations "
+                               "are the table's", ctx)
+    if theta_range is not None and not theta_range[0] < theta_range[1]:
+        raise click.BadParameter(f"the smallest separation must come first: {theta_range[0]:g} >= "
+                                 f"{theta_range[1]:g}", ctx, param_hint="'--theta-range'")
+
+    if plot == "-":
+        raise click.BadParameter("the figure cannot go to standard output: give a PNG file name", ctx,
+                                 param_hint="'--plot'")
+
+    from ..stats.budget import DEFAULT_GRID, budget_file
+
+    lo, hi = theta_range if theta_range is not None else DEFAULT_GRID[:2]
+    grid = (lo, hi, nbins if nbins is not None else DEFAULT_GRID[2])
+    result = budget_file(output, xi, bands=bands, modes=modes.upper(), n_sigma=n_sigma, grid=grid, plot=plot,
+                         overwrite=overwrite)
+    where = "stdout" if output == "-" else output
+    if result.xip is None:
+        log.info("%s: budget (%s, %s) at %d separations, %.3g to %.3g arcmin", where, result.bands, result.modes,
+                 len(result.theta), result.theta[0], result.theta[-1])
+        return
+    verbosity = (ctx.find_root().obj or {}).get("verbosity", 0)
+    if verbosity >= 0:
+        # stderr: standard output may carry the FITS table (-o -)
+        click.echo(f"{'stdin' if xi == '-' else xi}: {result.verdict}", err=True)
+    if check and result.n_exceeding:
+        ctx.exit(1)

@@ -1,0 +1,1 @@
+"""Statistics of shape changes: correlation functions and the Roman additive shear budget."""

@@ -1,0 +1,613 @@
+"""The Roman additive shear budget as xi+(theta), and how a measured xi+ compares with it.
+
+The High Latitude Imaging Survey requirement (Dore et al. 2018) limits the
+additive shear systematics, per shear component, to an rms ``A_a`` in each of
+four multipole bands, l = 31-99, 100-315, 316-999 and 1000-3161::
+
+    dore2018    7.5e-5   9.9e-5   1.4e-4   1.9e-4   (RSS 2.7e-4)
+    troxel2021  7.0e-5   9.9e-5   1.4e-4   1.9e-4   (Troxel et al. 2021)
+    hirata      6.791e-5 9.697e-5 1.360e-4 1.855e-4 (Hirata's allocation)
+
+Inside band ``a`` the budget's power spectrum is the template
+``C_l = A_a^2 * 4 pi / (l (l+1)) / N_a`` with ``N_a = sum_band (2l+1) / (l (l+1))``,
+zero outside the bands, so that ``sum_band (2l+1) / (4 pi) C_l = A_a^2``: each
+band contributes its allowed variance.  The budget as a correlation function is
+the direct sum over integer l (exact for a band-limited spectrum)::
+
+    xi+(theta) = sum_l (2l+1) / (4 pi) C_l J0(l theta)
+
+With the Dore numbers (E mode only) xi+ = 6.81e-8 at 1', 1.87e-8 at 10' and
+8.4e-10 at 100'.  ``modes='EB'`` gives the B modes the same budget, which
+doubles xi+.  The budget changes sign beyond ~170' (its spectrum is band
+limited, so xi+ oscillates).
+
+A measured xi+ (a ``perscli correlate`` table, TreeCorr's GG columns) is
+compared bin by bin (:func:`compare`): ratio = xi+ / budget, its error
+sigma_xip / |budget|, and a bin *exceeds* the budget when
+``|xi+| - n_sigma * sigma_xip > |budget|``.  Magnitudes are compared because
+the budget bounds the size of the systematic, whatever its sign, and the
+budget itself is negative at large separations.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import textwrap
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import PerscliError
+
+#: multipole bands of the HLIS requirement, inclusive
+L_BANDS = ((31, 99), (100, 315), (316, 999), (1000, 3161))
+LMAX = L_BANDS[-1][1]
+
+#: additive shear rms per component in each of :data:`L_BANDS`
+BANDS = {
+    "dore2018": (7.5e-5, 9.9e-5, 1.4e-4, 1.9e-4),
+    "troxel2021": (7.0e-5, 9.9e-5, 1.4e-4, 1.9e-4),
+    "hirata": (6.791e-5, 9.697e-5, 1.360e-4, 1.855e-4),
+}
+
+#: where each set of :data:`BANDS` comes from
+BAND_SOURCES = {
+    "dore2018": "Dore et al. 2018, WFIRST HLIS requirement",
+    "troxel2021": "Troxel et al. 2021 (first band 7.0e-5, the rest as Dore et al. 2018)",
+    "hirata": "Hirata's allocation of the HLIS additive budget",
+}
+
+#: how many of E and B share the budget: xi+ is multiplied by this
+MODES = {"E": 1, "EB": 2}
+
+#: separation units -> radians; the names TreeCorr's sep_units accepts, and common spellings
+SEP_UNITS = {
+    "arcmin": math.pi / 180 / 60, "arcmins": math.pi / 180 / 60, "arcminutes": math.pi / 180 / 60,
+    "arcsec": math.pi / 180 / 3600, "arcsecs": math.pi / 180 / 3600, "arcseconds": math.pi / 180 / 3600,
+    "deg": math.pi / 180, "degree": math.pi / 180, "degrees": math.pi / 180,
+    "rad": 1.0, "radian": 1.0, "radians": 1.0,
+}
+
+#: the default separations when no measured xi+ is given: arcmin, log-spaced
+DEFAULT_GRID = (0.1, 300.0, 50)
+
+#: columns of a correlate (TreeCorr GG) table that the comparison reads
+XI_COLUMNS = ("meanr or r_nom", "xip", "sigma_xip")
+
+
+def amplitudes(bands="dore2018") -> tuple:
+    """The additive shear rms per component in each multipole band.
+
+    Parameters
+    ----------
+    bands : str or sequence of 4 floats
+        A name of :data:`BANDS`, or the four amplitudes themselves (zero
+        switches a band off).
+
+    Returns
+    -------
+    tuple of float
+        One amplitude per band of :data:`L_BANDS`.
+
+    Raises
+    ------
+    PerscliError
+        Unknown name, or not four finite non-negative amplitudes.
+    """
+    if isinstance(bands, str):
+        try:
+            return BANDS[bands.lower()]
+        except KeyError:
+            raise PerscliError(f"unknown budget bands '{bands}': use one of {', '.join(BANDS)}") from None
+    values = tuple(float(a) for a in bands)
+    if len(values) != len(L_BANDS) or not all(math.isfinite(a) and a >= 0 for a in values):
+        raise PerscliError(f"budget bands must be {len(L_BANDS)} finite amplitudes >= 0, got {values}")
+    return values
+
+
+def _modes_factor(modes: str) -> int:
+    try:
+        return MODES[modes.upper()]
+    except (KeyError, AttributeError):
+        raise PerscliError(f"unknown modes '{modes}': use E (E modes only) or EB (E and B modes)") from None
+
+
+def power_spectrum(bands="dore2018") -> tuple:
+    """The budget's angular power spectrum C_l (E mode), l = 0 ... :data:`LMAX`.
+
+    Parameters
+    ----------
+    bands : str or sequence of 4 floats
+        See :func:`amplitudes`.
+
+    Returns
+    -------
+    ell : ndarray of int
+        0 ... LMAX.
+    cl : ndarray
+        ``A_a^2 * 4 pi / (l (l+1)) / N_a`` inside band a, zero outside; so that
+        ``sum_band (2l+1) / (4 pi) C_l = A_a^2``.
+    """
+    amps = amplitudes(bands)
+    ell = np.arange(LMAX + 1)
+    cl = np.zeros(LMAX + 1)
+    for (lo, hi), amp in zip(L_BANDS, amps):
+        band = ell[lo:hi + 1].astype(float)
+        # a flat l(l+1) C_l inside the band, normalised so that the band carries variance A_a^2
+        norm = np.sum((2 * band + 1) / (band * (band + 1)))
+        cl[lo:hi + 1] = amp ** 2 * 4 * math.pi / (band * (band + 1)) / norm
+    return ell, cl
+
+
+def xi_plus(theta, bands="dore2018", modes: str = "E") -> np.ndarray:
+    """The budget as xi+(theta): ``sum_l (2l+1) / (4 pi) C_l J0(l theta)``.
+
+    Parameters
+    ----------
+    theta : float or array_like
+        Separations in radians.
+    bands : str or sequence of 4 floats
+        See :func:`amplitudes`.
+    modes : {'E', 'EB'}
+        'EB' gives the B modes the same budget as the E modes, doubling xi+.
+
+    Returns
+    -------
+    ndarray
+        xi+ at each theta (same shape as ``theta``).
+    """
+    from scipy.special import j0
+
+    factor = _modes_factor(modes)
+    ell, cl = power_spectrum(bands)
+    keep = cl > 0
+    ell, weight = ell[keep].astype(float), ((2 * ell + 1) / (4 * math.pi) * cl)[keep]
+    theta = np.asarray(theta, dtype=float)
+    flat = theta.ravel()
+    out = np.empty(flat.shape)
+    # rows of at most 1024 separations keep the (theta, l) matrix near 25 MB
+    for start in range(0, flat.size, 1024):
+        chunk = flat[start:start + 1024]
+        out[start:start + 1024] = j0(np.outer(chunk, ell)) @ weight
+    return factor * out.reshape(theta.shape)
+
+
+def default_theta(grid=DEFAULT_GRID) -> np.ndarray:
+    """Log-spaced separations (arcmin) for a budget without a measurement: ``(min, max, n)``."""
+    lo, hi, n = grid
+    if not (0 < lo < hi and math.isfinite(hi)) or int(n) < 1:
+        raise PerscliError(f"separation grid {lo:g} to {hi:g} arcmin in {n} steps: need 0 < min < max and n >= 1")
+    return np.geomspace(lo, hi, int(n)) if int(n) > 1 else np.array([float(lo)])
+
+
+def sep_unit_radians(unit: str) -> float:
+    """Radians per separation unit (a name of :data:`SEP_UNITS`, any case)."""
+    try:
+        return SEP_UNITS[str(unit).strip().lower()]
+    except KeyError:
+        raise PerscliError(f"unknown separation unit '{unit}': use arcmin, arcsec, deg or rad") from None
+
+
+# -- a measured xi+ -----------------------------------------------------------------------------
+
+@dataclass
+class XiTable:
+    """The xi+ of a correlate table, as the comparison needs it.
+
+    Attributes
+    ----------
+    label : str
+        File name for messages ('stdin' for '-').
+    name : str
+        The path as given.
+    theta : ndarray
+        Separation of each bin (meanr where finite, else r_nom), in ``unit``.
+    unit : str
+        Separation unit: arcmin, arcsec, deg or rad.
+    xip, sigma_xip : ndarray
+        xi+ and its error; NaN allowed only in empty bins.
+    empty : ndarray of bool
+        Bins without pairs (weight or npairs 0): not compared.
+    datasum : int
+        DATASUM of the table as read (provenance).
+    """
+
+    label: str
+    name: str
+    theta: np.ndarray
+    unit: str
+    xip: np.ndarray
+    sigma_xip: np.ndarray
+    empty: np.ndarray
+    datasum: int = 0
+
+
+def read_xi(path: str, *, stdin=None) -> XiTable:
+    """Read xi+ from a ``perscli correlate`` output (TreeCorr GG column names).
+
+    The first binary table (EXTNAME 'XI') is read: the separation from meanr
+    where it is finite and positive, else r_nom, in the unit of the header's
+    SEP_UNIT (or TreeCorr's SEP_UNITS, or the column's TUNIT; arcmin when none
+    is given); xip and sigma_xip.  Bins with weight (or npairs) 0 hold no
+    pairs and are marked empty: they may hold NaN and are not compared.
+
+    Raises
+    ------
+    PerscliError
+        Unreadable file, a column missing or of the wrong type, no rows, an
+        unknown separation unit, or a NaN, infinite or negative value where a
+        bin has pairs.
+    """
+    from ..io.tables import read_table
+
+    what = "correlation table (perscli correlate output)"
+    table = read_table(path, what=what, stdin=stdin)
+    where = f"{table.label}: HDU {table.index}"
+    names = {n.lower() for n in table.data.columns.names}
+    if len(table) == 0:
+        raise PerscliError(f"{where} has no rows: the correlation has no separation bins")
+    if "meanr" not in names and "r_nom" not in names:
+        raise PerscliError(f"{where} has no column 'meanr' or 'r_nom'; a {what} needs the columns "
+                           f"{', '.join(XI_COLUMNS)}: check that this is a {what}")
+    xip = table.column("xip", needed=XI_COLUMNS).astype(float)
+    sigma = table.column("sigma_xip", needed=XI_COLUMNS).astype(float)
+    nominal = table.column("r_nom").astype(float) if "r_nom" in names else None
+    theta = table.column("meanr").astype(float) if "meanr" in names else nominal.copy()
+    if nominal is not None:
+        # TreeCorr leaves meanr undefined (or at r_nom) in a bin without pairs
+        bad = ~(np.isfinite(theta) & (theta > 0))
+        theta[bad] = nominal[bad]
+    if "weight" in names:
+        empty = table.column("weight").astype(float) == 0
+    elif "npairs" in names:
+        empty = table.column("npairs").astype(float) == 0
+    else:
+        empty = np.zeros(len(table), bool)
+
+    unit = _xi_unit(table, "meanr" if "meanr" in names else "r_nom")
+    for k in range(len(table)):
+        if not (np.isfinite(theta[k]) and theta[k] > 0):
+            raise PerscliError(f"{where}: bin {k} has separation {theta[k]} {unit}; separations must be finite "
+                               "and positive: check the meanr and r_nom columns")
+        if empty[k]:
+            continue
+        for col, values in (("xip", xip), ("sigma_xip", sigma)):
+            if not np.isfinite(values[k]):
+                raise PerscliError(f"{where}: column '{col}' is {values[k]} in bin {k} (theta = {theta[k]:.4g} "
+                                   f"{unit}), which has pairs: recompute the correlation")
+        if sigma[k] < 0:
+            raise PerscliError(f"{where}: column 'sigma_xip' is negative ({sigma[k]:.3g}) in bin {k}: "
+                               "an error must be >= 0; check the correlation table")
+    return XiTable(label=table.label, name=path, theta=theta, unit=unit, xip=xip, sigma_xip=sigma, empty=empty,
+                   datasum=table.datasum)
+
+
+def _xi_unit(table, column: str) -> str:
+    """The separation unit: SEP_UNIT, TreeCorr's sep_units, the column's TUNIT, else arcmin."""
+    for key in ("SEP_UNIT", "SEP_UNITS"):
+        if key in table.header:
+            unit = str(table.header[key]).strip()
+            if unit.lower() not in SEP_UNITS:
+                raise PerscliError(f"{table.label}: HDU {table.index} keyword {key} = '{unit}' is not a "
+                                   "separation unit: set it to arcmin, arcsec, deg or rad")
+            return _canonical_unit(unit)
+    tunit = table.unit(column)
+    if tunit.lower() in SEP_UNITS:
+        return _canonical_unit(tunit)
+    return "arcmin"
+
+
+def _canonical_unit(unit: str) -> str:
+    scale = sep_unit_radians(unit)
+    return {SEP_UNITS["arcmin"]: "arcmin", SEP_UNITS["arcsec"]: "arcsec", SEP_UNITS["deg"]: "deg",
+            1.0: "rad"}[scale]
+
+
+# -- comparison ---------------------------------------------------------------------------------
+
+@dataclass
+class Comparison:
+    """The budget at a set of separations, and a measured xi+ against it.
+
+    Attributes
+    ----------
+    theta : ndarray
+        Separations, in ``unit``.
+    unit : str
+        arcmin, arcsec, deg or rad.
+    budget : ndarray
+        The budget's xi+ at ``theta``.
+    bands, modes : str
+        Which budget (a name of :data:`BANDS`, or 'custom') and 'E' or 'EB'.
+    n_sigma : float
+        A bin exceeds when ``|xip| - n_sigma * sigma_xip > |budget|``.
+    xip, sigma_xip, ratio, sigma_ratio : ndarray or None
+        The measurement, ``xip / budget`` and ``sigma_xip / |budget|`` (NaN in
+        empty bins); None without a measurement.
+    exceeds, empty : ndarray of bool or None
+        Bins over the budget by more than their errors allow; bins without pairs.
+    orders : float
+        min over compared bins of ``log10(|budget| / |xip|)``: how far below the
+        budget the measurement is at worst (inf when xip is 0 everywhere, nan
+        without a comparison).
+    verdict : str
+        One line: 'below budget by 1.8 orders of magnitude at worst (...)' or
+        'exceeds budget in N of M bins (...)'.
+    """
+
+    theta: np.ndarray
+    unit: str
+    budget: np.ndarray
+    bands: str
+    modes: str
+    n_sigma: float = 2.0
+    xip: np.ndarray | None = None
+    sigma_xip: np.ndarray | None = None
+    ratio: np.ndarray | None = None
+    sigma_ratio: np.ndarray | None = None
+    exceeds: np.ndarray | None = None
+    empty: np.ndarray | None = None
+    orders: float = float("nan")
+    verdict: str = ""
+    amplitudes: tuple = field(default_factory=tuple)
+
+    @property
+    def n_exceeding(self) -> int:
+        """Number of bins over the budget (0 without a measurement)."""
+        return int(np.count_nonzero(self.exceeds)) if self.exceeds is not None else 0
+
+
+def budget_at(theta, unit: str = "arcmin", *, bands="dore2018", modes: str = "E") -> Comparison:
+    """The budget alone at separations ``theta`` (in ``unit``), as a :class:`Comparison` without a measurement."""
+    theta = np.atleast_1d(np.asarray(theta, dtype=float))
+    unit = _canonical_unit(unit)
+    amps = amplitudes(bands)
+    modes = modes.upper()
+    values = xi_plus(theta * sep_unit_radians(unit), amps, modes)
+    return Comparison(theta=theta, unit=unit, budget=values, bands=_bands_name(bands), modes=modes,
+                      amplitudes=amps)
+
+
+def compare(xi: XiTable, *, bands="dore2018", modes: str = "E", n_sigma: float = 2.0) -> Comparison:
+    """Compare a measured xi+ with the budget at its separations.
+
+    Parameters
+    ----------
+    xi : XiTable
+        From :func:`read_xi`.
+    bands, modes
+        See :func:`xi_plus`.
+    n_sigma : float
+        A bin exceeds the budget when ``|xip| - n_sigma * sigma_xip > |budget|``:
+        over it by more than ``n_sigma`` errors.
+
+    Returns
+    -------
+    Comparison
+        With ratio, sigma_ratio, exceeds, orders and verdict filled in.
+    """
+    if not (math.isfinite(n_sigma) and n_sigma >= 0):
+        raise PerscliError(f"n_sigma must be finite and >= 0, got {n_sigma}")
+    result = budget_at(xi.theta, xi.unit, bands=bands, modes=modes)
+    used = ~xi.empty
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(used, xi.xip / result.budget, np.nan)
+        sigma_ratio = np.where(used, xi.sigma_xip / np.abs(result.budget), np.nan)
+        exceeds = used & (np.abs(xi.xip) - n_sigma * xi.sigma_xip > np.abs(result.budget))
+        orders_per_bin = np.log10(np.abs(result.budget) / np.abs(xi.xip))
+    result.xip, result.sigma_xip = xi.xip, xi.sigma_xip
+    result.ratio, result.sigma_ratio, result.exceeds, result.empty = ratio, sigma_ratio, exceeds, xi.empty.copy()
+    result.n_sigma = float(n_sigma)
+    result.orders = float(np.min(orders_per_bin[used])) if used.any() else float("nan")
+    result.verdict = _verdict(result, orders_per_bin)
+    return result
+
+
+def _verdict(c: Comparison, orders_per_bin: np.ndarray) -> str:
+    used = ~c.empty
+    m = int(np.count_nonzero(used))
+    skipped = int(np.count_nonzero(c.empty))
+    tail = f"; {skipped} empty bin{'s' if skipped != 1 else ''} skipped" if skipped else ""
+    if m == 0:
+        return f"no bin with pairs: nothing to compare with the budget{tail}"
+    idx = np.flatnonzero(used)
+    if c.n_exceeding:
+        # the worst bin is the one furthest over its budget, in units of the budget
+        worst = idx[np.argmax(np.abs(c.ratio[idx]))]
+        return (f"exceeds budget in {c.n_exceeding} of {m} bins by more than {c.n_sigma:g} sigma (worst: "
+                f"xi+/budget = {c.ratio[worst]:.3g} +- {c.sigma_ratio[worst]:.2g} at theta = "
+                f"{c.theta[worst]:.3g} {c.unit}){tail}")
+    if not np.isfinite(c.orders):
+        return f"below budget at every separation (xi+ = 0 in all {m} bins){tail}"
+    worst = idx[np.argmin(orders_per_bin[idx])]
+    where = f"theta = {c.theta[worst]:.3g} {c.unit}"
+    if c.orders > 0:
+        median = float(np.median(orders_per_bin[idx]))
+        return (f"below budget by {c.orders:.1f} orders of magnitude at worst ({where}), "
+                f"{median:.1f} at the median over {m} bins{tail}")
+    return (f"within {c.n_sigma:g} sigma of the budget in all {m} bins, but |xi+| reaches "
+            f"{abs(c.ratio[worst]):.3g} x |budget| at {where}{tail}")
+
+
+def _bands_name(bands) -> str:
+    if isinstance(bands, str):
+        return bands.lower()
+    amps = amplitudes(bands)
+    for name, values in BANDS.items():
+        if values == amps:
+            return name
+    return "custom"
+
+
+# -- output -------------------------------------------------------------------------------------
+
+def budget_hdulist(result: Comparison, *, inputs=()):
+    """The 'BUDGET' table of a :class:`Comparison`, with its parameters and provenance in the header.
+
+    Columns: theta (unit), xip_budget; with a measurement also xip, sigma_xip,
+    ratio, sigma_ratio and exceeds (logical).
+    """
+    from astropy.io import fits
+
+    from ..io.output import add_provenance
+
+    cols = [fits.Column(name="theta", format="D", unit=result.unit, array=result.theta),
+            fits.Column(name="xip_budget", format="D", array=result.budget)]
+    if result.xip is not None:
+        cols += [fits.Column(name="xip", format="D", array=result.xip),
+                 fits.Column(name="sigma_xip", format="D", array=result.sigma_xip),
+                 fits.Column(name="ratio", format="D", array=result.ratio),
+                 fits.Column(name="sigma_ratio", format="D", array=result.sigma_ratio),
+                 fits.Column(name="exceeds", format="L", array=result.exceeds)]
+    hdu = fits.BinTableHDU.from_columns(cols, name="BUDGET")
+    descriptions = {"theta": "separation (meanr of the XI table, else r_nom)",
+                    "xip_budget": "xi+ of the additive shear budget",
+                    "xip": "measured xi+ (XI table)", "sigma_xip": "error of xip (XI table)",
+                    "ratio": "xip / xip_budget (NaN: empty bin)", "sigma_ratio": "sigma_xip / |xip_budget|",
+                    "exceeds": "|xip| - BUDSIGMA sigma_xip > |xip_budget|"}
+    for k, col in enumerate(cols, start=1):
+        hdu.header[f"TTYPE{k}"] = (col.name, descriptions[col.name])
+    params = {
+        "BUDBANDS": (result.bands, "additive budget: HLIS requirement bands"),
+        "BUDMODES": (result.modes, "E: budget for E modes; EB: E and B (xi+ x 2)"),
+        "SEP_UNIT": (result.unit, "unit of theta"),
+    }
+    for k, ((lo, hi), amp) in enumerate(zip(L_BANDS, result.amplitudes), start=1):
+        params[f"BUDA{k}"] = (amp, f"additive shear rms per component, l={lo}-{hi}")
+    step = f"budget bands={result.bands} modes={result.modes}"
+    if result.xip is not None:
+        params["BUDSIGMA"] = (result.n_sigma, "exceeds: |xip| - BUDSIGMA sigma > |budget|")
+        params["BUDNBIN"] = (int(np.count_nonzero(~result.empty)), "bins compared (with pairs)")
+        params["BUDNEXC"] = (result.n_exceeding, "bins exceeding the budget")
+        if np.isfinite(result.orders):
+            params["BUDWORST"] = (round(result.orders, 4), "min log10(|budget|/|xip|) over bins")
+        params["VERDICT"] = result.verdict
+        step += f" sigma={result.n_sigma:g}: {result.verdict}"
+    add_provenance(hdu.header, step=step, params=params, inputs=inputs)
+    return fits.HDUList([fits.PrimaryHDU(), hdu])
+
+
+def budget_figure(result: Comparison, *, linthresh: float | None = None) -> bytes:
+    """The paper's comparison figure as PNG bytes.
+
+    xi+ of the measurement with error bars (bins over the budget in red)
+    against the budget's curve, log separation, symlog xi+; the linear range
+    ``|xi+| < linthresh`` is shaded grey.
+
+    Parameters
+    ----------
+    result : Comparison
+        From :func:`compare` or :func:`budget_at`.
+    linthresh : float, optional
+        Half-width of the symlog's linear range.  Default: the smallest
+        positive sigma_xip of a compared bin, but at most 1e-10 (the budget's
+        scale at the largest separations), so that both stay on the log part.
+
+    Returns
+    -------
+    bytes
+        A PNG image.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    measured = result.xip is not None
+    used = ~result.empty if measured else np.zeros(0, bool)
+    if linthresh is None:
+        linthresh = 1e-10
+        if measured:
+            sig = result.sigma_xip[used]
+            sig = sig[np.isfinite(sig) & (sig > 0)]
+            if sig.size:
+                linthresh = min(linthresh, float(sig.min()))
+    lo, hi = float(result.theta.min()), float(result.theta.max())
+    fine = np.geomspace(lo / 1.3, hi * 1.3, 600)
+    curve = xi_plus(fine * sep_unit_radians(result.unit), result.amplitudes, result.modes)
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    label = f"additive budget ({result.bands}, {'E and B' if result.modes == 'EB' else 'E'} modes)"
+    ax.plot(fine, curve, color="black", lw=1.5, label=label)
+    if measured:
+        ok = used & ~result.exceeds
+        ax.errorbar(result.theta[ok], result.xip[ok], yerr=result.sigma_xip[ok], fmt="o", ms=4, capsize=2,
+                    color="tab:blue", label=r"$\xi_+$ of the shape changes")
+        bad = used & result.exceeds
+        if bad.any():
+            ax.errorbar(result.theta[bad], result.xip[bad], yerr=result.sigma_xip[bad], fmt="s", ms=4, capsize=2,
+                        color="tab:red", label=f"over budget by > {result.n_sigma:g} sigma")
+        ax.set_title(textwrap.fill(result.verdict, 95), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_yscale("symlog", linthresh=linthresh)
+    ax.axhspan(-linthresh, linthresh, color="0.85", zorder=0, label=f"linear range |y| < {linthresh:.1g}")
+    ax.axhline(0, color="0.5", lw=0.5)
+    ax.set_xlim(fine[0], fine[-1])
+    ax.set_xlabel(rf"$\theta$ ({result.unit})")
+    ax.set_ylabel(r"$\xi_+(\theta)$")
+    ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100)
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+def budget_file(dest: str, xi_path: str | None = None, *, bands: str = "dore2018", modes: str = "E",
+                n_sigma: float = 2.0, grid=DEFAULT_GRID, plot: str | None = None, overwrite: bool = False,
+                stdin=None, stdout=None) -> Comparison:
+    """Check the outputs, compute the budget (and the comparison), write the table and the figure.
+
+    Parameters
+    ----------
+    dest : str
+        Output FITS path, or '-' for standard output.
+    xi_path : str, optional
+        A correlate output ('-' for standard input).  Without it the budget
+        alone is tabulated on ``grid`` (arcmin: min, max, n log-spaced).
+    bands, modes, n_sigma
+        See :func:`compare`.
+    plot : str, optional
+        PNG path for :func:`budget_figure`.
+    overwrite : bool
+        Replace existing outputs.
+
+    Returns
+    -------
+    Comparison
+        What was written.  Nothing is written when an error is raised.
+    """
+    from ..io.output import atomic_output, check_output, write_fits
+
+    inputs = [xi_path] if xi_path else []
+    check_output(dest, overwrite=overwrite, inputs=inputs)
+    if plot is not None:
+        if plot == "-":
+            raise PerscliError("the plot cannot go to standard output: give a PNG file name")
+        check_output(plot, overwrite=overwrite, inputs=inputs)
+        if dest != "-" and _same_path(plot, dest):
+            raise PerscliError(f"{plot}: the plot and the table would be the same file: choose another name")
+    # a typo in bands or modes is reported before the input is read
+    amplitudes(bands)
+    _modes_factor(modes)
+    if xi_path:
+        xi = read_xi(xi_path, stdin=stdin)
+        result = compare(xi, bands=bands, modes=modes, n_sigma=n_sigma)
+        provenance = [("XI", xi_path, xi.datasum)]
+    else:
+        result = budget_at(default_theta(grid), "arcmin", bands=bands, modes=modes)
+        provenance = []
+    # drawn before anything is written, so that a failing figure leaves no table behind
+    png = budget_figure(result) if plot is not None else None
+    write_fits(budget_hdulist(result, inputs=provenance), dest, overwrite=overwrite, stdout=stdout)
+    if png is not None:
+        with atomic_output(plot, overwrite=overwrite) as stream:
+            stream.write(png)
+    return result
+
+
+def _same_path(a: str, b: str) -> bool:
+    import os
+
+    return os.path.abspath(a) == os.path.abspath(b)
