@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.perscli-installed
 
-.PHONY: demo demo-field test bench bench-render bench-measure man samples clean
+.PHONY: demo demo-field test bench bench-render bench-measure bench-correlate man samples clean
 
 $(STAMP): pyproject.toml setup.py src/perscli/_kernels.c
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -54,12 +54,16 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_apply_persistence.py
 	$(BIN)/python benchmarks/bench_render.py
 	$(BIN)/python benchmarks/bench_measure.py
+	$(BIN)/python benchmarks/bench_correlate.py
 
 bench-render: $(STAMP)
 	$(BIN)/python benchmarks/bench_render.py
 
 bench-measure: $(STAMP)
 	$(BIN)/python benchmarks/bench_measure.py
+
+bench-correlate: $(STAMP)
+	$(BIN)/python benchmarks/bench_correlate.py
 
 man: $(STAMP)
 	$(BIN)/python -m perscli.cli.manpages man

@@ -11,6 +11,7 @@ from .apply_persistence import apply_persistence
 from .render import render
 from .measure import measure
 from .budget import budget
+from .correlate import correlate
 from .catalog import catalog
 from .pointings import pointings
 
@@ -53,6 +54,7 @@ cli.add_command(apply_persistence)
 cli.add_command(render)
 cli.add_command(measure)
 cli.add_command(budget)
+cli.add_command(correlate)
 cli.add_command(catalog)
 cli.add_command(pointings)
 

@@ -1,0 +1,154 @@
+"""``perscli correlate``: the correlation function and statistics of shape changes De."""
+
+from __future__ import annotations
+
+import logging
+
+import click
+from click.core import ParameterSource
+
+from .helpers import report_errors
+from .options import output_opt, overwrite_opt, seed_opt
+
+log = logging.getLogger("perscli")
+
+
+def _numbers(ctx, param, value):
+    """A comma-separated list of numbers (for --thresholds and --theta-bins)."""
+    if value is None:
+        return None
+    try:
+        numbers = tuple(float(v) for v in value.replace(" ", "").split(",") if v)
+    except ValueError:
+        raise click.BadParameter(f"{value!r}: give numbers separated by commas, e.g. 1e-8,1e-4") from None
+    if not numbers:
+        raise click.BadParameter("give at least one number")
+    return numbers
+
+
+@click.command("correlate", short_help="Correlation function xi+/- and statistics of shape changes De.")
+@click.argument("shapes", nargs=-1, required=True, metavar="SHAPES_A.fits [SHAPES_B.fits]")
+@click.option("--frames", type=int, nargs=2, default=None, metavar="A B",
+              help="Frames (the frame column of perscli measure) to difference: with one table, De = g(frame A) "
+                   "- g(frame B) of it; with two, frame A of the first minus frame B of the second.")
+@click.option("--de1", metavar="COL", default=None, help="One table: the column holding De1.")
+@click.option("--de2", metavar="COL", default=None, help="One table: the column holding De2.")
+@click.option("--common-ids", is_flag=True, default=False,
+              help="Correlate the ids A and B share, instead of refusing tables whose ids differ.")
+@click.option("--positions", type=click.Choice(["auto", "radec", "xy"]), default="auto", show_default=True,
+              help="ra/dec in degrees (auto when present), or x/y (flat) in pixels or in their TUNIT angle.")
+@click.option("--pixel-scale", type=click.FloatRange(min=0, min_open=True), default=0.11, show_default=True,
+              metavar="ARCSEC", help="Arcsec per pixel for x/y positions in pixels (Roman: 0.11).")
+@click.option("--min-sep", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+              metavar="SEP", help="Smallest separation, in --sep-units.")
+@click.option("--max-sep", type=click.FloatRange(min=0, min_open=True), default=100.0, show_default=True,
+              metavar="SEP", help="Largest separation, in --sep-units.")
+@click.option("--nbins", type=click.IntRange(min=1), default=20, show_default=True, metavar="N",
+              help="Logarithmic separation bins.")
+@click.option("--sep-units", type=click.Choice(["arcsec", "arcmin", "deg", "rad"]), default="arcmin",
+              show_default=True, help="Units of --min-sep, --max-sep and of the output separations.")
+@click.option("--bin-slop", type=click.FloatRange(min=0), default=None, metavar="X",
+              help="TreeCorr's bin_slop [default: TreeCorr's, min(1, 0.1/bin size)]; 0 is exact but slow on "
+                   "large catalogues.")
+@click.option("--npatch", type=click.IntRange(min=2), default=20, show_default=True, metavar="N",
+              help="Jackknife patches, found by k-means on the positions (seeded by --seed).")
+@click.option("--patch-centers", metavar="FILE", default=None,
+              help="Jackknife patch centres instead of k-means: TreeCorr's write_patch_centers file, a table "
+                   "of ra/dec (degrees), or an earlier perscli correlate output (its PATCHES table).")
+@click.option("--cross-patch-weight", type=click.Choice(["match", "simple", "mean"]), default="match",
+              show_default=True,
+              help="TreeCorr's weight of pairs across a removed and a kept patch (match: Mohammad & Percival "
+                   "2022, recommended for the jackknife).")
+@click.option("--thresholds", callback=_numbers, default="1e-8,1e-4", show_default=True, metavar="T1,T2,...",
+              help="|De| thresholds: STATS gives the number and fraction of objects at or above each.")
+@click.option("--theta-bins", "theta_bins", callback=_numbers, default="1e-8,1e-6,1e-4,1e-2,2",
+              show_default=True, metavar="E0,E1,...", help="|De| bin edges of the position-angle distribution.")
+@click.option("--nboot", type=click.IntRange(min=2), default=200, show_default=True, metavar="N",
+              help="Bootstrap resamples for the errors of the position-angle distribution.")
+@seed_opt
+@click.option("--plot", metavar="XI.png", default=None, help="Also draw xi+/- with its errors.")
+@click.option("--plots", "plots_dir", metavar="DIR", default=None,
+              help="Also draw xi.png, hist_de.png and bin_theta.png in DIR (created if needed).")
+@output_opt
+@overwrite_opt
+@click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Threads for TreeCorr [default: all cores].")
+@click.pass_context
+@report_errors
+def correlate(ctx, shapes, frames, de1, de2, common_ids, positions, pixel_scale, min_sep, max_sep, nbins, sep_units,
+              bin_slop, npatch, patch_centers, cross_patch_weight, thresholds, theta_bins, nboot, seed, plot,
+              plots_dir, output, overwrite, workers):
+    """Correlation function xi+/- and statistics of the shape changes De.
+
+    De is the change of each object's shape between two measurements:
+    De = g(A) - g(B), A measured with persistence and B without (the
+    reference), objects matched by id and kept when unflagged (flags == 0)
+    in both.  A and B are two SHAPES tables (perscli measure), or two frames
+    of one (--frames A B: `perscli measure exp.fits exp_nopersist.fits`
+    writes them as frames 0 and 1, so --frames 0 1).  One table can also
+    hold De itself: --de1 COL --de2 COL (rows with flags != 0, if it has a
+    flags column, are left out).
+
+    xi+/- of De is TreeCorr's GGCorrelation on ra/dec (or x/y) positions
+    with log bins --min-sep to --max-sep, and its covariance is the
+    jackknife over --npatch k-means patches (or --patch-centers).  The
+    output has the HDUs XI (TreeCorr's columns: r_nom, meanr, meanlogr,
+    xip, xim, xip_im, xim_im, sigma_xip, sigma_xim, weight, npairs; header
+    SEP_UNIT), COV (the covariance, xi+ bins then xi- bins), STATS (N, mean
+    intrinsic e = mean g of B, mean De1 and De2 with standard errors, the
+    number and fraction of objects with |De| >= each --thresholds), HIST_DE
+    (histogram of |De|, log bins 1e-12 to 1 plus under- and overflow),
+    THETA_DE (the |De|-weighted distribution of De's position angle
+    0.5 atan2(De2, De1) in 18 bins, per --theta-bins |De| bin, with
+    bootstrap errors and a chi2 against uniform) and PATCHES (the patch
+    centres, reusable with --patch-centers).
+
+    Orientation: g in a SHAPES table is in the frame's pixel axes, and the
+    table does not say how those sit on the sky, so De is correlated in the
+    axes it is given in.  xi+ does not depend on that when one rotation
+    takes those axes to the sky over the whole catalogue (one detector, one
+    pointing); if the axes are also mirrored, xi+ changes only by the small
+    parallel-transport terms of the sphere.  xi- does depend on it: a
+    rotation by phi turns it into xi- exp(4i phi), mixing xim and xim_im.
+    For catalogues that combine orientations, rotate De to the sky first and
+    give it with --de1/--de2.
+
+    The same --seed gives the same patches and bootstrap, hence the same
+    output (to rounding in the last digits: TreeCorr's threads add up in
+    varying order).
+
+    \b
+    Examples:
+      perscli correlate both.fits --frames 0 1 -o xi.fits --plots figs
+      perscli correlate shapes_persist.fits shapes_ref.fits -o xi.fits --plot xi.png
+      perscli correlate de.fits --de1 de1 --de2 de2 --min-sep 0.5 --max-sep 60 --nbins 15 -o xi.fits
+      perscli correlate both.fits --frames 0 1 --patch-centers earlier_xi.fits -o xi2.fits
+    """
+    from ..stats.correlate import correlate_files
+
+    if len(shapes) > 2:
+        raise click.UsageError(f"give one or two SHAPES tables, not {len(shapes)}", ctx)
+    if (de1 is None) != (de2 is None):
+        raise click.UsageError("give both --de1 and --de2", ctx)
+    if de1 is not None and (len(shapes) == 2 or frames is not None):
+        raise click.UsageError("--de1/--de2 name the De columns of one table: not with two tables or --frames", ctx)
+    if len(shapes) == 1 and de1 is None and frames is None:
+        raise click.UsageError("one SHAPES table needs --frames A B (two of its frames) or --de1 COL --de2 COL "
+                               "(its De columns)", ctx)
+    if patch_centers is not None and ctx.get_parameter_source("npatch") == ParameterSource.COMMANDLINE:
+        raise click.UsageError("--patch-centers and --npatch: give one (the centres fix the number of patches)", ctx)
+    if min_sep >= max_sep:
+        raise click.UsageError(f"--min-sep {min_sep} must be less than --max-sep {max_sep}", ctx)
+    if plot is not None and not plot.lower().endswith(".png"):
+        raise click.UsageError("--plot needs a .png file name", ctx)
+    summary = correlate_files(
+        shapes, output, frames=frames, de_columns=(de1, de2) if de1 is not None else None, common_ids=common_ids,
+        positions=positions, pixel_scale=pixel_scale, min_sep=min_sep, max_sep=max_sep, nbins=nbins,
+        sep_units=sep_units, bin_slop=bin_slop, npatch=npatch, patch_centers=patch_centers,
+        cross_patch_weight=cross_patch_weight, thresholds=thresholds, theta_edges=theta_bins, nboot=nboot,
+        seed=seed, workers=workers, plot=plot, plots_dir=plots_dir, overwrite=overwrite)
+    stats = summary["stats"]
+    fracs = ", ".join(f">= {t:g}: {f:.3g}" for t, f in zip(stats["threshold"], stats["frac_ge"]))
+    log.info("%s: %d objects, %d patches; mean De = (%.3g +- %.2g, %.3g +- %.2g); fraction with |De| %s",
+             "stdout" if output == "-" else output, summary["n"], summary["npatch"], stats["de1_mean"],
+             stats["de1_err"], stats["de2_mean"], stats["de2_err"], fracs)

@@ -1,0 +1,124 @@
+"""Figures of ``perscli correlate``: xi+/- of De, the histogram of |De|, De's position angle."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def xi_figure(xi: dict, png: str, *, sep_units: str = "arcmin", title: str = "") -> None:
+    """xi+ and xi- of De against separation, with jackknife errors, one panel each.
+
+    The y axes are symmetric-log, linear within the median error of zero,
+    so that a signal over orders of magnitude and a noise-dominated
+    measurement (values of either sign) both read clearly.
+
+    Parameters
+    ----------
+    xi : dict
+        TreeCorr's columns (meanr, xip, xim, sigma_xip, sigma_xim, npairs).
+    png : str
+        Output path.
+    sep_units : str
+        Units of meanr, for the axis label.
+    title : str
+        Figure title.
+    """
+    plt = _pyplot()
+    fig, axes = plt.subplots(2, 1, figsize=(6.4, 6.4), sharex=True)
+    ok = np.asarray(xi["npairs"]) > 0
+    r = np.asarray(xi["meanr"])[ok]
+    for ax, key, colour, label in ((axes[0], "xip", "C0", r"$\xi_+$"), (axes[1], "xim", "C3", r"$\xi_-$")):
+        val = np.asarray(xi[key])[ok]
+        err = np.asarray(xi[f"sigma_{key}"])[ok]
+        ax.errorbar(r, val, yerr=err, fmt="o", color=colour, ms=4, capsize=2, label=f"{label} of $\\Delta e$")
+        ax.axhline(0.0, color="k", lw=0.6)
+        scale = np.median(err[err > 0]) if np.any(err > 0) else 0.0
+        if scale > 0 and np.max(np.abs(val) + err, initial=0) > 10 * scale:
+            ax.set_yscale("symlog", linthresh=scale)
+        ax.set_ylabel(label)
+        ax.legend(frameon=False, loc="upper right")
+    axes[1].set_xscale("log")
+    axes[1].set_xlabel(rf"$\theta$ ({sep_units})")
+    axes[0].set_title(title if len(title) < 70 else title[:67] + "...", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(png, dpi=100, format="png")
+    plt.close(fig)
+
+
+def hist_de_figure(hist: dict, png: str, *, thresholds=(), n: int | None = None) -> None:
+    """Histogram of |De| on log bins (the paper's hist_de), with the thresholds marked.
+
+    Parameters
+    ----------
+    hist : dict
+        de_lo, de_hi, count (first row: underflow [0, lo); last: overflow [hi, inf)).
+    png : str
+        Output path.
+    thresholds : sequence of float
+        |De| thresholds to mark.
+    n : int, optional
+        Number of objects, for the title.
+    """
+    plt = _pyplot()
+    lo, hi, count = (np.asarray(hist[k]) for k in ("de_lo", "de_hi", "count"))
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    inner = slice(1, len(count) - 1)
+    edges = np.append(lo[inner], hi[inner][-1])
+    ax.stairs(count[inner], edges, color="C0", fill=True, alpha=0.6)
+    ax.set_xscale("log")
+    if count[inner].max(initial=0) > 0:
+        ax.set_yscale("log")
+    for t in thresholds:
+        ax.axvline(t, color="C3", ls="--", lw=1)
+        ax.text(t, 1.0, f" {t:g}", color="C3", transform=ax.get_xaxis_transform(), va="top", fontsize=8)
+    ax.set_xlabel(r"$|\Delta e|$")
+    ax.set_ylabel("objects per bin")
+    notes = [f"|De| < {hi[0]:g}: {int(count[0])}"]
+    if count[-1]:
+        notes.append(f"|De| >= {lo[-1]:g}: {int(count[-1])}")
+    ax.text(0.02, 0.97, "\n".join(notes), transform=ax.transAxes, va="top", fontsize=8)
+    ax.set_title(f"{n} objects" if n is not None else "")
+    fig.tight_layout()
+    fig.savefig(png, dpi=100, format="png")
+    plt.close(fig)
+
+
+def theta_figure(theta: dict, png: str) -> None:
+    """|De|-weighted distribution of De's position angle per |De| bin, bootstrap errors (the paper's bin_theta)."""
+    plt = _pyplot()
+    lo, hi, n = (np.asarray(theta[k]) for k in ("de_lo", "de_hi", "n"))
+    t0, t1 = np.asarray(theta["theta_lo"]), np.asarray(theta["theta_hi"])
+    frac, err, chi2 = (np.asarray(theta[k]) for k in ("frac", "frac_err", "chi2_uniform"))
+    fig, ax = plt.subplots(figsize=(6.4, 4.6))
+    bins = sorted(set(zip(lo.tolist(), hi.tolist())))
+    nangle = int(np.sum((lo == bins[0][0]) & (hi == bins[0][1]))) if bins else 1
+    shown = 0
+    for k, (a, b) in enumerate(bins):
+        sel = (lo == a) & (hi == b)
+        if n[sel][0] == 0:
+            continue
+        centre = 0.5 * (t0[sel] + t1[sel])
+        ax.errorbar(centre + (k - len(bins) / 2) * 0.8, frac[sel], yerr=err[sel], fmt="o-", ms=3, lw=0.8,
+                    capsize=2, label=rf"{a:g} $\leq |\Delta e| <$ {b:g} (N={int(n[sel][0])}, "
+                                     rf"$\chi^2$={chi2[sel][0]:.1f}/{nangle - 1})")
+        shown += 1
+    ax.axhline(1.0 / nangle, color="k", ls="--", lw=1, label="uniform")
+    ax.set_xlim(-90, 90)
+    ax.set_xticks(np.arange(-90, 91, 30))
+    ax.set_xlabel(r"position angle of $\Delta e$ (deg)")
+    ax.set_ylabel(r"$|\Delta e|$-weighted fraction")
+    ax.legend(frameon=False, fontsize=7)
+    if not shown:
+        ax.text(0.5, 0.5, "no object in the |De| bins", transform=ax.transAxes, ha="center")
+    fig.tight_layout()
+    fig.savefig(png, dpi=100, format="png")
+    plt.close(fig)
