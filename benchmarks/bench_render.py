@@ -53,6 +53,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_apply_persistence import (  # noqa: E402  (helpers shared with the other benchmark)
+    _PROFILE,
     machine, perscli_command, run_child, versions, write_section)
 
 SECTION = "render"
@@ -335,18 +336,6 @@ def same_period(cols, exposure, plan, stride: int, max_n: int, maxk_threshold: f
 # profiles
 # --------------------------------------------------------------------------------------------
 
-_PROFILE = r"""
-import cProfile, sys
-sys.argv = ["perscli", *sys.argv[2:]]
-from perscli.cli.main import main
-prof = cProfile.Profile()
-try:
-    prof.runcall(main)
-except SystemExit:
-    pass
-finally:
-    prof.dump_stats(PROFILE_OUT)
-"""
 
 #: (label, function name, file name ending); nested entries are indented in the label
 RENDER_PHASES = [
