@@ -184,9 +184,9 @@ finally:
 #: (label, [(function name, file name)] whose cumulative times add up to the phase)
 PHASES = [
     ("imports left inside the command (first use)", [("_find_and_load", "<frozen importlib._bootstrap>")]),
-    ("opening the catalogue (scan, DATASUM, memory map)", [("open_table", "correlate.py")]),
+    ("opening the catalogue (scan, DATASUM, memory map)", [("open_table", "tables.py")]),
     ("De, positions, flags (rest of load_shape_changes)", [("load_shape_changes", "correlate.py"),
-                                                           ("-open_table", "correlate.py")]),
+                                                           ("-open_table", "tables.py")]),
     ("k-means patches (TreeCorr run_kmeans)", [("run_kmeans", "field.py")]),
     ("TreeCorr process (patch trees, all pairs of patches)", [("process", "corr2base.py")]),
     ("jackknife covariance (gg.cov)", [("estimate_cov", "corr2base.py")]),

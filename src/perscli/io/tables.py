@@ -8,6 +8,7 @@ and :meth:`InputTable.column` names the file and column at fault.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import sys
@@ -145,17 +146,8 @@ def read_table(name: str, *, what: str, stdin=None) -> InputTable:
 
     label, raw = read_bytes(name, stdin)
     hdus = scan(Source(label, data=raw))
-    tables = [h for h in hdus if str(h.header.get("XTENSION", "")).strip() == "BINTABLE"]
-    if not tables:
-        raise PerscliError(f"{label}: has no binary table HDU; a {what} is a FITS binary table: "
-                           f"check that this is a {what}")
-    hdu = tables[0]
-    datasum = hdu.datasum()
-    stated = str(hdu.header.get("DATASUM", "")).strip()
-    if stated.isdigit() and int(stated) != datasum:
-        raise PerscliError(f"{label}: HDU {hdu.index} data do not match its DATASUM ({stated}, computed "
-                           f"{datasum}): the file is corrupt; re-copy it "
-                           "(or delete DATASUM if the data were edited on purpose)")
+    hdu = _first_table(label, hdus, what)
+    datasum = _checked_datasum(label, hdu, hdu.datasum())
     from astropy.io import fits
 
     try:
@@ -177,3 +169,71 @@ def read_table(name: str, *, what: str, stdin=None) -> InputTable:
 # -- Roman filters ------------------------------------------------------------------------------
 
 #: Roman WFI imaging filters, bluest first (W146 is the wide filter spanning J to H).
+
+
+def _first_table(label: str, hdus, what: str):
+    """The first binary-table HDU of a scanned file, or one clear error."""
+    tables = [h for h in hdus if str(h.header.get("XTENSION", "")).strip() == "BINTABLE"]
+    if not tables:
+        raise PerscliError(f"{label}: has no binary table HDU; a {what} is a FITS binary table: "
+                           f"check that this is a {what}")
+    return tables[0]
+
+
+def _checked_datasum(label: str, hdu, datasum: int) -> int:
+    """``datasum``, after checking it against the DATASUM the header states, if any."""
+    stated = str(hdu.header.get("DATASUM", "")).strip()
+    if stated.isdigit() and int(stated) != datasum:
+        raise PerscliError(f"{label}: HDU {hdu.index} data do not match its DATASUM ({stated}, computed "
+                           f"{datasum}): the file is corrupt; re-copy it "
+                           "(or delete DATASUM if the data were edited on purpose)")
+    return datasum
+
+
+@contextlib.contextmanager
+def open_table(name: str, *, what: str, stdin=None):
+    """The first binary table of a FITS file, memory-mapped rather than read and copied.
+
+    The same checks and messages as :func:`read_table` and the same
+    :class:`InputTable`, but the rows stay in the page cache and only the
+    columns asked for are copied, which for a catalogue of a million objects
+    saves a copy of the whole table and most of the time.  Standard input
+    ('-') is read by :func:`read_table`.  Use as a context manager; take
+    columns inside it.
+    """
+    if name == "-" or not os.path.isfile(name):
+        yield read_table(name, what=what, stdin=stdin)
+        return
+    import mmap
+
+    from astropy.io import fits
+
+    from .. import _kernels
+    from .fitsfile import Source, scan
+
+    source = Source(name, path=name)
+    try:
+        hdus = scan(source)
+    finally:
+        source.close()
+    hdu = _first_table(name, hdus, what)
+    with open(name, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+        with memoryview(mapped) as view:
+            datasum = _kernels.datasum(view[hdu.data_offset:hdu.data_offset + hdu.data_size]) if hdu.data_size else 0
+    datasum = _checked_datasum(name, hdu, datasum)
+    try:
+        hdul = fits.open(name, memmap=True)
+        table = hdul[hdu.index]
+        header = table.header.copy()
+        data = table.data
+        if data is None:
+            data = fits.FITS_rec.from_columns(table.columns, nrows=0)
+    except (ValueError, KeyError, TypeError, IndexError, OSError) as exc:
+        raise PerscliError(f"{name}: HDU {hdu.index} is not a readable FITS binary table ({exc}); "
+                           f"check that this is a {what}") from None
+    try:
+        yield InputTable(name=name, label=name, index=hdu.index, header=header, data=data, datasum=datasum,
+                         what=what)
+    finally:
+        del data, table
+        hdul.close()

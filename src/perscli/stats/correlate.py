@@ -37,7 +37,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import mmap
 import os
 import tempfile
 from dataclasses import dataclass, field
@@ -45,6 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError
+from ..io.tables import open_table
 
 log = logging.getLogger("perscli")
 
@@ -117,64 +117,6 @@ class ShapeChanges:
 # ------------------------------------------------------------------------------------------------
 # reading
 # ------------------------------------------------------------------------------------------------
-
-@contextlib.contextmanager
-def open_table(name: str, *, what: str = WHAT, stdin=None):
-    """The first binary table of a FITS file, memory-mapped rather than read and copied.
-
-    The same checks and messages as :func:`perscli.io.tables.read_table`
-    (perscli's own scan of the file, its DATASUM) and the same
-    :class:`~perscli.io.tables.InputTable`, but the rows stay in the page
-    cache: only the columns asked for are copied (as native-order arrays),
-    which for a catalogue of a million objects saves a copy of the whole
-    table and most of the time.  Standard input ('-') is read by
-    ``read_table``.  Use as a context manager; take columns inside it.
-    """
-    from ..io.tables import InputTable, read_table
-
-    if name == "-" or not os.path.isfile(name):
-        yield read_table(name, what=what, stdin=stdin)
-        return
-    from astropy.io import fits
-
-    from .. import _kernels
-    from ..io.fitsfile import Source, scan
-
-    source = Source(name, path=name)
-    try:
-        hdus = scan(source)
-    finally:
-        source.close()
-    tables = [h for h in hdus if str(h.header.get("XTENSION", "")).strip() == "BINTABLE"]
-    if not tables:
-        raise PerscliError(f"{name}: has no binary table HDU; a {what} is a FITS binary table: "
-                           f"check that this is a {what}")
-    hdu = tables[0]
-    with open(name, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
-        with memoryview(mapped) as view:
-            datasum = _kernels.datasum(view[hdu.data_offset:hdu.data_offset + hdu.data_size]) if hdu.data_size else 0
-    stated = str(hdu.header.get("DATASUM", "")).strip()
-    if stated.isdigit() and int(stated) != datasum:
-        raise PerscliError(f"{name}: HDU {hdu.index} data do not match its DATASUM ({stated}, computed "
-                           f"{datasum}): the file is corrupt; re-copy it "
-                           "(or delete DATASUM if the data were edited on purpose)")
-    try:
-        hdul = fits.open(name, memmap=True)
-        table = hdul[hdu.index]
-        header = table.header.copy()
-        data = table.data
-        if data is None:
-            data = fits.FITS_rec.from_columns(table.columns, nrows=0)
-    except (ValueError, KeyError, TypeError, IndexError, OSError) as exc:
-        raise PerscliError(f"{name}: HDU {hdu.index} is not a readable FITS binary table ({exc}); "
-                           f"check that this is a {what}") from None
-    try:
-        yield InputTable(name=name, label=name, index=hdu.index, header=header, data=data, datasum=datasum,
-                         what=what)
-    finally:
-        del data, table
-        hdul.close()
-
 
 def _names(table) -> dict:
     return {n.lower(): n for n in table.data.columns.names}
@@ -304,7 +246,7 @@ def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=Fal
         raise PerscliError(f"{catalogs[0]}: one SHAPES table needs --frames A B (two frames of it) or "
                            "--de1 COL --de2 COL (its De columns)")
     with contextlib.ExitStack() as stack:
-        tables = [stack.enter_context(open_table(name, stdin=stdin)) for name in catalogs]
+        tables = [stack.enter_context(open_table(name, what=WHAT, stdin=stdin)) for name in catalogs]
         inputs = [(f"SHAPE{'AB'[k]}" if len(tables) == 2 else "SHAPES", t.name, t.datasum)
                   for k, t in enumerate(tables)]
         if de_columns is not None:
