@@ -160,3 +160,23 @@ def collect_leaked_files():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ResourceWarning)
         gc.collect()
+
+
+def expect_one_line_error(tmp_path, command, args, *needles):
+    """Run ``perscli COMMAND ARGS -o tmp_path/out.fits`` expecting a data error.
+
+    Exit 1, exactly one 'Error:' line on stderr holding every needle, nothing
+    on stdout, no new file in ``tmp_path`` and the .fits inputs unchanged.
+    Returns the error line.
+    """
+    inputs = [str(a) for a in args if str(a).endswith(".fits")]
+    before, files = snapshot(*inputs), listing(tmp_path)
+    result = invoke(*command, *args, "-o", tmp_path / "out.fits")
+    assert result.exit_code == 1, (result.exit_code, result.output)
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    assert result.stdout == ""
+    assert listing(tmp_path) == files and snapshot(*inputs) == before
+    return lines[0]

@@ -14,7 +14,7 @@ from perscli.scene.catalog import (Field, GalaxyModel, cumulative_fraction, draw
                                    make_truth_catalog, power_law_magnitudes, truncated_ellipticities,
                                    truncated_sigma)
 
-from fits_factory import invoke, listing, raw_cards_masked, snapshot
+from fits_factory import expect_one_line_error, invoke, listing, raw_cards_masked
 
 RA, DEC = 10.0, -44.0
 
@@ -415,17 +415,7 @@ def test_real_gaia_chunks(shared_data, tmp_path):
 
 def expect_error(tmp_path, args, *needles):
     """A one-line data error (exit 1), no output file, inputs unchanged."""
-    inputs = [str(a) for a in args if str(a).endswith(".fits")]
-    before, files = snapshot(*inputs), listing(tmp_path)
-    result = invoke("catalog", "--ra", RA, "--dec", DEC, *args, "-o", tmp_path / "out.fits")
-    assert result.exit_code == 1, (result.exit_code, result.output)
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    assert result.stdout == ""
-    assert listing(tmp_path) == files and snapshot(*inputs) == before
-    return lines[0]
+    return expect_one_line_error(tmp_path, ("catalog", "--ra", RA, "--dec", DEC), args, *needles)
 
 
 def expect_usage_error(tmp_path, args, *needles):

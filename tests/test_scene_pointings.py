@@ -15,7 +15,7 @@ from perscli import PerscliError
 from perscli.scene.pointings import (Pointing, Schedule, plan_dithers, read_pointings, read_schedule,
                                      select_covering, write_pointings)
 
-from fits_factory import invoke, listing, raw_cards_masked, snapshot
+from fits_factory import expect_one_line_error, invoke, listing, raw_cards_masked
 
 RA, DEC = 10.0, -44.0
 DAY = 86400.0
@@ -229,17 +229,7 @@ def test_schedule_from_stdin(tmp_path):
 
 def expect_error(tmp_path, args, *needles):
     """A one-line data error (exit 1), no output file, inputs unchanged."""
-    inputs = [str(a) for a in args if str(a).endswith(".fits")]
-    before, files = snapshot(*inputs), listing(tmp_path)
-    result = invoke("pointings", *args, "-o", tmp_path / "out.fits")
-    assert result.exit_code == 1, (result.exit_code, result.output)
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    assert result.stdout == ""
-    assert listing(tmp_path) == files and snapshot(*inputs) == before
-    return lines[0]
+    return expect_one_line_error(tmp_path, ("pointings",), args, *needles)
 
 
 @pytest.mark.parametrize("column", ["date", "exptime", "ra", "dec", "pa", "filter"])
