@@ -370,7 +370,7 @@ def test_corrupt_table_and_stdin(two_frames, tmp_path):
     raw = bytearray(path.read_bytes())
     raw[2880 * 3 + 100] ^= 0x40
     path.write_bytes(bytes(raw))
-    one_line_error(tmp_path, [path, "--de1", "de1", "--de2", "de2"], "do not match its DATASUM")
+    one_line_error(tmp_path, [path, "--de1", "de1", "--de2", "de2"], "do not match their DATASUM")
     # standard input gives what the file gives
     ref_path = tmp_path / "file.fits"
     run(two_frames["de"], "--de1", "de1", "--de2", "de2", *SETTINGS, "-o", ref_path)

@@ -490,7 +490,7 @@ def test_datasum_from_standard_input(tmp_path, opened):
 
 
 def test_empty_standard_input_is_an_error():
-    with pytest.raises(PerscliError, match="standard input is empty"):
+    with pytest.raises(PerscliError, match="stdin: the input is empty"):
         open_frame("-", stdin=io.BytesIO(b""))
 
 

@@ -35,14 +35,21 @@ def open_verified(path):
     return hdul
 
 
-class FailingHDUList(fits.HDUList):
-    """Writes part of a file, then fails, as a full disk or a bug in the middle of writing would."""
+@pytest.fixture
+def failing_writer(monkeypatch):
+    """Make the FITS writer fail after the first HDU, as a full disk or a bug mid-file would."""
+    import perscli.io.fitsfile as fitsfile
 
-    exc = OSError
+    real = fitsfile._write_one
+    state = {"exc": OSError}
 
-    def writeto(self, fileobj, *args, **kwargs):
-        fileobj.write(b"SIMPLE  =                    T" + b" " * 50)
-        raise self.exc("simulated failure while writing")
+    def write_one(fits_out, hdu, *, first, compress):
+        if not first:
+            raise state["exc"]("simulated failure while writing")
+        return real(fits_out, hdu, first=first, compress=compress)
+
+    monkeypatch.setattr(fitsfile, "_write_one", write_one)
+    return state
 
 
 # -- check_output ------------------------------------------------------------------------------
@@ -141,29 +148,36 @@ def test_write_fits_overwrite_replaces_the_file(tmp_path):
 
 
 @pytest.mark.parametrize("exc", [OSError, ValueError, KeyboardInterrupt])
-def test_write_fits_failure_leaves_nothing_behind(tmp_path, exc):
-    hdul = FailingHDUList(small_hdul())
-    hdul.exc = exc
+def test_write_fits_failure_leaves_nothing_behind(tmp_path, exc, failing_writer):
+    failing_writer["exc"] = exc
     with pytest.raises(exc, match="simulated"):
-        write_fits(hdul, str(tmp_path / "out.fits"))
+        write_fits(small_hdul(), str(tmp_path / "out.fits"))
     assert listing(tmp_path) == []
 
 
-def test_write_fits_failure_keeps_the_old_file(tmp_path):
+def test_write_fits_failure_keeps_the_old_file(tmp_path, monkeypatch):
     dest = tmp_path / "out.fits"
     write_fits(small_hdul(1.0), str(dest))
     before = dest.read_bytes()
+    import perscli.io.fitsfile as fitsfile
+
+    def broken(*args, **kwargs):
+        raise OSError("simulated failure while writing")
+
+    monkeypatch.setattr(fitsfile, "_write_one", broken)
     with pytest.raises(OSError, match="simulated"):
-        write_fits(FailingHDUList(small_hdul(2.0)), str(dest), overwrite=True)
+        write_fits(small_hdul(2.0), str(dest), overwrite=True)
     assert dest.read_bytes() == before
     assert listing(tmp_path) == ["out.fits"]
 
 
-def test_write_fits_failure_inside_astropy_leaves_nothing_behind(tmp_path, monkeypatch):
-    def broken(self, *args, **kwargs):
+def test_write_fits_failure_inside_the_checksum_pass_leaves_nothing_behind(tmp_path, monkeypatch):
+    import perscli.io.fitsfile as fitsfile
+
+    def broken(path):
         raise RuntimeError("simulated: disk full")
 
-    monkeypatch.setattr(fits.ImageHDU, "_writedata", broken)
+    monkeypatch.setattr(fitsfile, "_finish_checksums", broken)
     with pytest.raises(RuntimeError, match="disk full"):
         write_fits(small_hdul(), str(tmp_path / "out.fits"))
     assert listing(tmp_path) == []

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError, _kernels
-from ..io.fitsfile import OutHDU, image_cards
+from ..io.fitsfile import OutHDU
 from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, require_timing
 from ..io.output import add_provenance
 from .persistence import GALSIM_EXPTIME, PersistenceModel, accumulate, ones_complement_add, time_factor
@@ -204,7 +204,7 @@ def persistence_blocks(the_plan: PersistencePlan, model: PersistenceModel, *, co
     for rec in the_plan.used:
         frame = rec.frame
         if frame.fluence_is_raw:
-            frame.check_datasum(frame.provenance_hdu, rec.datasum)
+            rec.datasum = frame.verify(frame.fluence_source, rec.datasum)
         else:
             rec.datasum = frame.datasum(frame.provenance_hdu)
         if rec.nonfinite:
@@ -267,10 +267,11 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
     ny, nx = current.shape
     nplanes = current.nreads
     sci_hdus = [current.hdus[i] for i in current.sci]
-    dtype = np.dtype(">f8") if sci_hdus[0].dtype == np.dtype(">f8") and sci_hdus[0].is_plain_float else np.dtype(">f4")
+    dtype = np.dtype("f8") if sci_hdus[0].dtype == np.dtype(">f8") and sci_hdus[0].is_plain_float else np.dtype("f4")
     out = np.empty((nplanes, ny, nx), dtype=dtype)
     factors = [_unit_factor(current, k) for k in range(nplanes)]
-    fold_current = current.layout == "image" and sci_hdus[0].is_plain_float
+    # the fast path: the current frame's stored bytes are checksummed as they are used
+    fold_current = current.rows_are_raw
     current_sum = 0
     peak = total = 0.0
     tmp = np.empty((min(BLOCK_ROWS, ny), nx))
@@ -283,7 +284,7 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
             else:
                 np.divide(electrons[k], factors[k], out=work)
             if mode != "predict":
-                rows = current.rows(k, r0, r1)
+                rows = current.raw_rows(r0, r1) if fold_current else current.rows(k, r0, r1)
                 if fold_current:
                     current_sum = ones_complement_add(current_sum, _kernels.datasum(rows))
                 if mode == "add":
@@ -294,7 +295,7 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
         peak = max(peak, float(electrons[-1].max()))
         total += float(electrons[-1].sum())
     if fold_current and mode != "predict":
-        current.check_datasum(current.provenance_hdu, current_sum)
+        current_sum = current.verify(current.sci[0], current_sum)
     else:
         current_sum = current.datasum(current.provenance_hdu)
 
@@ -303,21 +304,15 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
         if hdu.index in current.sci:
             data = out if current.layout == "cube" else out[current.sci.index(hdu.index)]
             extname = hdu.header.get("EXTNAME") if "EXTNAME" in hdu.header else None
-            cards = image_cards(data, hdu.header.cards, primary=hdu.index == 0, extname=extname)
-            hdus.append(OutHDU(cards, _be_bytes(data)))
+            hdus.append(OutHDU(list(hdu.header.cards), data, extname=extname))
         else:
-            copy = OutHDU(list(hdu.header.cards), hdu.raw_bytes(0, hdu.data_size) if hdu.data_size else b"")
-            copy.remove("CHECKSUM", "DATASUM")
-            hdus.append(copy)
+            data, units = hdu.read_copy()
+            hdus.append(OutHDU(list(hdu.header.cards), data, units=units))
     result = PersistenceResult(used=the_plan.used, skipped=the_plan.skipped, max_electrons=peak,
                                total_electrons=total)
     provenance(hdus[0], current, result, model, mode=mode, time_model=time_model, combine=combine,
                max_previous=max_previous, current_datasum=current_sum)
     return hdus, result
-
-
-def _be_bytes(data: np.ndarray):
-    return memoryview(np.ascontiguousarray(data)).cast("B")
 
 
 def provenance(header, current: Frame, result: PersistenceResult, model: PersistenceModel, *,

@@ -1,26 +1,47 @@
-"""A small, fast FITS reader and writer for image files.
+"""FITS input and output: fitsio (CFITSIO) underneath, perscli's checks on top.
 
-Why not astropy here: importing ``astropy.io.fits`` costs ~0.3 s per process,
-more than the whole persistence computation of ten full Roman frames, and
-astropy offers no way to stream the pixels of many files side by side.  FITS
-(Standard 4.0) is simple enough for what perscli's frame layer needs:
+One FITS stack for every command.  CFITSIO, through fitsio, parses headers,
+reads images (plain, scaled and tile-compressed) and tables, and writes every
+output.  On top of it this module adds what a careful reader needs and
+CFITSIO leaves to its caller:
 
-- :func:`scan` walks the HDUs of a file or a byte string and parses their
-  headers (fixed-format cards, long strings with CONTINUE, HIERARCH);
-- :meth:`HDU.read_rows` reads rows of an image straight from the file
-  (``os.pread``), so frames are streamed and never mapped whole;
-- :class:`Writer` writes HDUs with DATASUM and CHECKSUM (Appendix J of the
-  Standard) computed by the compiled kernel, copying the cards of the input
-  verbatim so that nothing in a header is lost or reformatted.
+- :func:`open_fits` accepts a path, ``-`` (standard input), a FIFO, a gzip
+  file (``.fits.gz``) and CFITSIO-style HDU selectors and image sections
+  (``file.fits[SCI,2]``, ``file.fits[1][1:100,1:100]``).  Standard input,
+  FIFOs and gzip files are read once into an anonymous in-memory file
+  (``memfd``), so that every source is a seekable file descriptor and no
+  temporary file is ever left on disk.  A FIFO without a writer, a device or a
+  directory gives one clear error instead of a hang.
+- Structure is checked before any data are used: data running past the end
+  of the file (truncation or a huge declared size), bytes after the last HDU
+  (trailing garbage, a second file appended, or a corrupt extension header),
+  and invalid scaling keywords (BSCALE = 0, non-finite BZERO).
+- CHECKSUM and DATASUM (FITS Standard, Appendix J) of every HDU whose data
+  are read are verified when present, on the bytes as stored (for a
+  tile-compressed image, its binary table).  The check can be switched off
+  (``--no-checksum``, which sets ``PERSCLI_NO_CHECKSUM=1`` so that worker
+  processes inherit it) for files edited on purpose.
+- The one hand-written fast path: rows of a plain, uncompressed image are read
+  with ``os.pread`` as stored (big-endian), so that apply-persistence's
+  compiled kernel converts, models and checksums them in one pass
+  (benchmarks/bench_apply_persistence.py measures what it saves).
 
-Tables and everything else are passed through as bytes; astropy remains the
-tool for building tables (commands that need it import it themselves).
+Outputs (:func:`write_hdus`) are written by fitsio, optionally tile-compressed
+(lossless GZIP_2) or gzip-compressed as a whole (``-o x.fits.gz``), with
+CHECKSUM/DATASUM computed here so that the same content always gives the same
+bytes (CFITSIO's own cards carry the time of writing in their comments).
 """
 
 from __future__ import annotations
 
+import errno
 import math
 import os
+import re
+import select
+import stat
+import sys
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,8 +51,31 @@ from .. import PerscliError
 BLOCK = 2880
 CARD = 80
 
-_BITPIX_DTYPES = {8: ">u1", 16: ">i2", 32: ">i4", 64: ">i8", -32: ">f4", -64: ">f8"}
+#: seconds to wait for a FIFO's writer (or its first bytes) before giving up
+FIFO_TIMEOUT = float(os.environ.get("PERSCLI_FIFO_TIMEOUT", "10"))
 
+_BITPIX_DTYPES = {8: ">u1", 16: ">i2", 32: ">i4", 64: ">i8", -32: ">f4", -64: ">f8"}
+_GZIP_MAGIC = b"\x1f\x8b"
+_CHUNK = 1 << 22
+
+CHECKSUM_HINT = ("re-copy the file; if it was edited on purpose, give --no-checksum or update its "
+                 "checksums with astropy's `fitscheck --force FILE`")
+
+
+def checksums_enabled() -> bool:
+    """Whether CHECKSUM/DATASUM of inputs are verified (``--no-checksum`` turns it off)."""
+    return os.environ.get("PERSCLI_NO_CHECKSUM", "") in ("", "0")
+
+
+def set_checksum_verification(enabled: bool) -> None:
+    """Switch verification on or off for this process and the processes it starts."""
+    if enabled:
+        os.environ.pop("PERSCLI_NO_CHECKSUM", None)
+    else:
+        os.environ["PERSCLI_NO_CHECKSUM"] = "1"
+
+
+# -- header values ------------------------------------------------------------------------------
 
 def _parse_value(text: str):
     """Value of a fixed- or free-format card field (after '= ')."""
@@ -41,15 +85,20 @@ def _parse_value(text: str):
     if s[0] == "'":
         out = []
         i = 1
-        while i < len(s):
-            if s[i] == "'":
-                if i + 1 < len(s) and s[i + 1] == "'":
-                    out.append("'")
-                    i += 2
-                    continue
+        n = len(s)
+        while i < n:
+            j = s.find("'", i)
+            if j < 0:
+                out.append(s[i:])
+                i = n
                 break
-            out.append(s[i])
-            i += 1
+            out.append(s[i:j])
+            if j + 1 < n and s[j + 1] == "'":
+                out.append("'")
+                i = j + 2
+                continue
+            i = j
+            break
         rest = s[i + 1:]
         comment = rest.split("/", 1)[1].strip() if "/" in rest else ""
         return "".join(out).rstrip(), comment
@@ -75,6 +124,9 @@ def _parse_value(text: str):
 class Header:
     """Parsed cards of one HDU: a read-only mapping plus the card images.
 
+    Long strings (the CONTINUE convention) are joined in linear time, so a
+    header of 100,000 CONTINUE cards is parsed in a fraction of a second.
+
     Attributes
     ----------
     cards : list of str
@@ -82,19 +134,29 @@ class Header:
     """
 
     def __init__(self, cards):
-        self.cards = list(cards)
+        self.cards = [c.ljust(CARD)[:CARD] for c in cards]
         self._values = {}
         self._history = []
-        pending = None
+        pending, pieces = None, []
+
+        def flush():
+            if pending is not None and len(pieces) > 1:
+                self._values[pending] = "".join(pieces)
+
         for card in self.cards:
             key = card[:8].rstrip()
             if key == "CONTINUE" and pending is not None:
                 more, _ = _parse_value(card[8:])
                 if isinstance(more, str):
-                    prev = self._values[pending]
-                    self._values[pending] = prev[:-1] + more if prev.endswith("&") else prev + more
+                    if pieces[-1].endswith("&"):
+                        pieces[-1] = pieces[-1][:-1]
+                    pieces.append(more)
+                    if not more.endswith("&"):
+                        flush()
+                        pending, pieces = None, []
                     continue
-            pending = None
+            flush()
+            pending, pieces = None, []
             if key in ("HISTORY", "COMMENT", ""):
                 if key == "HISTORY":
                     self._history.append(card[8:].rstrip())
@@ -109,8 +171,9 @@ class Header:
                 continue
             if key not in self._values:  # the first occurrence wins, as in astropy
                 self._values[key] = value
-            if isinstance(value, str) and value.endswith("&"):
-                pending = key
+                if isinstance(value, str) and value.endswith("&"):
+                    pending, pieces = key, [value]
+        flush()
 
     def __contains__(self, key):
         return key in self._values
@@ -129,42 +192,334 @@ class Header:
         return list(self._history)
 
 
+# -- sources -------------------------------------------------------------------------------------
+
+def _anonymous_file(label: str) -> int:
+    """A file descriptor of an anonymous in-memory file (nothing on disk to clean up)."""
+    if hasattr(os, "memfd_create"):
+        return os.memfd_create("perscli-input", os.MFD_CLOEXEC)
+    import tempfile
+
+    fh = tempfile.TemporaryFile()
+    return os.dup(fh.fileno())
+
+
+def _write_all(fd: int, data) -> None:
+    view = memoryview(data)
+    while len(view):
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+class Source:
+    """Random access to the bytes of one input, through a file descriptor.
+
+    Attributes
+    ----------
+    label : str
+        The name used in messages ('stdin' for '-').
+    fd : int
+        Open, seekable file descriptor of plain (decompressed) FITS bytes.
+    size : int
+        Bytes in the file.
+    cfitsio_name : str
+        How CFITSIO opens the same bytes.
+    """
+
+    def __init__(self, label: str, fd: int, *, path: str | None = None):
+        self.label = label
+        self.fd = fd
+        self.size = os.fstat(fd).st_size
+        proc = f"/proc/self/fd/{fd}"
+        # CFITSIO opens the descriptor through /proc, so file names with brackets or
+        # other extended-syntax characters are never reinterpreted
+        self.cfitsio_name = proc if os.path.exists(proc) else (path or proc)
+
+    @classmethod
+    def from_bytes(cls, label: str, data) -> "Source":
+        """A source holding ``data`` (e.g. a FITS file received on a pipe)."""
+        fd = _anonymous_file(label)
+        _write_all(fd, data)
+        return cls(label, fd)
+
+    def pread(self, offset: int, length: int):
+        if length <= 0:
+            return bytearray(0)
+        buf = bytearray(length)
+        view = memoryview(buf)
+        got = 0
+        while got < length:
+            n = os.preadv(self.fd, [view[got:]], offset + got)
+            if n == 0:
+                raise PerscliError(f"{self.label}: the file is truncated (ends at byte {offset + got}); "
+                                   "re-copy or regenerate it")
+            got += n
+        return buf
+
+    def close(self):
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
+def _check_start(label: str, head: bytes) -> None:
+    if head[:len(_GZIP_MAGIC)] == _GZIP_MAGIC:
+        return
+    if not head:
+        raise PerscliError(f"{label}: the file is empty; check that it was written completely")
+    if head[:10] != b"SIMPLE  = ":
+        raise PerscliError(f"{label}: not a FITS file (it does not start with a SIMPLE card); "
+                           "check that it is complete and really FITS")
+
+
+def _read_stream(label: str, read) -> Source:
+    """Read a stream to its end into an anonymous file (checking its first bytes early)."""
+    fd = _anonymous_file(label)
+    try:
+        head = b""
+        while True:
+            chunk = read(_CHUNK)
+            if not chunk:
+                break
+            if len(head) < BLOCK:
+                head += bytes(chunk[:BLOCK - len(head)])
+                if len(head) >= 10:
+                    _check_start(label, head)  # fail fast on /dev/zero and other non-FITS streams
+            _write_all(fd, chunk)
+        if not head:
+            raise PerscliError(f"{label}: the input is empty; pipe or write a FITS file into it")
+        _check_start(label, head)
+        return _maybe_gunzip(Source(label, fd))
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def _maybe_gunzip(source: Source) -> Source:
+    """The decompressed bytes of a gzip source, in an anonymous file (the source itself if not gzip)."""
+    if bytes(source.pread(0, min(2, source.size))) != _GZIP_MAGIC:
+        return source
+    import gzip
+    import zlib
+
+    out = _anonymous_file(source.label)
+    try:
+        with os.fdopen(os.dup(source.fd), "rb") as raw, gzip.GzipFile(fileobj=raw) as gz:
+            raw.seek(0)
+            first = True
+            while True:
+                chunk = gz.read(_CHUNK)
+                if not chunk:
+                    break
+                if first:
+                    _check_start(source.label + " (decompressed)", chunk[:BLOCK])
+                    first = False
+                _write_all(out, chunk)
+        if first:
+            raise PerscliError(f"{source.label}: the gzip file holds nothing")
+    except (OSError, EOFError, zlib.error) as exc:
+        os.close(out)
+        source.close()
+        what = "truncated" if isinstance(exc, EOFError) else "not a valid gzip file"
+        raise PerscliError(f"{source.label}: {what} ({exc}); re-copy it") from None
+    except BaseException:
+        os.close(out)
+        source.close()
+        raise
+    source.close()
+    return Source(source.label, out)
+
+
+def _read_fifo(name: str) -> Source:
+    """Read a named pipe without blocking forever on a missing writer."""
+    fd = os.open(name, os.O_RDONLY | os.O_NONBLOCK)
+    deadline = time.monotonic() + FIFO_TIMEOUT
+    got_any = [False]
+
+    def read(n):
+        while True:
+            try:
+                data = os.read(fd, n)
+            except BlockingIOError:
+                data = None
+            if data:
+                got_any[0] = True
+                return data
+            if data == b"" and got_any[0]:
+                return b""  # the writer closed its end: the stream is complete
+            remaining = deadline - time.monotonic()
+            if not got_any[0] and remaining <= 0:
+                raise PerscliError(f"{name}: a named pipe (FIFO) with no writer or no data after "
+                                   f"{FIFO_TIMEOUT:g} s; start the program that writes it first "
+                                   "(PERSCLI_FIFO_TIMEOUT sets the wait)")
+            if got_any[0]:
+                select.select([fd], [], [], 1.0)
+            else:
+                time.sleep(0.02)
+
+    try:
+        return _read_stream(name, read)
+    finally:
+        os.close(fd)
+
+
+_SELECTOR = re.compile(r"^(?P<path>.*?)(?P<ext>\[[^\]]*\])(?P<sec>\[[^\]]*\])?$")
+
+
+def split_selector(name: str):
+    """``path``, HDU selector and image section of a CFITSIO-style name.
+
+    ``file.fits[SCI]``, ``file.fits[SCI,2]``, ``file.fits[1]`` select an HDU
+    (by EXTNAME[,EXTVER] or number, 0 = primary); a second bracket
+    ``[x1:x2,y1:y2]`` (1-indexed, inclusive, ``*`` for a whole axis) selects an
+    image section.  A file whose real name contains brackets is taken as it is.
+
+    Returns
+    -------
+    (str, str or None, str or None)
+    """
+    if os.path.exists(name) or "[" not in name:
+        return name, None, None
+    m = _SELECTOR.match(name)
+    if not m or not m.group("path"):
+        return name, None, None
+    ext = m.group("ext")[1:-1].strip()
+    sec = m.group("sec")[1:-1].strip() if m.group("sec") else None
+    if sec is None and re.fullmatch(r"[\d*\s:,-]+", ext) and ":" in ext:
+        ext, sec = None, ext  # file.fits[1:10,1:10]: a section of the first image
+    return m.group("path"), ext, sec
+
+
+def open_source(name: str, stdin=None) -> Source:
+    """Open ``name`` (a path or '-') as a :class:`Source` of plain FITS bytes.
+
+    Raises
+    ------
+    PerscliError
+        Missing, unreadable, a directory, a device or socket, an empty file,
+        a FIFO without a writer, a corrupt or truncated gzip file.
+    """
+    if name == "-":
+        stream = stdin if stdin is not None else sys.stdin.buffer
+        return _read_stream("stdin", stream.read)
+    try:
+        st = os.stat(name)
+    except FileNotFoundError:
+        if os.path.islink(name):
+            raise PerscliError(f"{name}: a broken symbolic link; point it at a FITS file") from None
+        raise PerscliError(f"{name}: no such file") from None
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise PerscliError(f"{name}: a loop of symbolic links; point it at a FITS file") from None
+        raise PerscliError(f"{name}: cannot be read ({exc.strerror})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise PerscliError(f"{name}: is a directory, not a FITS file; give the path of a file inside it")
+    if stat.S_ISFIFO(st.st_mode):
+        return _read_fifo(name)
+    if not stat.S_ISREG(st.st_mode):
+        raise PerscliError(f"{name}: is not a regular file (a device or socket); give a FITS file, "
+                           "or '-' to read standard input")
+    try:
+        fd = os.open(name, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        raise PerscliError(f"{name}: cannot be read ({exc.strerror})") from None
+    source = Source(name, fd, path=name)
+    try:
+        _check_start(name, bytes(source.pread(0, min(10, source.size))))
+        return _maybe_gunzip(source)
+    except BaseException:
+        source.close()
+        raise
+
+
+# -- HDUs ----------------------------------------------------------------------------------------
+
+def padded(n: int) -> int:
+    return (n + BLOCK - 1) // BLOCK * BLOCK
+
+
+def _stored_cards(raw: bytes) -> dict:
+    """CHECKSUM and DATASUM as they stand in the stored header bytes."""
+    out = {}
+    for i in range(0, len(raw), CARD):
+        key = raw[i:i + 8]
+        if key in (b"CHECKSUM", b"DATASUM "):
+            value, _ = _parse_value(raw[i + 10:i + CARD].decode("ascii", "replace"))
+            out.setdefault(key.decode().strip(), value)
+        elif key == b"END     ":
+            break
+    return out
+
+
 @dataclass
 class HDU:
-    """One HDU of a scanned file: where it is and what its header says."""
+    """One HDU of an opened file: what its header says and how to read its data.
+
+    Attributes
+    ----------
+    index : int
+        0 for the primary HDU.
+    header : Header
+        The header as a reader sees it (for a tile-compressed image, the
+        image's header).
+    header_offset, data_offset, data_end : int
+        Where the stored header and data are (bytes; ``data_end`` without padding).
+    compressed : bool
+        A tile-compressed image (stored as a binary table).
+    kind : {'image', 'table'}
+    """
 
     index: int
     header: Header
     header_offset: int
     data_offset: int
-    data_size: int          # bytes of data, without the block padding
-    source: "Source" = field(repr=False)
+    data_end: int
+    compressed: bool
+    kind: str
+    file: "FitsFile" = field(repr=False)
+    verified: bool = field(default=False, repr=False)
+
+    @property
+    def source(self) -> Source:
+        return self.file.source
+
+    @property
+    def data_size(self) -> int:
+        if self.compressed:
+            return int(np.prod(self.shape)) * self.dtype.itemsize if self.shape else 0
+        return self.data_end - self.data_offset
 
     @property
     def name(self) -> str:
-        if self.index == 0:
-            return str(self.header.get("EXTNAME", "PRIMARY")).strip().upper()
-        return str(self.header.get("EXTNAME", "")).strip().upper()
+        default = "PRIMARY" if self.index == 0 else ""
+        return str(self.header.get("EXTNAME", default)).strip().upper()
 
     @property
     def ver(self) -> int:
-        return int(self.header.get("EXTVER", 1))
+        try:
+            return int(self.header.get("EXTVER", 1))
+        except (TypeError, ValueError):
+            return 1
+
+    @property
+    def label(self) -> str:
+        return f"HDU {self.index}" + (f" ({self.name})" if self.name else "")
 
     @property
     def is_image(self) -> bool:
-        return self.index == 0 or str(self.header.get("XTENSION", "")).strip() == "IMAGE"
+        return self.kind == "image"
 
     @property
     def shape(self) -> tuple:
-        """numpy-order shape of the data (slowest axis first)."""
+        """numpy-order shape of the (uncompressed) data, slowest axis first."""
+        if self.kind != "image":
+            return ()
         naxis = int(self.header.get("NAXIS", 0))
         return tuple(int(self.header[f"NAXIS{k}"]) for k in range(naxis, 0, -1))
 
     @property
     def dtype(self) -> np.dtype:
         bitpix = int(self.header["BITPIX"])
-        if bitpix not in _BITPIX_DTYPES:
-            raise PerscliError(f"{self.source.label}: HDU {self.index} has BITPIX={bitpix}, not a FITS value")
         return np.dtype(_BITPIX_DTYPES[bitpix])
 
     @property
@@ -173,37 +528,107 @@ class HDU:
         return float(self.header.get("BSCALE", 1.0)), float(self.header.get("BZERO", 0.0))
 
     @property
+    def is_plain(self) -> bool:
+        """An uncompressed image: its stored bytes can be read directly."""
+        return self.kind == "image" and not self.compressed
+
+    @property
     def is_plain_float(self) -> bool:
-        """Float data with no scaling: the on-disk bytes can be used as they are."""
-        return self.dtype.kind == "f" and self.scaling == (1.0, 0.0)
+        """Uncompressed float data without scaling: the stored bytes are the values."""
+        return self.is_plain and self.dtype.kind == "f" and self.scaling == (1.0, 0.0)
 
-    def raw_bytes(self, start: int = 0, length: int | None = None):
-        """Bytes of the data unit (as stored, big-endian), from ``start``."""
-        if length is None:
-            length = self.data_size - start
-        return self.source.pread(self.data_offset + start, length)
+    # -- checks ----------------------------------------------------------------------------------
+    def datasum(self) -> int:
+        """FITS DATASUM of the data as stored (with their padding), computed in chunks."""
+        from .. import _kernels
 
-    def header_bytes(self) -> bytes:
-        return bytes(self.source.pread(self.header_offset, self.data_offset - self.header_offset))
+        total, offset, end = 0, self.data_offset, padded(self.data_end - self.data_offset) + self.data_offset
+        while offset < end:
+            n = min(_CHUNK, end - offset)
+            total = ones_complement_add(total, _kernels.datasum(self.source.pread(offset, n)))
+            offset += n
+        return total
 
-    def read_rows(self, r0: int, r1: int, plane: int = 0, *, native: bool = False) -> np.ndarray:
-        """Rows ``r0:r1`` of a 2-D image, or of plane ``plane`` of a 3-D cube.
+    def verify(self, datasum: int | None = None) -> int:
+        """Check CHECKSUM and DATASUM, when the header has them, and return the data's DATASUM.
 
-        Float data come back as they are stored (big-endian) unless
-        ``native``; integer data are scaled with BSCALE/BZERO to float64.
+        Parameters
+        ----------
+        datasum : int, optional
+            The DATASUM of the stored data when the caller has already
+            computed it while reading (the fast path); else computed here.
+
+        Raises
+        ------
+        PerscliError
+            Naming the file and the HDU, with the fix.
+        """
+        if self.verified and datasum is None:
+            return self._datasum
+        if datasum is None:
+            datasum = self.datasum()
+        self._datasum = datasum
+        if not checksums_enabled():
+            self.verified = True
+            return datasum
+        from .. import _kernels
+
+        raw = bytes(self.source.pread(self.header_offset, self.data_offset - self.header_offset))
+        stored = _stored_cards(raw)
+        where = f"{self.file.label}: {self.label}"
+        stated = str(stored.get("DATASUM", "")).strip()
+        if stated:
+            if not stated.isdigit():
+                raise PerscliError(f"{where}: DATASUM = {stated!r} is not a checksum; {CHECKSUM_HINT}")
+            if int(stated) != datasum:
+                raise PerscliError(f"{where}: the data do not match their DATASUM ({stated}, computed "
+                                   f"{datasum}): corrupt or stale; {CHECKSUM_HINT}")
+        if "CHECKSUM" in stored:
+            total = ones_complement_add(_kernels.datasum(raw), datasum)
+            if total != 0xFFFFFFFF:
+                raise PerscliError(f"{where}: the header and data do not match their CHECKSUM: corrupt or "
+                                   f"stale; {CHECKSUM_HINT}")
+        self.verified = True
+        return datasum
+
+    # -- reading images ----------------------------------------------------------------------------
+    def stream_rows(self, r0: int, r1: int, plane: int = 0) -> np.ndarray:
+        """Rows of a plain image as stored (big-endian, unscaled), WITHOUT verifying checksums.
+
+        The fast path: the caller folds the DATASUM of what it reads and calls
+        :meth:`verify` with it at the end.
         """
         shape = self.shape
         ny, nx = shape[-2], shape[-1]
         item = self.dtype.itemsize
         start = (plane * ny + r0) * nx * item
-        buf = self.raw_bytes(start, (r1 - r0) * nx * item)
-        arr = np.frombuffer(buf, dtype=self.dtype).reshape(r1 - r0, nx)
+        buf = self.source.pread(self.data_offset + start, (r1 - r0) * nx * item)
+        return np.frombuffer(buf, dtype=self.dtype).reshape(r1 - r0, nx)
+
+    def read_rows(self, r0: int, r1: int, plane: int = 0, *, native: bool = False) -> np.ndarray:
+        """Rows ``r0:r1`` of a 2-D image, or of plane ``plane`` of a 3-D cube (checksums verified).
+
+        Float data come back as stored (big-endian for a plain file) unless
+        ``native``; integer data are scaled with BSCALE/BZERO to float64.
+        """
+        self.verify()
+        if self.compressed:
+            fits_hdu = self.file.fitsio[self.index]
+            arr = fits_hdu[r0:r1, :] if len(self.shape) == 2 else fits_hdu[plane:plane + 1, r0:r1, :][0]
+            return self._finish(np.asarray(arr), from_cfitsio=True)
+        arr = self.stream_rows(r0, r1, plane)
         if self.dtype.kind != "f" or self.scaling != (1.0, 0.0):
             return self._scaled(arr)
         return arr.astype(arr.dtype.newbyteorder("=")) if native else arr
 
+    def _finish(self, arr, *, from_cfitsio: bool):
+        """CFITSIO applies BSCALE/BZERO itself; BLANK of integer data becomes NaN here."""
+        if arr.dtype.kind != "f":
+            arr = arr.astype(np.float64)
+        return arr
+
     def _scaled(self, arr: np.ndarray) -> np.ndarray:
-        """Physical values of stored integers: BSCALE * stored + BZERO, BLANK as NaN."""
+        """Physical values of stored numbers: BSCALE * stored + BZERO, BLANK as NaN."""
         bscale, bzero = self.scaling
         out = arr.astype(np.float64)
         if bscale != 1.0:
@@ -215,146 +640,286 @@ class HDU:
             out[arr == blank] = np.nan
         return out
 
-    def read(self, *, native: bool = True) -> np.ndarray:
-        """All the data, scaled, as an array of the HDU's shape."""
+    def read(self, *, native: bool = True) -> np.ndarray | None:
+        """All the data of an image, scaled, as an array of the HDU's shape (checksums verified)."""
         shape = self.shape
-        if not shape:
+        if not shape or 0 in shape:
             return None
-        if len(shape) == 2:
-            return self.read_rows(0, shape[0], native=native)
-        buf = self.raw_bytes(0, self.data_size)
+        self.verify()
+        if self.compressed:
+            return self._finish(np.asarray(self.file.fitsio[self.index].read()), from_cfitsio=True)
+        buf = self.source.pread(self.data_offset, self.data_end - self.data_offset)
         arr = np.frombuffer(buf, dtype=self.dtype).reshape(shape)
         if self.dtype.kind != "f" or self.scaling != (1.0, 0.0):
             return self._scaled(arr)
         return arr.astype(arr.dtype.newbyteorder("=")) if native else arr
 
-    def datasum(self) -> int:
-        """FITS DATASUM of the data as stored."""
-        from .. import _kernels
+    def raw_bytes(self, start: int = 0, length: int | None = None):
+        """Stored bytes of the data unit (unverified; used to copy an HDU unchanged)."""
+        if length is None:
+            length = self.data_end - self.data_offset - start
+        return self.source.pread(self.data_offset + start, length)
 
-        if self.data_size == 0:
+    def read_copy(self):
+        """The data as CFITSIO presents them, to be written again unchanged: ``(array or None, units)``.
+
+        Integer images keep their type (unsigned 16-bit data stored with
+        BZERO = 32768 come back as uint16); tables come back as structured
+        arrays with their TUNITn.
+        """
+        self.verify()
+        if self.kind == "image" and (not self.shape or 0 in self.shape):
+            return None, None
+        try:
+            data = self.file.fitsio[self.index].read()
+        except (OSError, ValueError, TypeError) as exc:
+            raise PerscliError(f"{self.file.label}: {self.label} cannot be read ({_cfitsio_reason(exc)}); "
+                               "the file is corrupt") from None
+        if data is None:
+            return None, None
+        data = np.asarray(data)
+        units = None
+        if self.kind == "table":
+            units = [str(self.header.get(f"TUNIT{k}", "") or "") for k in range(1, len(data.dtype.names) + 1)]
+        return data, units
+
+    # -- reading tables ----------------------------------------------------------------------------
+    @property
+    def colnames(self) -> list:
+        return list(self.file.fitsio[self.index].get_colnames()) if self.kind == "table" else []
+
+    @property
+    def nrows(self) -> int:
+        return int(self.header.get("NAXIS2", 0)) if self.kind == "table" else 0
+
+    def read_column(self, name: str) -> np.ndarray:
+        """One column of a binary table, in native byte order (checksums verified)."""
+        self.verify()
+        try:
+            values = self.file.fitsio[self.index].read_column(name)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise PerscliError(f"{self.file.label}: {self.label}: column {name!r} cannot be read "
+                               f"({_cfitsio_reason(exc)}); the table is corrupt") from None
+        values = np.asarray(values)
+        if values.dtype.byteorder not in ("=", "|"):
+            values = values.astype(values.dtype.newbyteorder("="))
+        return values
+
+
+def ones_complement_add(a: int, b: int) -> int:
+    """Add two 32-bit ones'-complement sums (how FITS DATASUMs of pieces combine)."""
+    s = a + b
+    while s >> 32:
+        s = (s & 0xFFFFFFFF) + (s >> 32)
+    return s
+
+
+def _cfitsio_reason(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0].strip() if text else type(exc).__name__
+
+
+_STATUS = re.compile(r"status\s*=\s*(\d+)")
+
+
+def _describe_cfitsio(label: str, exc: Exception) -> PerscliError:
+    reason = _cfitsio_reason(exc)
+    m = _STATUS.search(str(exc))
+    code = int(m.group(1)) if m else None
+    if code in (107, 108):
+        return PerscliError(f"{label}: the file is truncated ({reason}); re-copy or regenerate it")
+    return PerscliError(f"{label}: not a valid FITS file ({reason}); the file is corrupt: re-copy it "
+                        "or check that it really is FITS")
+
+
+def _stored_size(label: str, index: int, header: Header, fallback: int) -> int:
+    """Bytes of an HDU's data without padding (FITS Standard 4.4.1), from its header."""
+    try:
+        naxis = int(header.get("NAXIS", 0))
+        if naxis == 0:
             return 0
-        return _kernels.datasum(self.raw_bytes(0, self.data_size))
+        dims = [int(header[f"NAXIS{k}"]) for k in range(1, naxis + 1)]
+        if header.get("GROUPS") is True and dims[0] == 0:
+            dims = dims[1:]
+        bits = abs(int(header["BITPIX"]))
+        return bits // 8 * int(header.get("GCOUNT", 1)) * (int(header.get("PCOUNT", 0)) + math.prod(dims))
+    except (KeyError, TypeError, ValueError):
+        return fallback
 
 
-class Source:
-    """Random access to the bytes of a FITS file (a path) or of a byte string."""
+def _check_structure(label: str, hdu: HDU) -> None:
+    """Scaling and size keywords that CFITSIO lets through but make the data meaningless."""
+    hdr = hdu.header
+    where = f"{label}: {hdu.label}"
+    for key in ("BSCALE", "BZERO"):
+        if key in hdr:
+            value = hdr[key]
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise PerscliError(f"{where}: {key} = {value!r} is not a finite number; the file is corrupt")
+    if "BSCALE" in hdr and hdr["BSCALE"] == 0:
+        raise PerscliError(f"{where}: BSCALE = 0 would make every pixel equal to BZERO; the file is corrupt")
+    if hdu.kind == "image":
+        if int(hdr.get("BITPIX", 0)) not in _BITPIX_DTYPES:
+            raise PerscliError(f"{where}: BITPIX = {hdr.get('BITPIX')!r} is not a FITS value; the file is corrupt")
+        for n in hdu.shape:
+            if n < 0:
+                raise PerscliError(f"{where}: a negative NAXISn; the file is corrupt")
 
-    def __init__(self, label: str, path: str | None = None, data: bytes | None = None):
-        self.label = label
-        self.path = path
-        self.data = data
-        self.fd = None
-        if path is not None:
-            self.fd = os.open(path, os.O_RDONLY)
-            self.size = os.fstat(self.fd).st_size
-        else:
-            self.size = len(data)
 
-    def pread(self, offset: int, length: int):
-        if self.data is not None:
-            return memoryview(self.data)[offset:offset + length]
-        buf = bytearray(length)
-        view = memoryview(buf)
-        got = 0
-        while got < length:
-            n = os.preadv(self.fd, [view[got:]], offset + got)
-            if n == 0:
-                raise PerscliError(f"{self.label}: the file is truncated (ends at byte {offset + got})")
-            got += n
-        return buf
+class FitsFile:
+    """An opened FITS input: its HDUs, checked, ready to read.
+
+    Parameters
+    ----------
+    name : str
+        A path (optionally with ``[EXT]`` and ``[x1:x2,y1:y2]``), or '-'.
+    stdin : binary file, optional
+        Stream to read for '-' (default ``sys.stdin.buffer``).
+
+    Attributes
+    ----------
+    label : str
+        The name used in messages.
+    hdus : list of HDU
+    selected : int or None
+        The HDU chosen with ``[EXT]``, if any.
+    section : tuple of slice or None
+        ``(rows, columns)`` chosen with an image section, as numpy slices.
+    """
+
+    def __init__(self, name: str, *, stdin=None):
+        import fitsio
+
+        path, ext, sec = split_selector(name) if name != "-" else (name, None, None)
+        self.name = name
+        self.label = "stdin" if name == "-" else name
+        self.source = open_source(path, stdin)
+        self.source.label = self.label
+        self.fitsio = None
+        try:
+            try:
+                self.fitsio = fitsio.FITS(self.source.cfitsio_name)
+                infos = []
+                for i, h in enumerate(self.fitsio):
+                    cards = [rec.get("card_string", "") for rec in self.fitsio._FITS.read_header(i + 1)]
+                    infos.append((h.get_offsets(), h.get_exttype(), getattr(h, "is_compressed", lambda: False)(), cards))
+            except (OSError, ValueError, RuntimeError, TypeError, KeyError, IndexError) as exc:
+                raise _describe_cfitsio(self.label, exc) from None
+            self.hdus = []
+            for i, (offsets, exttype, compressed, cards) in enumerate(infos):
+                kind = "image" if exttype == "IMAGE_HDU" else "table"
+                header = Header(cards)
+                start = int(offsets["data_start"])
+                # CFITSIO's data_end includes the block padding; the data's own size is the header's
+                size = int(offsets["data_end"]) - start
+                if not compressed:
+                    size = _stored_size(self.label, i, header, size)
+                hdu = HDU(i, header, int(offsets["header_start"]), start, start + size, bool(compressed), kind, self)
+                if hdu.data_end > self.source.size:
+                    raise PerscliError(
+                        f"{self.label}: the file is truncated: {hdu.label} needs {padded(hdu.data_end)} bytes "
+                        f"but the file has {self.source.size}; re-copy or regenerate it")
+                _check_structure(self.label, hdu)
+                self.hdus.append(hdu)
+            if not self.hdus:
+                raise PerscliError(f"{self.label}: no HDU could be read; the file is corrupt")
+            end = padded(self.hdus[-1].data_end)
+            if end > self.source.size:
+                raise PerscliError(f"{self.label}: the file is truncated (the last HDU's padding is missing); "
+                                   "re-copy or regenerate it")
+            if self.source.size > end:
+                self._explain_extra(end)
+            self.selected = self._select(ext) if ext is not None else None
+            self.section = self._section(sec) if sec is not None else None
+        except BaseException:
+            self.close()
+            raise
+
+    def _explain_extra(self, end: int) -> None:
+        """Bytes after the last HDU CFITSIO could read: say what they most likely are."""
+        extra = self.source.size - end
+        head = bytes(self.source.pread(end, min(extra, BLOCK)))
+        n = len(self.hdus)
+        if head.startswith(b"XTENSION="):
+            if extra < BLOCK or b"END     " not in bytes(self.source.pread(end, extra)):
+                raise PerscliError(f"{self.label}: the file is truncated inside the header of HDU {n}; "
+                                   "re-copy or regenerate it")
+            raise PerscliError(f"{self.label}: the header of HDU {n} (at byte {end}) is corrupt: CFITSIO cannot "
+                               "read it; re-copy the file")
+        if head.startswith(b"SIMPLE  ="):
+            raise PerscliError(f"{self.label}: a second FITS file is appended after byte {end}: one file per "
+                               "input; split them")
+        raise PerscliError(f"{self.label}: {extra} bytes after the end of {self.hdus[-1].label} (byte {end}) "
+                           "that are not a FITS extension: trailing garbage or a corrupt extension header; "
+                           "re-copy the file")
+
+    def _select(self, ext: str) -> int:
+        text = ext.strip()
+        if re.fullmatch(r"\+?\d+", text):
+            index = int(text)
+            if index >= len(self.hdus):
+                raise PerscliError(f"{self.label}: [{ext}]: the file has only {len(self.hdus)} HDUs (0-"
+                                   f"{len(self.hdus) - 1})")
+            return index
+        name, _, ver = text.partition(",")
+        name = name.strip().upper()
+        for hdu in self.hdus:
+            if hdu.name == name and (not ver.strip() or hdu.ver == _int(ver, self.label, ext)):
+                return hdu.index
+        names = ", ".join(f"{h.name or h.index}" + (f",{h.ver}" if h.ver != 1 else "") for h in self.hdus)
+        raise PerscliError(f"{self.label}: no HDU [{ext}]; the file has {names}")
+
+    def _section(self, sec: str):
+        parts = [p.strip() for p in sec.split(",")]
+        if len(parts) != 2:
+            raise PerscliError(f"{self.label}: image section [{sec}] must be [x1:x2,y1:y2] (1-indexed, inclusive; "
+                               "* for a whole axis)")
+        out = []
+        for text in parts[::-1]:  # FITS order is x, y; numpy's is rows, columns
+            if text == "*":
+                out.append(slice(None))
+                continue
+            lo, sep, hi = text.partition(":")
+            if not sep:
+                raise PerscliError(f"{self.label}: image section [{sec}]: {text!r} is not first:last")
+            a, b = _int(lo, self.label, sec), _int(hi, self.label, sec)
+            if a < 1 or b < a:
+                raise PerscliError(f"{self.label}: image section [{sec}]: {text!r} must have 1 <= first <= last")
+            out.append(slice(a - 1, b))
+        return tuple(out)
 
     def close(self):
-        if self.fd is not None:
-            os.close(self.fd)
-            self.fd = None
-
-
-def data_size(header: Header) -> int:
-    """Bytes of an HDU's data from its header (FITS Standard 4.4.1), without padding."""
-    naxis = int(header.get("NAXIS", 0))
-    if naxis == 0:
-        return 0
-    dims = [int(header.get(f"NAXIS{k}", 0)) for k in range(1, naxis + 1)]
-    if header.get("GROUPS") is True and dims[0] == 0:
-        dims = dims[1:]
-    n = math.prod(dims)
-    return abs(int(header["BITPIX"])) // 8 * int(header.get("GCOUNT", 1)) * (int(header.get("PCOUNT", 0)) + n)
-
-
-def padded(n: int) -> int:
-    return (n + BLOCK - 1) // BLOCK * BLOCK
-
-
-def scan(source: Source) -> list:
-    """Walk the HDUs of ``source`` and parse their headers.
-
-    Raises
-    ------
-    PerscliError
-        Not FITS, a header without END, or data running past the end of the file.
-    """
-    hdus = []
-    offset = 0
-    label = source.label
-    if source.size == 0:
-        raise PerscliError(f"{label}: the file is empty; check that it was written completely")
-    while offset < source.size:
-        cards = []
-        pos = offset
-        while True:
-            if pos + BLOCK > source.size:
-                if not hdus and not cards:
-                    raise PerscliError(f"{label}: not a FITS file (shorter than one 2880-byte block); "
-                                       "check that it is complete and really FITS")
-                if cards or bytes(source.pread(pos, source.size - pos)).strip(b"\0 "):
-                    raise PerscliError(f"{label}: the file is truncated inside the header of HDU {len(hdus)}; "
-                                       "re-copy or regenerate it")
-                return hdus
-            block = bytes(source.pread(pos, BLOCK))
-            pos += BLOCK
-            if not cards:
-                first = block[:10]
-                if not hdus and first != b"SIMPLE  = ":
-                    raise PerscliError(f"{label}: not a FITS file (no SIMPLE card at the start); "
-                                       "check that it is complete and really FITS")
-                if hdus and first != b"XTENSION= ":
-                    if block.strip(b"\0 "):
-                        # bytes after the last HDU that are not an extension: ignored, as astropy does
-                        pass
-                    return hdus
+        if self.fitsio is not None:
             try:
-                text = block.decode("ascii")
-            except UnicodeDecodeError:
-                raise PerscliError(f"{label}: HDU {len(hdus)} has non-ASCII bytes in its header: "
-                                   "the file is corrupt") from None
-            done = False
-            for i in range(0, BLOCK, CARD):
-                card = text[i:i + CARD]
-                if card[:8] == "END     " or card.rstrip() == "END":
-                    done = True
-                    break
-                cards.append(card)
-            if done:
-                break
-        header = Header(cards)
-        try:
-            size = data_size(header)
-        except (KeyError, ValueError, TypeError):
-            raise PerscliError(f"{label}: HDU {len(hdus)} has a malformed BITPIX/NAXIS header; "
-                               "the file is corrupt") from None
-        if pos + size > source.size:
-            raise PerscliError(f"{label}: the file is truncated: HDU {len(hdus)} needs {pos + size} bytes "
-                               f"but the file has {source.size}; re-copy or regenerate it")
-        hdus.append(HDU(len(hdus), header, offset, pos, size, source))
-        offset = pos + padded(size)
-    return hdus
+                self.fitsio.close()
+            except Exception:  # closing a read-only file cannot lose data
+                pass
+            self.fitsio = None
+        self.source.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 
-# -- writing ----------------------------------------------------------------
+def _int(text, label, what) -> int:
+    try:
+        return int(str(text).strip())
+    except ValueError:
+        raise PerscliError(f"{label}: [{what}]: {text!r} is not a whole number") from None
+
+
+def open_fits(name: str, *, stdin=None) -> FitsFile:
+    """Open and check a FITS input (see :class:`FitsFile`)."""
+    return FitsFile(name, stdin=stdin)
+
+
+# -- writing -------------------------------------------------------------------------------------
 
 def _format_value(value) -> str:
-    if isinstance(value, bool):
+    if isinstance(value, (bool, np.bool_)):
         return f"{'T' if value else 'F':>20}"
     if isinstance(value, (int, np.integer)):
         return f"{int(value):>20}"
@@ -444,17 +1009,40 @@ def _ascii_checksum(value: int) -> str:
     return text[-1] + text[:-1]  # rotate right by one character
 
 
-def _add32(a: int, b: int) -> int:
-    s = a + b
-    return (s & 0xFFFFFFFF) + (s >> 32)
+#: structural and checksum keywords: written by fitsio or by the checksum pass, never copied
+_STRUCTURAL = {"SIMPLE", "XTENSION", "BITPIX", "NAXIS", "EXTEND", "PCOUNT", "GCOUNT", "BZERO", "BSCALE",
+               "BLANK", "CHECKSUM", "DATASUM", "EXTNAME", "TFIELDS", "THEAP", "ZIMAGE", "ZBITPIX", "ZNAXIS",
+               "ZTILE1", "ZTILE2", "ZTILE3", "ZCMPTYPE", "ZQUANTIZ", "ZDITHER0", "ZHECKSUM", "ZDATASUM",
+               "ZSIMPLE", "ZEXTEND", "ZTENSION", "ZPCOUNT", "ZGCOUNT", "ZBLANK"}
+_STRUCTURAL_PATTERN = re.compile(r"^(NAXIS\d+|ZNAXIS\d+|ZTILE\d+|ZNAME\d+|ZVAL\d+|T(TYPE|FORM|UNIT|DIM|NULL|SCAL|ZERO|DISP)\d+)$")
+
+
+def _is_structural(key: str) -> bool:
+    return key in _STRUCTURAL or _STRUCTURAL_PATTERN.match(key) is not None
 
 
 @dataclass
 class OutHDU:
-    """An HDU to write: card images (no END) and big-endian data bytes."""
+    """An HDU to write: card images (no structural keywords needed) and its data.
+
+    Attributes
+    ----------
+    cards : list of str
+        80-character card images; structural, scaling and checksum keywords
+        among them are ignored (they are written for ``data``).
+    data : ndarray, bytes-like or None
+        An image (any byte order), a structured array for a binary table, or
+        the stored bytes of an HDU copied unchanged (then ``cards`` must be
+        its complete header).
+    extname : str, optional
+    units : sequence of str, optional
+        TUNITn of a table's columns.
+    """
 
     cards: list
-    data: object = b""     # bytes-like, the data unit without padding
+    data: object = None
+    extname: str | None = None
+    units: list | None = None
 
     def set(self, key: str, value, comment: str | None = None):
         """Replace ``key``'s card (and its CONTINUE cards), or append it."""
@@ -476,6 +1064,9 @@ class OutHDU:
         else:
             self.set(key, value)
 
+    def get(self, key, default=None):
+        return Header(self.cards).get(key, default)
+
     def add_history(self, text: str):
         self.cards.extend(history_cards(text))
 
@@ -493,72 +1084,143 @@ class OutHDU:
         self.cards = kept
 
 
-def image_cards(data: np.ndarray, cards, *, primary: bool, extname: str | None = None) -> list:
-    """Cards of an image HDU holding ``data``: structural keywords first, then ``cards``.
+def image_cards(data, cards, *, primary: bool = False, extname: str | None = None) -> list:
+    """The non-structural cards of ``cards`` (kept for source compatibility: structure is fitsio's)."""
+    return [c for c in cards if not _is_structural(c[:8].rstrip())]
 
-    Structural and scaling keywords in ``cards`` (SIMPLE/XTENSION, BITPIX,
-    NAXISn, EXTEND, PCOUNT, GCOUNT, BZERO, BSCALE, BLANK, CHECKSUM, DATASUM)
-    are dropped and rewritten for ``data``.
+
+#: lossless tile compression of images: GZIP_2 (byte-shuffled gzip) keeps every float bit
+COMPRESSIONS = ("none", "gzip", "rice")
+
+
+def _native(arr: np.ndarray) -> np.ndarray:
+    # fitsio 1.4 silently corrupts big-endian arrays written to a compressed HDU: always native order
+    if arr.dtype.byteorder not in ("=", "|"):
+        arr = arr.astype(arr.dtype.newbyteorder("="))
+    return np.ascontiguousarray(arr)
+
+
+def _header_cards(cards) -> list:
+    """The cards to copy into an output HDU: everything but structure and checksums, then placeholders."""
+    out = [c.ljust(CARD)[:CARD] for c in cards
+           if not _is_structural(c[:8].rstrip()) and c.strip() != "" and c[:8] != "END     "]
+    return out + _PLACEHOLDERS
+
+
+def _write_one(fits, hdu: OutHDU, *, first: bool, compress: str) -> None:
+    """Append one HDU to an open fitsio file: structure from the data, then the cards verbatim.
+
+    Cards are written as they are (CFITSIO's ``fits_write_record``), so values
+    keep every digit they had: an MJD copied from an input is not rounded.
     """
-    bitpix = {np.dtype(v).str[1:]: k for k, v in _BITPIX_DTYPES.items()}[data.dtype.str[1:]]
-    head = [format_card("SIMPLE", True, "conforms to FITS standard") if primary
-            else format_card("XTENSION", "IMAGE", "image extension"),
-            format_card("BITPIX", bitpix, "array data type"),
-            format_card("NAXIS", data.ndim, "number of array dimensions")]
-    for k, n in enumerate(data.shape[::-1], 1):
-        head.append(format_card(f"NAXIS{k}", int(n)))
-    if primary:
-        head.append(format_card("EXTEND", True))
+    data = hdu.data
+    extname = hdu.extname
+    if extname is None:
+        extname = Header(hdu.cards).get("EXTNAME")
+        extname = str(extname).strip() if extname is not None else None
+    if data is not None and not isinstance(data, np.ndarray):
+        raise TypeError("OutHDU.data must be a numpy array or None")
+    if data is not None and data.dtype.names:
+        if first:
+            fits.write(None)
+        fits.write_table(_native(data), extname=extname, units=hdu.units)
     else:
-        head += [format_card("PCOUNT", 0, "number of parameters"), format_card("GCOUNT", 1, "number of groups")]
-    structural = {"SIMPLE", "XTENSION", "BITPIX", "NAXIS", "EXTEND", "PCOUNT", "GCOUNT", "BZERO", "BSCALE",
-                  "BLANK", "CHECKSUM", "DATASUM", "EXTNAME"}
-    rest = []
-    for card in cards:
-        key = card[:8].rstrip()
-        if key in structural or (key.startswith("NAXIS") and key[5:].isdigit()):
-            continue
-        rest.append(card)
-    if extname:
-        head.append(format_card("EXTNAME", extname, "extension name"))
-    return head + rest
+        kwargs = {}
+        if compress != "none" and data is not None and data.size and not first:
+            if compress == "rice" and data.dtype.kind == "f":
+                raise PerscliError("--compress rice is lossless only for integer data; use --compress gzip")
+            # qlevel 0: no quantisation, every bit of a float image is kept; one tile per row
+            kwargs = dict(compress="GZIP_2" if compress == "gzip" else "RICE", qlevel=0.0)
+            if data.ndim == 2:
+                kwargs["tile_dims"] = [1, data.shape[1]]
+        fits.write(None if data is None else _native(data), extname=extname, **kwargs)
+    ext = len(fits)
+    for card in _header_cards(hdu.cards):
+        try:
+            fits._FITS.write_record(ext, card)
+        except (OSError, ValueError) as exc:
+            raise PerscliError(f"cannot write the header card {card.rstrip()!r}: {_cfitsio_reason(exc)}") from None
+    fits.update_hdu_list()
 
 
-def to_bytes(data: np.ndarray):
-    """Big-endian bytes of an array (no copy when it already is)."""
-    be = data.dtype.newbyteorder(">")
-    if data.dtype != be or not data.flags.c_contiguous:
-        data = np.ascontiguousarray(data, dtype=be)
-    return memoryview(data).cast("B")
+def _finish_checksums(path: str) -> None:
+    """Write DATASUM and CHECKSUM into every HDU of a written file, in place.
+
+    CFITSIO's own checksum cards carry the time of writing in their comments;
+    these carry fixed comments, so the same content gives the same bytes.
+    """
+    import fitsio
+
+    from .. import _kernels
+
+    with fitsio.FITS(path) as f:
+        offsets = [h.get_offsets() for h in f]
+    fd = os.open(path, os.O_RDWR)
+    try:
+        for off in offsets:
+            h0, d0, d1 = int(off["header_start"]), int(off["data_start"]), int(off["data_end"])
+            datasum = 0
+            pos, end = d0, d0 + padded(d1 - d0)
+            while pos < end:
+                n = min(_CHUNK, end - pos)
+                datasum = ones_complement_add(datasum, _kernels.datasum(os.pread(fd, n, pos)))
+                pos += n
+            header = bytearray(os.pread(fd, d0 - h0, h0))
+            where = {}
+            for i in range(0, len(header), CARD):
+                key = bytes(header[i:i + 8])
+                if key in (b"CHECKSU_", b"DATASUM_"):
+                    where.setdefault({b"CHECKSU_": "CHECKSUM", b"DATASUM_": "DATASUM"}[key], i)
+                elif key == b"END     ":
+                    break
+            if "CHECKSUM" not in where or "DATASUM" not in where:
+                raise RuntimeError(f"{path}: CHECKSUM/DATASUM placeholders missing in an HDU")
+            c, d = where["CHECKSUM"], where["DATASUM"]
+            header[d:d + CARD] = format_card("DATASUM", str(datasum), "data unit checksum").encode("ascii")
+            header[c:c + CARD] = format_card("CHECKSUM", "0" * 16, "HDU checksum").encode("ascii")
+            total = ones_complement_add(_kernels.datasum(bytes(header)), datasum)
+            header[c:c + CARD] = format_card("CHECKSUM", _ascii_checksum(total), "HDU checksum").encode("ascii")
+            os.pwrite(fd, bytes(header), h0)
+    finally:
+        os.close(fd)
 
 
-class Writer:
-    """Serialise HDUs with DATASUM and CHECKSUM, into a file object."""
+#: fitsio drops CHECKSUM/DATASUM cards it is given: these stand in for them until _finish_checksums
+_PLACEHOLDERS = [format_card("CHECKSU_", "0" * 16, "HDU checksum"), format_card("DATASUM_", "0", "data unit checksum")]
 
-    def __init__(self, stream):
-        self.stream = stream
 
-    def write(self, hdu: OutHDU):
-        from .. import _kernels
+def write_fits_path(hdus, path: str, *, compress: str = "none") -> None:
+    """Write :class:`OutHDU` s to ``path`` (created or replaced) with CHECKSUM/DATASUM in every HDU.
 
-        data = hdu.data if hdu.data is not None else b""
-        datasum = _kernels.datasum(data) if len(data) else 0
-        hdu.set("CHECKSUM", "0" * 16, "HDU checksum")
-        hdu.set("DATASUM", str(datasum), "data unit checksum")
-        header = self._header_bytes(hdu.cards)
-        total = _add32(_kernels.datasum(header), datasum)
-        while total >> 32:
-            total = (total & 0xFFFFFFFF) + (total >> 32)
-        hdu.set("CHECKSUM", _ascii_checksum(total), "HDU checksum")
-        self.stream.write(self._header_bytes(hdu.cards))
-        if len(data):
-            self.stream.write(data)
-            pad = padded(len(data)) - len(data)
-            if pad:
-                self.stream.write(b"\0" * pad)
+    Parameters
+    ----------
+    hdus : sequence of OutHDU
+        The first is the primary HDU.
+    path : str
+        A plain file name (no CFITSIO syntax), e.g. a temporary file.
+    compress : {'none', 'gzip', 'rice'}
+        Tile-compress the image extensions: 'gzip' is GZIP_2 without
+        quantisation (lossless for every data type); 'rice' is lossless for
+        integer images only.
+    """
+    import fitsio
 
-    @staticmethod
-    def _header_bytes(cards) -> bytes:
-        text = "".join(c.ljust(CARD)[:CARD] for c in cards) + "END".ljust(CARD)
-        text += " " * (padded(len(text)) - len(text))
-        return text.encode("ascii")
+    if compress not in COMPRESSIONS:
+        raise PerscliError(f"--compress must be one of {', '.join(COMPRESSIONS)}, not {compress!r}")
+    with fitsio.FITS(path, "rw", clobber=True, ignore_empty=True) as out:
+        for i, hdu in enumerate(hdus):
+            _write_one(out, hdu, first=i == 0, compress=compress)
+    _finish_checksums(path)
+
+
+def gzip_file(src: str, dest_fd: int) -> None:
+    """gzip ``src`` into ``dest_fd`` with no name or time stamp, so that equal content gives equal bytes."""
+    import gzip
+
+    with open(src, "rb") as fin, os.fdopen(os.dup(dest_fd), "wb") as raw, \
+            gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0, compresslevel=6) as gz:
+        while True:
+            chunk = fin.read(_CHUNK)
+            if not chunk:
+                break
+            gz.write(chunk)

@@ -23,8 +23,11 @@ ramps       WFC3-IR raw/ima: SCI,1 is the last read, SCI,NSAMP the zeroth;
 Keywords are looked up in the science extension's header first, then in the
 primary header.  Opening a frame reads only its headers; pixels are read
 when asked for, row block by row block (:meth:`Frame.rows`), so that many
-frames can be streamed side by side.  ``-`` reads a FITS stream from
-standard input into memory (a pipe cannot seek).
+frames can be streamed side by side, and the CHECKSUM/DATASUM of every HDU
+read are verified.  Files are opened by :func:`perscli.io.fitsfile.open_fits`:
+``-`` (standard input), FIFOs, ``.fits.gz``, tile-compressed images,
+``file.fits[SCI,2]`` (that HDU is the science image) and image sections
+``file.fits[1][x1:x2,y1:y2]`` (LTV1/LTV2 shifted as CFITSIO does).
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError
-from .fitsfile import HDU, Source, scan
+from .fitsfile import HDU, FitsFile, open_fits
 
 #: canonical unit -> (is DN, is a rate)
 UNITS = {
@@ -140,9 +143,11 @@ class Frame:
     end: float | None
     read_times: np.ndarray | None = None
     timing_source: str = ""
-    source: Source | None = field(default=None, repr=False)
+    source: FitsFile | None = field(default=None, repr=False)
     fluence_hdu: int | None = None
     image_shape: tuple | None = None
+    section: tuple | None = None
+    overrides: dict = field(default_factory=dict)
 
     @classmethod
     def planned(cls, name: str, shape: tuple, start: float, end: float, exptime: float, offsets=None,
@@ -177,6 +182,8 @@ class Frame:
 
     def keyword(self, key, default=None):
         """A keyword from the science header, else from the primary header."""
+        if key in self.overrides:
+            return self.overrides[key]
         for hdr in (self.header, self.hdus[0].header if self.hdus else self.header):
             if key in hdr and hdr[key] not in (None, ""):
                 return hdr[key]
@@ -195,7 +202,11 @@ class Frame:
         """Shape of one image (one read)."""
         if self.image_shape is not None:
             return self.image_shape
-        return tuple(self.hdus[self.sci[0]].shape[-2:])
+        ny, nx = self.hdus[self.sci[0]].shape[-2:]
+        if self.section is not None:
+            rows, cols = self.section
+            return (len(range(*rows.indices(ny))), len(range(*cols.indices(nx))))
+        return (ny, nx)
 
     # -- pixels ----------------------------------------------------------
     def _plane(self, k: int):
@@ -204,14 +215,37 @@ class Frame:
             return self.hdus[self.sci[0]], k
         return self.hdus[self.sci[k]], 0
 
-    def rows(self, k: int, r0: int, r1: int) -> np.ndarray:
-        """Rows ``r0:r1`` of plane ``k`` (time order) in the file's units.
+    def _rows_of(self, hdu: HDU, plane: int, r0: int, r1: int, *, stream: bool = False) -> np.ndarray:
+        """Rows of a plane through the image section, if any (``stream``: the unverified fast path)."""
+        if self.section is not None:
+            rows, cols = self.section
+            start = rows.start or 0
+            arr = hdu.read_rows(start + r0, start + r1, plane)
+            return arr[:, cols]
+        if stream:
+            return hdu.stream_rows(r0, r1, plane)
+        return hdu.read_rows(r0, r1, plane)
 
-        Float data are returned as stored (big-endian, no copy); integer data
-        are scaled to float64.
+    def rows(self, k: int, r0: int, r1: int) -> np.ndarray:
+        """Rows ``r0:r1`` of plane ``k`` (time order) in the file's units (checksums verified).
+
+        Float data of a plain file are returned as stored (big-endian); other
+        data are scaled to float64.
         """
         hdu, plane = self._plane(k)
-        return hdu.read_rows(r0, r1, plane)
+        return self._rows_of(hdu, plane, r0, r1)
+
+    @property
+    def rows_are_raw(self) -> bool:
+        """True when the science image of an image frame can be streamed as stored (see :meth:`raw_rows`)."""
+        return self.layout == "image" and self.section is None and self.hdus[self.sci[0]].is_plain_float
+
+    def raw_rows(self, r0: int, r1: int) -> np.ndarray:
+        """The fast path: rows of the science image as stored, NOT verified.
+
+        The caller folds their DATASUM and hands it to :meth:`verify` at the end.
+        """
+        return self.hdus[self.sci[0]].stream_rows(r0, r1)
 
     def planes(self) -> list:
         """The science arrays in time order, in the file's units (native byte order)."""
@@ -254,9 +288,11 @@ class Frame:
         """
         if self.fluence_hdu is not None:
             # a frame perscli rendered: its FLUENCE extension holds the collected charge in electrons
-            return self.hdus[self.fluence_hdu].read_rows(r0, r1), 1.0
+            hdu = self.hdus[self.fluence_hdu]
+            return self._rows_of(hdu, 0, r0, r1, stream=self.fluence_is_raw), 1.0
         if not self.is_ramp:
-            return self.rows(0, r0, r1), self.electrons_per_unit()
+            hdu = self.hdus[self.sci[0]]
+            return self._rows_of(hdu, 0, r0, r1, stream=self.fluence_is_raw), self.electrons_per_unit()
         last = np.asarray(self.rows(self.nreads - 1, r0, r1), dtype=np.float64)
         first = np.asarray(self.rows(0, r0, r1), dtype=np.float64)
         if UNITS[self.unit][1]:
@@ -273,10 +309,18 @@ class Frame:
 
     @property
     def fluence_is_raw(self) -> bool:
-        """True when :meth:`fluence_rows` hands out the stored bytes (their DATASUM can be folded in)."""
+        """True when :meth:`fluence_rows` hands out the stored bytes unverified: the caller folds their
+        DATASUM and passes it to :meth:`verify` for :attr:`fluence_source`."""
+        if self.section is not None:
+            return False
         if self.fluence_hdu is not None:
             return self.hdus[self.fluence_hdu].is_plain_float
         return not self.is_ramp and self.hdus[self.sci[0]].is_plain_float
+
+    @property
+    def fluence_source(self) -> int:
+        """The HDU that :meth:`fluence_rows` reads (FLUENCE if present, else the science image)."""
+        return self.fluence_hdu if self.fluence_hdu is not None else self.sci[0]
 
     @property
     def provenance_hdu(self) -> int:
@@ -286,63 +330,45 @@ class Frame:
             return self.fluence_hdu
         return self.sci[-1] if self.layout == "wfc3-ramp" else self.sci[0]
 
-    def check_datasum(self, index: int, value: int) -> int:
-        """Compare a computed DATASUM with the header's, if it states one."""
-        hdu = self.hdus[index]
-        stated = str(hdu.header.get("DATASUM", "")).strip()
-        if stated.isdigit() and int(stated) != value:
-            raise PerscliError(
-                f"{self.label}: HDU {index} ({hdu.name or 'PRIMARY'}) data do not match its DATASUM "
-                f"({stated}, computed {value}): the file is corrupt; re-copy it "
-                "(or delete DATASUM if the data were edited on purpose)")
-        return value
+    def verify(self, index: int, datasum: int | None = None) -> int:
+        """Verify CHECKSUM/DATASUM of HDU ``index`` and return its DATASUM.
+
+        Parameters
+        ----------
+        datasum : int, optional
+            What the caller computed while streaming the HDU's stored bytes.
+        """
+        return self.hdus[index].verify(datasum)
 
     def datasum(self, index: int) -> int:
-        """FITS DATASUM of HDU ``index`` computed from its bytes as stored.
-
-        Raises
-        ------
-        PerscliError
-            If the header carries a DATASUM that the data do not match.
-        """
-        return self.check_datasum(index, self.hdus[index].datasum())
+        """FITS DATASUM of HDU ``index`` as stored (verified against its header)."""
+        return self.hdus[index].verify()
 
     def close(self):
         """Release the file."""
         if self.source is not None:
             self.source.close()
 
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
 
 def _native(array: np.ndarray) -> np.ndarray:
     return np.asarray(array, dtype=array.dtype.newbyteorder("="))
 
 
-def _read_stdin(stdin) -> bytes:
-    stream = stdin if stdin is not None else sys.stdin.buffer
-    data = stream.read()
-    if not data:
-        raise PerscliError("stdin: standard input is empty; pipe a FITS file into it")
-    return data
-
-
-def _open_source(name: str, stdin=None) -> Source:
-    import os
-
-    if name == "-":
-        return Source("stdin", data=_read_stdin(stdin))
-    if not os.path.exists(name):
-        raise PerscliError(f"{name}: no such file")
-    if os.path.isdir(name):
-        raise PerscliError(f"{name}: is a directory, not a FITS file; give the path of a file inside it")
-    try:
-        return Source(name, path=name)
-    except OSError as exc:
-        raise PerscliError(f"{name}: cannot be read ({exc.strerror})") from None
-
-
-def _science_hdus(name, hdus):
-    """Find the science arrays and the layout of a file."""
-    sci = [h.index for h in hdus if h.name == "SCI" and h.is_image]
+def _science_hdus(name, hdus, selected=None):
+    """Find the science arrays and the layout of a file (``selected``: the HDU of ``file[EXT]``)."""
+    if selected is not None:
+        hdu = hdus[selected]
+        if not hdu.is_image or not hdu.shape:
+            raise PerscliError(f"{name}: the selected {hdu.label} holds no image")
+        sci = [selected]
+    else:
+        sci = [h.index for h in hdus if h.name == "SCI" and h.is_image]
     if len(sci) > 1:
         by_ver = sorted(sci, key=lambda i: hdus[i].ver)
         if all("SAMPTIME" in hdus[i].header for i in by_ver):
@@ -350,16 +376,22 @@ def _science_hdus(name, hdus):
             return by_ver[::-1], "wfc3-ramp"
         raise PerscliError(
             f"{name}: {len(sci)} SCI extensions but no SAMPTIME keywords: not a MULTIACCUM ramp; "
-            "extract one SCI extension (e.g. fitscopy 'file[SCI,1]')")
+            f"select one, e.g. '{name}[SCI,1]'")
     if sci:
         index = sci[0]
-    elif int(hdus[0].header.get("NAXIS", 0)) > 0:
+    elif hdus[0].is_image and int(hdus[0].header.get("NAXIS", 0)) > 0:
         index = 0
     else:
-        raise PerscliError(f"{name}: no image data: expected a SCI extension or an image in the primary HDU")
+        images = [h for h in hdus if h.is_image and h.shape and 0 not in h.shape]
+        if len(images) == 1:
+            # e.g. an fpacked file: the image is the first extension, whatever its name
+            index = images[0].index
+        else:
+            raise PerscliError(f"{name}: no image data: expected a SCI extension or an image in the primary "
+                               "HDU (select one with file.fits[EXT])")
     hdu = hdus[index]
-    if hdu.data_size == 0:
-        raise PerscliError(f"{name}: the {'SCI' if sci else 'primary'} HDU holds no data")
+    if not hdu.shape or 0 in hdu.shape:
+        raise PerscliError(f"{name}: the {hdu.label} holds no data")
     ndim = len(hdu.shape)
     if ndim == 2:
         return [index], "image"
@@ -373,45 +405,20 @@ def _read_times(name, hdus, sci, layout, nplanes):
         times = np.array([float(hdus[i].header["SAMPTIME"]) for i in sci])
     else:
         tables = [h for h in hdus if h.name in ("READTIMES", "READ_TIMES", "TIMES")
-                  and str(h.header.get("XTENSION", "")).strip() == "BINTABLE"]
+                  and h.kind == "table"]
         if not tables:
             raise PerscliError(
                 f"{name}: a 3-D cube needs a READTIMES table (column TIME, seconds since the exposure start, "
                 "one row per read)")
-        times = _table_column(name, tables[0], "TIME")
+        match = [c for c in tables[0].colnames if c.upper() == "TIME"]
+        if not match:
+            raise PerscliError(f"{name}: the READTIMES table has no TIME column (seconds since the exposure start)")
+        times = np.asarray(tables[0].read_column(match[0]), dtype=np.float64).reshape(-1)
         if len(times) != nplanes:
             raise PerscliError(f"{name}: READTIMES has {len(times)} rows but the cube has {nplanes} reads")
     if not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0) or times[0] < 0:
         raise PerscliError(f"{name}: read times must be finite, non-negative and increasing; got {times.tolist()}")
     return times
-
-
-def _table_column(name, hdu: HDU, column: str) -> np.ndarray:
-    """A numeric column of a binary table, read with numpy from the raw rows."""
-    hdr = hdu.header
-    nfields = int(hdr.get("TFIELDS", 0))
-    formats = {"D": ">f8", "E": ">f4", "J": ">i4", "K": ">i8", "I": ">i2", "B": "u1"}
-    fields = []
-    for i in range(1, nfields + 1):
-        tform = str(hdr.get(f"TFORM{i}", "")).strip()
-        repeat = "".join(ch for ch in tform if ch.isdigit()) or "1"
-        code = tform.lstrip("0123456789")[:1]
-        ttype = str(hdr.get(f"TTYPE{i}", f"col{i}")).strip()
-        width = {"D": 8, "E": 4, "J": 4, "K": 8, "I": 2, "B": 1, "L": 1, "A": 1, "X": 0}.get(code)
-        if width is None:
-            raise PerscliError(f"{name}: READTIMES column {ttype} has unsupported format {tform}")
-        dtype = formats.get(code, f"V{width}")
-        fields.append((ttype, dtype, int(repeat)))
-    names = [f[0] for f in fields]
-    match = [n for n in names if n.upper() == column]
-    if not match:
-        raise PerscliError(f"{name}: the READTIMES table has no {column} column (seconds since the exposure start)")
-    dtype = np.dtype([(n, d) if r == 1 else (n, d, (r,)) for n, d, r in fields])
-    nrows = int(hdr.get("NAXIS2", 0))
-    if dtype.itemsize != int(hdr.get("NAXIS1", 0)):
-        raise PerscliError(f"{name}: the READTIMES table's row length does not match its columns")
-    rows = np.frombuffer(hdu.raw_bytes(0, nrows * dtype.itemsize), dtype=dtype)
-    return np.asarray(rows[match[0]], dtype=np.float64)
 
 
 def _float_keyword(frame_hdrs, key, name):
@@ -459,11 +466,11 @@ def open_frame(name: str, *, units: str | None = None, gain: float | None = None
     PerscliError
         Unreadable, truncated or corrupt file; no image; unknown units.
     """
-    source = _open_source(name, stdin)
+    source = open_fits(name, stdin=stdin)
     label = source.label
     try:
-        hdus = scan(source)
-        sci, layout = _science_hdus(label, hdus)
+        hdus = source.hdus
+        sci, layout = _science_hdus(label, hdus, source.selected)
         hdrs = (hdus[sci[0]].header, hdus[0].header)
         nplanes = hdus[sci[0]].shape[0] if layout == "cube" else len(sci)
         read_times = _read_times(label, hdus, sci, layout, nplanes) if layout != "image" else None
@@ -513,12 +520,25 @@ def open_frame(name: str, *, units: str | None = None, gain: float | None = None
             hdr_exptime = (end - start) * SECONDS_PER_DAY
         if hdr_exptime is not None and hdr_exptime < 0:
             raise PerscliError(f"{label}: exposure time {hdr_exptime} s is negative")
-        fluence = [h.index for h in hdus if h.name == "FLUENCE" and h.is_image and h.data_size]
+        fluence = [h.index for h in hdus if h.name == "FLUENCE" and h.is_image and h.shape]
+        if source.selected is not None:
+            fluence = []  # file[EXT] names the one image to use
         if fluence and hdus[fluence[0]].shape[-2:] != hdus[sci[0]].shape[-2:]:
             raise PerscliError(f"{label}: the FLUENCE extension's shape differs from the science image's")
-        return Frame(name=name, hdus=hdus, sci=sci, layout=layout, unit=unit, gain=gain,
-                     exptime=hdr_exptime, start=start, end=end, read_times=read_times,
-                     timing_source=source_kw, source=source, fluence_hdu=fluence[0] if fluence else None)
+        frame = Frame(name=name, hdus=hdus, sci=sci, layout=layout, unit=unit, gain=gain,
+                      exptime=hdr_exptime, start=start, end=end, read_times=read_times,
+                      timing_source=source_kw, source=source, fluence_hdu=fluence[0] if fluence else None,
+                      section=source.section)
+        if source.section is not None:
+            # a cutout of the detector: its offset moves as CFITSIO moves LTV1/LTV2 for a section
+            rows, cols = source.section
+            for key, sl in (("LTV1", cols), ("LTV2", rows)):
+                base = frame.keyword(key, 0.0)
+                try:
+                    frame.overrides[key] = float(base) - float(sl.start or 0)
+                except (TypeError, ValueError):
+                    raise PerscliError(f"{label}: {key}={base!r} is not a number") from None
+        return frame
     except BaseException:
         source.close()
         raise

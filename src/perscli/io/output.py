@@ -6,9 +6,11 @@ DATASUM, and CHECKSUM/DATASUM on every HDU.  Files are written to a temporary
 file in the destination folder and renamed into place, so a Makefile never
 sees a half-written target and an error leaves nothing behind.
 
-Two kinds of output are written the same way: a list of
-:class:`perscli.io.fitsfile.OutHDU` (images streamed by perscli's own writer)
-and an ``astropy.io.fits.HDUList`` (tables and anything else).
+Everything is written by fitsio (:func:`perscli.io.fitsfile.write_fits_path`):
+a list of :class:`perscli.io.fitsfile.OutHDU`, or an ``astropy.io.fits.HDUList``
+of tables built with astropy (converted by :func:`hdus_from_astropy`).
+``-o NAME.fits.gz`` writes gzip; ``compress=`` tile-compresses images
+losslessly.
 """
 
 from __future__ import annotations
@@ -101,44 +103,121 @@ def atomic_output(dest: str, *, overwrite: bool = False, stdout=None):
     if dest == "-":
         buffer = io.BytesIO()
         yield buffer
-        stream = stdout if stdout is not None else sys.stdout.buffer
-        try:
-            stream.write(buffer.getbuffer())
-            stream.flush()
-        except BrokenPipeError:
-            # the reader went away (e.g. `| head`): not our error
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, sys.stdout.fileno())
+        send_to_stdout(buffer.getbuffer(), stdout)
         return
+    with atomic_path(dest, overwrite=overwrite) as tmp:
+        with open(tmp, "wb") as fh:
+            yield fh
+
+
+def send_to_stdout(data, stdout=None) -> None:
+    """Write bytes to standard output; a reader that went away (``| head``) is not an error."""
+    stream = stdout if stdout is not None else sys.stdout.buffer
+    try:
+        stream.write(data)
+        stream.flush()
+    except BrokenPipeError:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError, io.UnsupportedOperation):
+            pass
+        os.close(devnull)
+
+
+@contextlib.contextmanager
+def atomic_path(dest: str, *, overwrite: bool = False, suffix: str = ".part"):
+    """A temporary path beside ``dest`` that is renamed to ``dest`` only if the block succeeds.
+
+    The temporary file is removed on any error, including SIGTERM/SIGHUP
+    (turned into exceptions by the command line), so a Makefile never sees
+    a half-written target.
+    """
     if os.path.exists(dest) and not overwrite:
         raise PerscliError(f"{dest}: already exists; use --overwrite to replace it")
     folder = os.path.dirname(os.path.abspath(dest))
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(dest)}.", suffix=".part", dir=folder)
+    fd, tmp = tempfile.mkstemp(prefix=".perscli-", suffix=suffix, dir=folder)
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as fh:
-            yield fh
+        yield tmp
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, dest)
-    except BaseException:
+    finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
-        raise
 
 
-def write_hdus(hdus, dest: str, *, overwrite: bool = False, stdout=None) -> None:
-    """Write :class:`~perscli.io.fitsfile.OutHDU` s with checksums, atomically or to stdout."""
-    from .fitsfile import Writer
+def write_hdus(hdus, dest: str, *, overwrite: bool = False, stdout=None, compress: str = "none") -> None:
+    """Write :class:`~perscli.io.fitsfile.OutHDU` s with checksums, atomically or to stdout.
 
-    with atomic_output(dest, overwrite=overwrite, stdout=stdout) as stream:
-        writer = Writer(stream)
-        for hdu in hdus:
-            writer.write(hdu)
+    Parameters
+    ----------
+    hdus : sequence of OutHDU
+    dest : str
+        Path, or '-' for standard output.  A name ending in ``.gz`` is written
+        gzip-compressed (no time stamp: equal content, equal bytes).
+    compress : {'none', 'gzip', 'rice'}
+        Tile compression of image extensions (lossless; see
+        :func:`perscli.io.fitsfile.write_fits_path`).
+    """
+    from .fitsfile import gzip_file, write_fits_path
+
+    if dest == "-":
+        fd, tmp = tempfile.mkstemp(prefix=".perscli-", suffix=".part.fits")
+        os.close(fd)
+        try:
+            write_fits_path(hdus, tmp, compress=compress)
+            with open(tmp, "rb") as fh:
+                data = fh.read()
+        finally:
+            os.unlink(tmp)
+        send_to_stdout(data, stdout)
+        return
+    with atomic_path(dest, overwrite=overwrite, suffix=".part.fits") as tmp:
+        write_fits_path(hdus, tmp, compress=compress)
+        if dest.endswith(".gz"):
+            fd, ztmp = tempfile.mkstemp(prefix=".perscli-", suffix=".part.gz", dir=os.path.dirname(tmp))
+            try:
+                gzip_file(tmp, fd)
+                os.close(fd)
+                fd = None
+                os.replace(ztmp, tmp)
+            finally:
+                if fd is not None:
+                    os.close(fd)
+                if os.path.exists(ztmp):
+                    os.unlink(ztmp)
+
+
+def hdus_from_astropy(hdul) -> list:
+    """:class:`~perscli.io.fitsfile.OutHDU` s of an ``astropy.io.fits.HDUList`` (tables built with astropy)."""
+    import numpy as np
+
+    from .fitsfile import OutHDU
+
+    out = []
+    for hdu in hdul:
+        cards = [card.image for card in hdu.header.cards]
+        data = hdu.data
+        units = None
+        if data is not None and getattr(data, "dtype", None) is not None and data.dtype.names:
+            units = [str(c.unit or "") for c in hdu.columns]
+            # column by column: astropy's FITS_rec stores logicals as 'T'/'F' bytes underneath
+            cols = {n: np.asarray(data[n]) for n in hdu.columns.names}
+            table = np.empty(len(data), dtype=[(n, c.dtype.newbyteorder("="), c.shape[1:]) for n, c in cols.items()])
+            for n, c in cols.items():
+                table[n] = c
+            data = table
+        elif data is not None:
+            data = np.asarray(data)
+        out.append(OutHDU(cards, data, extname=hdu.name if hdu.name and hdu.name != "PRIMARY" else None,
+                          units=units))
+    return out
 
 
 def write_fits(hdul, dest: str, *, overwrite: bool = False, stdout=None) -> None:
-    """Write an ``astropy.io.fits.HDUList`` with checksums, atomically or to stdout."""
-    with atomic_output(dest, overwrite=overwrite, stdout=stdout) as stream:
-        hdul.writeto(stream, checksum=True, output_verify="fix+warn")
+    """Write an ``astropy.io.fits.HDUList`` (a table built with astropy) through fitsio, with checksums."""
+    write_hdus(hdus_from_astropy(hdul), dest, overwrite=overwrite, stdout=stdout)
 
 
 def _umask() -> int:

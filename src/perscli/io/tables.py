@@ -1,18 +1,17 @@
-"""Reading FITS binary tables (schedules, Gaia chunks, pointings, truth catalogues).
+"""Reading FITS binary tables (schedules, Gaia chunks, pointings, truth catalogues, SHAPES, XI).
 
-:func:`read_table` checks a file with perscli's own FITS scanner first (so that
-a file that is not FITS, is truncated, or whose data do not match their
-stated DATASUM gives one clear line), then parses the table with astropy,
-and :meth:`InputTable.column` names the file and column at fault.
+:func:`read_table` opens a file with :func:`perscli.io.fitsfile.open_fits` (so
+that a file that is not FITS, is truncated, or whose CHECKSUM/DATASUM do not
+match gives one clear line; ``-``, FIFOs, ``.fits.gz`` and ``file[EXT]`` work
+as for frames) and hands out its first binary table; CFITSIO (fitsio) reads
+only the columns asked for, so a million-row catalogue is never read whole.
+:meth:`InputTable.column` names the file and column at fault.
 """
 
 from __future__ import annotations
 
 import contextlib
-import io
-import os
-import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -21,7 +20,7 @@ from .. import PerscliError
 
 @dataclass
 class InputTable:
-    """A FITS binary table read for a scene step.
+    """A FITS binary table opened for reading.
 
     Attributes
     ----------
@@ -31,12 +30,11 @@ class InputTable:
         The name used in messages ('stdin' for '-').
     index : int
         HDU number of the table in the file.
-    header : astropy.io.fits.Header
+    header : perscli.io.fitsfile.Header
         The table's header.
-    data : astropy.io.fits.FITS_rec
-        The rows.
     datasum : int
-        FITS DATASUM of the table's data as stored (for provenance).
+        FITS DATASUM of the table's data as stored (for provenance; verified
+        against the header's when it states one).
     what : str
         What the file should be ('Gaia reference catalog', 'schedule'), for messages.
     """
@@ -45,12 +43,22 @@ class InputTable:
     label: str
     index: int
     header: object
-    data: object
     datasum: int
     what: str
+    hdu: object = field(repr=False, default=None)
+    _cache: dict = field(repr=False, default_factory=dict)
 
     def __len__(self) -> int:
-        return len(self.data)
+        return self.hdu.nrows
+
+    @property
+    def names(self) -> list:
+        """Column names as written."""
+        return self.hdu.colnames
+
+    def _tform(self, real: str) -> str:
+        k = [n.lower() for n in self.names].index(real.lower()) + 1
+        return str(self.header.get(f"TFORM{k}", "")).strip()
 
     def column(self, name: str, *, kind: str = "number", needed=()) -> np.ndarray:
         """One scalar column as a native-order array, checked.
@@ -70,24 +78,26 @@ class InputTable:
         PerscliError
             The column is missing, holds the wrong type, or is not scalar.
         """
-        names = {n.lower(): n for n in self.data.columns.names}
+        names = {n.lower(): n for n in self.names}
         real = names.get(name.lower())
         where = f"{self.label}: HDU {self.index}"
         if real is None:
             listed = ", ".join(needed) if needed else name
             raise PerscliError(f"{where} has no column '{name}'; a {self.what} needs the columns {listed}: "
                                f"check that this is a {self.what}")
-        col = self.data.columns[real]
-        values = np.asarray(self.data[real])
+        if real not in self._cache:
+            self._cache[real] = self.hdu.read_column(real)
+        values = self._cache[real]
+        tform = self._tform(real)
         if values.ndim != 1:
             raise PerscliError(f"{where}: column '{real}' has {values.shape[1:]} values per row (TFORM "
-                               f"{col.format}); it must be a single value per row: check that this is a {self.what}")
+                               f"{tform}); it must be a single value per row: check that this is a {self.what}")
         ok = {"number": "iuf", "integer": "iu", "text": "SU"}[kind]
         if values.dtype.kind not in ok:
             held = "text" if values.dtype.kind in "SU" else ("floating-point numbers" if values.dtype.kind == "f"
                                                               else f"{values.dtype} values")
             wanted = {"number": "numbers", "integer": "integers", "text": "text"}[kind]
-            raise PerscliError(f"{where}: column '{real}' holds {held} (TFORM {col.format}) but must hold "
+            raise PerscliError(f"{where}: column '{real}' holds {held} (TFORM {tform}) but must hold "
                                f"{wanted}: check that this is a {self.what}")
         if kind == "text":
             if values.dtype.kind == "S":
@@ -97,36 +107,16 @@ class InputTable:
 
     def unit(self, name: str) -> str:
         """TUNITn of a column ('' when absent)."""
-        names = [n.lower() for n in self.data.columns.names]
+        names = [n.lower() for n in self.names]
         k = names.index(name.lower()) + 1
-        return str(self.header.get(f"TUNIT{k}", "")).strip()
-
-
-def read_bytes(name: str, stdin=None) -> tuple:
-    """The bytes of a file, or of standard input for '-'; (label, bytes)."""
-    if name == "-":
-        stream = stdin if stdin is not None else sys.stdin.buffer
-        data = stream.read()
-        if not data:
-            raise PerscliError("stdin: standard input is empty; pipe a FITS file into it")
-        return "stdin", data
-    if not os.path.exists(name):
-        raise PerscliError(f"{name}: no such file")
-    if os.path.isdir(name):
-        raise PerscliError(f"{name}: is a directory, not a FITS file; give the path of a file inside it")
-    try:
-        with open(name, "rb") as fh:
-            return name, fh.read()
-    except OSError as exc:
-        raise PerscliError(f"{name}: cannot be read ({exc.strerror})") from None
+        return str(self.header.get(f"TUNIT{k}", "") or "").strip()
 
 
 def read_table(name: str, *, what: str, stdin=None) -> InputTable:
-    """Read the first binary table of a FITS file.
+    """Open the first binary table of a FITS file (``file[EXT]`` chooses another).
 
-    The file is checked by perscli's own FITS scanner first (so that a file
-    that is not FITS, is truncated, or whose data do not match their stated
-    DATASUM gives one clear line), then parsed with astropy.
+    The file stays open until the process ends or the table is garbage
+    collected; :func:`open_table` closes it at the end of a ``with`` block.
 
     Parameters
     ----------
@@ -140,100 +130,51 @@ def read_table(name: str, *, what: str, stdin=None) -> InputTable:
     Raises
     ------
     PerscliError
-        Unreadable, not FITS, truncated, corrupt, or without a binary table.
+        Unreadable, not FITS, truncated, corrupt (CHECKSUM/DATASUM), or without a binary table.
     """
-    from ..io.fitsfile import Source, scan
+    from .fitsfile import open_fits
 
-    label, raw = read_bytes(name, stdin)
-    hdus = scan(Source(label, data=raw))
-    hdu = _first_table(label, hdus, what)
-    datasum = _checked_datasum(label, hdu, hdu.datasum())
-    from astropy.io import fits
-
+    fits = open_fits(name, stdin=stdin)
     try:
-        with fits.open(io.BytesIO(raw), memmap=False) as hdul:
-            table = hdul[hdu.index]
-            header = table.header.copy()
-            data = table.data
-            if data is None:
-                data = fits.FITS_rec.from_columns(table.columns, nrows=0)
-            else:
-                data = data.copy()
-    except (ValueError, KeyError, TypeError, IndexError, OSError) as exc:
-        raise PerscliError(f"{label}: HDU {hdu.index} is not a readable FITS binary table ({exc}); "
-                           f"check that this is a {what}") from None
-    return InputTable(name=name, label=label, index=hdu.index, header=header, data=data,
-                      datasum=datasum, what=what)
-
-
-# -- Roman filters ------------------------------------------------------------------------------
-
-#: Roman WFI imaging filters, bluest first (W146 is the wide filter spanning J to H).
+        if fits.selected is not None:
+            hdu = fits.hdus[fits.selected]
+            if hdu.kind != "table":
+                raise PerscliError(f"{fits.label}: the selected {hdu.label} is not a binary table; "
+                                   f"a {what} is a FITS binary table")
+        else:
+            hdu = _first_table(fits.label, fits.hdus, what)
+        if str(hdu.header.get("XTENSION", "BINTABLE")).strip() not in ("BINTABLE", "A3DTABLE"):
+            raise PerscliError(f"{fits.label}: {hdu.label} is an ASCII table; a {what} is a FITS binary table")
+        datasum = hdu.verify()
+        hdu.colnames  # noqa: B018  (a table CFITSIO cannot describe fails here, as one line)
+    except (OSError, ValueError) as exc:
+        fits.close()
+        raise PerscliError(f"{fits.label}: not a readable FITS binary table ({exc}); check that this is a {what}") from None
+    except BaseException:
+        fits.close()
+        raise
+    return InputTable(name=name, label=fits.label, index=hdu.index, header=hdu.header, datasum=datasum,
+                      what=what, hdu=hdu)
 
 
 def _first_table(label: str, hdus, what: str):
-    """The first binary-table HDU of a scanned file, or one clear error."""
-    tables = [h for h in hdus if str(h.header.get("XTENSION", "")).strip() == "BINTABLE"]
+    """The first binary-table HDU of a file, or one clear error."""
+    tables = [h for h in hdus if h.kind == "table"]
     if not tables:
         raise PerscliError(f"{label}: has no binary table HDU; a {what} is a FITS binary table: "
                            f"check that this is a {what}")
     return tables[0]
 
 
-def _checked_datasum(label: str, hdu, datasum: int) -> int:
-    """``datasum``, after checking it against the DATASUM the header states, if any."""
-    stated = str(hdu.header.get("DATASUM", "")).strip()
-    if stated.isdigit() and int(stated) != datasum:
-        raise PerscliError(f"{label}: HDU {hdu.index} data do not match its DATASUM ({stated}, computed "
-                           f"{datasum}): the file is corrupt; re-copy it "
-                           "(or delete DATASUM if the data were edited on purpose)")
-    return datasum
-
-
 @contextlib.contextmanager
 def open_table(name: str, *, what: str, stdin=None):
-    """The first binary table of a FITS file, memory-mapped rather than read and copied.
+    """:func:`read_table` as a context manager that closes the file at the end.
 
-    The same checks and messages as :func:`read_table` and the same
-    :class:`InputTable`, but the rows stay in the page cache and only the
-    columns asked for are copied, which for a catalogue of a million objects
-    saves a copy of the whole table and most of the time.  Standard input
-    ('-') is read by :func:`read_table`.  Use as a context manager; take
-    columns inside it.
+    Only the columns asked for are read (by CFITSIO), which for a catalogue
+    of a million objects saves reading the whole table.
     """
-    if name == "-" or not os.path.isfile(name):
-        yield read_table(name, what=what, stdin=stdin)
-        return
-    import mmap
-
-    from astropy.io import fits
-
-    from .. import _kernels
-    from .fitsfile import Source, scan
-
-    source = Source(name, path=name)
+    table = read_table(name, what=what, stdin=stdin)
     try:
-        hdus = scan(source)
+        yield table
     finally:
-        source.close()
-    hdu = _first_table(name, hdus, what)
-    with open(name, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
-        with memoryview(mapped) as view:
-            datasum = _kernels.datasum(view[hdu.data_offset:hdu.data_offset + hdu.data_size]) if hdu.data_size else 0
-    datasum = _checked_datasum(name, hdu, datasum)
-    try:
-        hdul = fits.open(name, memmap=True)
-        table = hdul[hdu.index]
-        header = table.header.copy()
-        data = table.data
-        if data is None:
-            data = fits.FITS_rec.from_columns(table.columns, nrows=0)
-    except (ValueError, KeyError, TypeError, IndexError, OSError) as exc:
-        raise PerscliError(f"{name}: HDU {hdu.index} is not a readable FITS binary table ({exc}); "
-                           f"check that this is a {what}") from None
-    try:
-        yield InputTable(name=name, label=name, index=hdu.index, header=header, data=data, datasum=datasum,
-                         what=what)
-    finally:
-        del data, table
-        hdul.close()
+        table.hdu.file.close()

@@ -175,7 +175,7 @@ def read_positions(path: str):
     from ..io.tables import read_table
 
     table = read_table(path, what="catalogue (id and ra/dec or x/y)")
-    names = {n.lower() for n in table.data.columns.names}
+    names = {n.lower() for n in table.names}
     out = {"id": table.column("id", kind="integer", needed=("id", "ra", "dec"))}
     if {"ra", "dec"} <= names:
         out["ra"] = table.column("ra").astype(np.float64)
@@ -188,7 +188,7 @@ def read_positions(path: str):
     for optional in ("hlr", "kind"):
         if optional in names:
             out[optional] = table.column(optional, kind="text" if optional == "kind" else "number")
-    mags = [n for n in table.data.columns.names if n.lower().startswith("mag_")]
+    mags = [n for n in table.names if n.lower().startswith("mag_")]
     for name in mags:
         out[name.lower()] = table.column(name).astype(np.float64)
     out["label"], out["datasum"] = table.label, table.datasum

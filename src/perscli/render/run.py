@@ -8,7 +8,7 @@ import os
 import numpy as np
 
 from ..detector.effects import DetectorModel, run_chain
-from ..io.fitsfile import OutHDU, format_card, image_cards
+from ..io.fitsfile import OutHDU, format_card
 from ..io.output import add_provenance, check_output, write_hdus
 from .exposure import Exposure, draw_sources, read_truth
 
@@ -128,8 +128,7 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
                         format_card("EXTEND", True)])]
 
         def image(data, name, cards, dtype=np.float32):
-            arr = np.asarray(data, dtype=np.dtype(dtype).newbyteorder(">"))
-            return OutHDU(image_cards(arr, cards, primary=False, extname=name), memoryview(arr).cast("B"))
+            return OutHDU(list(cards), np.asarray(data, dtype=dtype), extname=name)
 
         hdus.append(image(result.sci, "SCI", sci_cards))
         hdus.append(image(result.ideal, "IDEAL", e_cards))

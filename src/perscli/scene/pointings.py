@@ -289,7 +289,7 @@ def read_pointings(path: str, *, stdin=None) -> list:
         Unreadable file, or a column of :data:`POINTING_COLUMNS` missing or of the wrong type.
     """
     table = read_table(path, what="pointings table", stdin=stdin)
-    names = {n.lower() for n in table.data.columns.names}
+    names = {n.lower() for n in table.names}
     if "mjd" not in names and "date" in names:
         cols = {name: table.column(name, kind=kind, needed=tuple(SCHEDULE_COLUMNS))
                 for name, kind in SCHEDULE_COLUMNS.items()}

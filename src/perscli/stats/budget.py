@@ -244,7 +244,7 @@ def read_xi(path: str, *, stdin=None) -> XiTable:
     what = "correlation table (perscli correlate output)"
     table = read_table(path, what=what, stdin=stdin)
     where = f"{table.label}: HDU {table.index}"
-    names = {n.lower() for n in table.data.columns.names}
+    names = {n.lower() for n in table.names}
     if len(table) == 0:
         raise PerscliError(f"{where} has no rows: the correlation has no separation bins")
     if "meanr" not in names and "r_nom" not in names:

@@ -119,7 +119,7 @@ class ShapeChanges:
 # ------------------------------------------------------------------------------------------------
 
 def _names(table) -> dict:
-    return {n.lower(): n for n in table.data.columns.names}
+    return {n.lower(): n for n in table.names}
 
 
 def _frame_rows(table, frame, label: str, *, hint: str):
