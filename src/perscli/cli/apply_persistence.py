@@ -7,7 +7,8 @@ import logging
 import click
 
 from .helpers import progress_reporter, report_errors
-from .options import exptime_opt, gain_opt, output_opt, overwrite_opt, units_opt, workers_opt
+from .options import (compress_opt, exptime_opt, gain_opt, no_checksum_opt, output_opt, overwrite_opt, units_opt,
+                      workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -20,27 +21,32 @@ log = logging.getLogger("perscli")
               help="typical or pessimistic (the paper's Table 1), galsim-linear (GalSim's 8 coefficients), "
                    "or a YAML file of parameters.")
 @click.option("--param", "params", multiple=True, metavar="KEY=VALUE",
-              help="Override a model parameter: A, x0, dx, alpha, gamma, half_well. Repeatable.")
+              help="Override a model parameter (A, x0, dx, alpha, gamma, half_well) or setting (time_model, "
+                   "combine, max_previous). Repeatable.")
 @click.option("--mode", type=click.Choice(["add", "subtract", "predict"]), default="add", show_default=True,
               help="Add persistence, subtract it (a correction), or write the persistence alone.")
-@click.option("--time-model", type=click.Choice(["exact", "galsim"]), default="exact", show_default=True,
+@click.option("--time-model", type=click.Choice(["exact", "galsim"]), default=None,
               help="exact: integral of the rate over the exposure from the real timestamps; "
-                   "galsim: galsim.roman.applyPersistence(method='fermi')'s mid-exposure rate.")
-@click.option("--combine", type=click.Choice(["sum", "max"]), default="sum", show_default=True,
-              help="Sum over earlier exposures (the paper, GalSim) or per-pixel maximum (WFC3 pipeline).")
-@click.option("--max-previous", type=click.IntRange(min=0), default=10, show_default=True, metavar="N",
-              help="Only the N most recent earlier exposures count (0: all).")
+                   "galsim: galsim.roman.applyPersistence(method='fermi')'s mid-exposure rate "
+                   "[default: the model's time_model, exact].")
+@click.option("--combine", type=click.Choice(["sum", "max"]), default=None,
+              help="Sum over earlier exposures (the paper, GalSim) or per-pixel maximum (WFC3 pipeline) "
+                   "[default: the model's combine, sum].")
+@click.option("--max-previous", type=click.IntRange(min=0), default=None, metavar="N",
+              help="Only the N most recent earlier exposures count (0: all) [default: the model's max_previous, 10].")
 @click.option("--gap", type=click.FloatRange(min=0), default=None, metavar="SECONDS",
               help="Ignore header timestamps: PREVIOUS... then CURRENT, in command-line order, are consecutive "
                    "exposures separated by SECONDS.")
 @units_opt
 @gain_opt
 @exptime_opt
+@compress_opt
+@no_checksum_opt
 @overwrite_opt
 @workers_opt
 @report_errors
 def apply_persistence(current, previous, output, model_spec, params, mode, time_model, combine,
-                      max_previous, gap, units, gain, exptime, overwrite, workers):
+                      max_previous, gap, units, gain, exptime, compress, overwrite, workers):
     """Add, subtract or predict the persistence of earlier exposures on CURRENT.
 
     Each earlier exposure (PREVIOUS...) with fluence x electrons releases
@@ -72,7 +78,7 @@ def apply_persistence(current, previous, output, model_spec, params, mode, time_
     result = apply_persistence_files(
         current, previous, output, model=model, mode=mode, time_model=time_model, combine=combine,
         max_previous=max_previous, units=units, gain=gain, exptime=exptime, gap=gap,
-        overwrite=overwrite, workers=workers, progress=progress_reporter("rows"))
+        overwrite=overwrite, workers=workers, progress=progress_reporter("rows"), compress=compress)
     log.info("%s: persistence from %d earlier exposure(s): max %.4g e-, total %.6g e- (last plane)",
              "stdout" if output == "-" else output, len(result.used), result.max_electrons,
              result.total_electrons)

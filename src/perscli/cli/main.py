@@ -14,6 +14,7 @@ from .budget import budget
 from .correlate import correlate
 from .catalog import catalog
 from .pointings import pointings
+from .options import no_checksum_opt
 
 
 class _StderrFormatter(logging.Formatter):
@@ -38,6 +39,7 @@ def configure_logging(verbosity: int) -> None:
 @click.version_option(__version__, "--version", prog_name="perscli", message="%(prog)s %(version)s")
 @click.option("-v", "--verbose", count=True, help="More messages on stderr (-vv: debug, with tracebacks).")
 @click.option("-q", "--quiet", count=True, help="Fewer messages on stderr (errors only; no progress bars).")
+@no_checksum_opt
 @click.pass_context
 def cli(ctx, verbose, quiet):
     """Image persistence in near-infrared detectors, from FITS frames to shear budgets.

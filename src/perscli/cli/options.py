@@ -64,3 +64,22 @@ filter_opt = click.option(
 sca_opt = click.option(
     "--sca", type=click.IntRange(0, 18), default=0, show_default=True, metavar="N",
     help="Roman detector (SCA 1-18) to write into every row; 0 for none chosen.")
+
+
+def _no_checksum(ctx, param, value):
+    if value:
+        from ..io.fitsfile import set_checksum_verification
+
+        set_checksum_verification(False)
+
+
+# eager, so that it is in force before any input is opened; it also reaches worker processes
+no_checksum_opt = click.option(
+    "--no-checksum", is_flag=True, default=False, expose_value=False, is_eager=True, callback=_no_checksum,
+    help="Do not verify the CHECKSUM/DATASUM of inputs (for files edited on purpose; "
+         "astropy's `fitscheck --force FILE` updates them instead).")
+
+compress_opt = click.option(
+    "--compress", type=click.Choice(["none", "gzip", "rice"]), default="none", show_default=True,
+    help="Tile-compress the output's images, losslessly: gzip (GZIP_2, any data) or rice (integer data "
+         "only). An output named *.fits.gz is gzip-compressed as a whole instead.")

@@ -7,7 +7,7 @@ import logging
 import click
 
 from .helpers import progress_reporter, report_errors
-from .options import output_opt, overwrite_opt, workers_opt
+from .options import compress_opt, no_checksum_opt, output_opt, overwrite_opt, workers_opt
 
 log = logging.getLogger("perscli")
 
@@ -42,11 +42,13 @@ log = logging.getLogger("perscli")
                    "on which other effects are on.")
 @click.option("--plot", metavar="PNG", help="Also write a picture of the frame and of its persistence.")
 @output_opt
+@compress_opt
+@no_checksum_opt
 @overwrite_opt
 @workers_opt
 @report_errors
 def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds, model_spec, settings,
-           previous, seed, plot, output, overwrite, workers):
+           previous, seed, plot, output, compress, overwrite, workers):
     """Draw a Roman SCA exposure of TRUTH.fits through a detector model.
 
     Optics from GalSim's Roman module: the SCA's WCS for the pointing, its PSF
@@ -79,7 +81,8 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     exposure = _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds)
     model = load_detector_model(model_spec, settings)
     summary = render_file(truth, exposure, output, model=model, seed=seed, previous=previous,
-                          overwrite=overwrite, workers=workers, progress=progress_reporter("objects"), plot=plot)
+                          overwrite=overwrite, workers=workers, progress=progress_reporter("objects"), plot=plot,
+                          compress=compress)
     log.info("%s: %d objects, sky %.3f e-/pixel/s, units %s, persistence max %.3g e-",
              "stdout" if output == "-" else output, summary["objects"], summary["sky_rate"], summary["unit"],
              summary["persistence_max"])

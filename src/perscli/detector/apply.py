@@ -66,37 +66,24 @@ class PersistenceResult:
     total_electrons: float = 0.0   # sum over the last plane
 
 
-def _time_factors(current: Frame, prev: Frame, recency: int, model: PersistenceModel, time_model: str):
-    gap = (current.start - prev.end) * SECONDS_PER_DAY
-    if model.kind == "linear":
-        if current.is_ramp:
-            raise PerscliError(f"{current.label}: the linear model has no time dependence and cannot be "
-                               "applied read by read; use a Fermi model (typical, pessimistic) for ramps")
-        if recency >= len(model.coefficients):
-            return gap, None
-        return gap, [model.coefficients[recency]]
-    if time_model == "galsim":
-        if current.is_ramp:
-            raise PerscliError(f"{current.label}: --time-model galsim has no notion of reads; "
-                               "use --time-model exact for ramps")
-        mid = (0.5 + recency) * GALSIM_EXPTIME
-        return gap, [GALSIM_EXPTIME * (mid / 1000.0) ** (-model.gamma)]
+def _plane_ends(current: Frame) -> np.ndarray:
+    """Seconds from the start of the current exposure to the end of each output plane."""
     if current.is_ramp:
-        ends = gap + np.asarray(current.read_times, dtype=np.float64)
-    else:
-        ends = np.array([gap + (current.end - current.start) * SECONDS_PER_DAY])
-    if gap <= 0 and model.gamma >= 1:
-        raise PerscliError(
-            f"{prev.label} ends exactly when {current.label} starts: with gamma={model.gamma:g} the "
-            "persistence integral diverges at zero delay; check the timestamps (a reset takes time)")
-    try:
-        return gap, [float(v) for v in time_factor(np.full_like(ends, gap), ends, model.gamma)]
-    except ValueError as exc:
-        raise PerscliError(f"{prev.label}: {exc}") from None
+        return np.asarray(current.read_times, dtype=np.float64)
+    return np.array([(current.end - current.start) * SECONDS_PER_DAY])
 
 
-def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str = "exact",
-         max_previous: int = 10) -> PersistencePlan:
+def with_settings(model: PersistenceModel, *, time_model=None, combine=None, max_previous=None) -> PersistenceModel:
+    """``model`` with its settings replaced where given (command-line options over the model file)."""
+    import dataclasses
+
+    changes = {k: v for k, v in (("time_model", time_model), ("combine", combine), ("max_previous", max_previous))
+               if v is not None and v != getattr(model, k)}
+    return dataclasses.replace(model, **changes) if changes else model
+
+
+def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str | None = None,
+         max_previous: int | None = None) -> PersistencePlan:
     """Check the earlier exposures, order them by time and work out their time factors.
 
     Parameters
@@ -106,22 +93,23 @@ def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str =
     previous : iterable of Frame
         Earlier exposures of the same detector, in any order.
     model : PersistenceModel
-    time_model : {'exact', 'galsim'}
-        'exact': the integral of the rate over the current exposure's own
-        [start, end] (or up to each read's time for a ramp), with t counted
-        from the end of each earlier exposure.  'galsim': GalSim's
-        ``rate((0.5 + i) * 139.8 s) * 139.8 s`` for the i-th most recent one.
-    max_previous : int
-        Only the most recent ``max_previous`` earlier exposures count (0: all).
+        The law and its settings: time_model ('exact': the integral of the
+        rate over the current exposure's own [start, end], or up to each read
+        of a ramp, with t counted from the end of each earlier exposure;
+        'galsim': GalSim's ``rate((0.5 + i) * 139.8 s) * 139.8 s`` for the
+        i-th most recent one) and max_previous (0: all).
+    time_model, max_previous : optional
+        Override the model's settings.
 
     Returns
     -------
     PersistencePlan
     """
+    from .persistence import exposure_time_factors, order_earlier
+
+    model = with_settings(model, time_model=time_model, max_previous=max_previous)
     previous = list(previous)
     require_timing(current)
-    if time_model not in ("exact", "galsim"):
-        raise PerscliError(f"--time-model must be exact or galsim, not {time_model!r}")
     for prev in previous:
         require_timing(prev)
         if prev.shape != current.shape:
@@ -140,16 +128,19 @@ def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str =
             raise PerscliError(
                 f"{prev.label} ends at MJD {prev.end:.8f}, after {current.label} starts "
                 f"(MJD {current.start:.8f}): it is not an earlier exposure; check the order or the timestamps")
-    if max_previous < 0:
-        raise PerscliError(f"--max-previous must be >= 0 (0 for all), not {max_previous}")
-    ordered = sorted(previous, key=lambda f: f.end, reverse=True)
-    keep = ordered if max_previous == 0 else ordered[:max_previous]
-    result = PersistencePlan(current=current, skipped=[f.label for f in ordered[len(keep):]])
+    keep, left = order_earlier([f.end for f in previous], current.start, model, [f.label for f in previous])
+    result = PersistencePlan(current=current, skipped=[previous[i].label for i in left])
     if result.skipped:
         log.info("only the %d most recent earlier exposures count; ignoring %s", len(keep),
                  ", ".join(result.skipped))
-    for recency, prev in enumerate(keep):
-        gap, factors = _time_factors(current, prev, recency, model, time_model)
+    ends = _plane_ends(current)
+    for recency, i in enumerate(keep):
+        prev = previous[i]
+        gap = (current.start - prev.end) * SECONDS_PER_DAY
+        try:
+            factors = exposure_time_factors(gap, ends, recency, model, label=prev.label)
+        except PerscliError as exc:
+            raise PerscliError(f"{current.label}: {exc}" if not str(exc).startswith(prev.label) else str(exc)) from None
         if factors is None:
             log.info("%s: beyond the linear model's %d coefficients; ignored", prev.label, len(model.coefficients))
             result.skipped.append(prev.label)
@@ -158,7 +149,7 @@ def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str =
     return result
 
 
-def persistence_blocks(the_plan: PersistencePlan, model: PersistenceModel, *, combine: str = "sum",
+def persistence_blocks(the_plan: PersistencePlan, model: PersistenceModel, *, combine: str | None = None,
                        block_rows: int = BLOCK_ROWS, workers: int = 1, progress=None):
     """Stream the persistence on the current frame, in electrons, block of rows by block of rows.
 
@@ -174,6 +165,7 @@ def persistence_blocks(the_plan: PersistencePlan, model: PersistenceModel, *, co
     kernel directly from its stored bytes where it can; the DATASUM of each
     is gathered on the way and checked against its header at the end.
     """
+    combine = combine or model.combine
     current = the_plan.current
     ny, nx = current.shape
     nplanes = current.nreads
@@ -211,8 +203,8 @@ def persistence_blocks(the_plan: PersistencePlan, model: PersistenceModel, *, co
             log.warning("%s: %d non-finite pixels counted as zero fluence", frame.label, rec.nonfinite)
 
 
-def persistence_image(current: Frame, previous, model: PersistenceModel, *, time_model: str = "exact",
-                      combine: str = "sum", max_previous: int = 10, workers: int = 1) -> np.ndarray:
+def persistence_image(current: Frame, previous, model: PersistenceModel, *, time_model: str | None = None,
+                      combine: str | None = None, max_previous: int | None = None, workers: int = 1) -> np.ndarray:
     """The persistence that earlier exposures leave in ``current``, in electrons.
 
     Parameters are those of :func:`plan` and :func:`persistence_blocks`.
@@ -221,9 +213,10 @@ def persistence_image(current: Frame, previous, model: PersistenceModel, *, time
     -------
     ndarray of float64, shape ``(nplanes, ny, nx)``
     """
-    the_plan = plan(current, previous, model, time_model=time_model, max_previous=max_previous)
+    model = with_settings(model, time_model=time_model, combine=combine, max_previous=max_previous)
+    the_plan = plan(current, previous, model)
     out = np.zeros((current.nreads,) + current.shape)
-    for r0, r1, block in persistence_blocks(the_plan, model, combine=combine, workers=workers):
+    for r0, r1, block in persistence_blocks(the_plan, model, workers=workers):
         out[:, r0:r1] = block
     return out
 
@@ -240,7 +233,7 @@ def _unit_factor(current: Frame, plane: int) -> float:
 
 
 def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: str = "add",
-                   time_model: str = "exact", combine: str = "sum", max_previous: int = 10,
+                   time_model: str | None = None, combine: str | None = None, max_previous: int | None = None,
                    workers: int = 1, progress=None):
     """Output HDUs: the current frame with persistence added, subtracted or alone.
 
@@ -261,9 +254,9 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
     """
     if mode not in MODES:
         raise PerscliError(f"--mode must be one of {', '.join(MODES)}, not {mode!r}")
-    if combine not in ("sum", "max"):
-        raise PerscliError(f"--combine must be sum or max, not {combine!r}")
-    the_plan = plan(current, previous, model, time_model=time_model, max_previous=max_previous)
+    model = with_settings(model, time_model=time_model, combine=combine, max_previous=max_previous)
+    time_model, combine, max_previous = model.time_model, model.combine, model.max_previous
+    the_plan = plan(current, previous, model)
     ny, nx = current.shape
     nplanes = current.nreads
     sci_hdus = [current.hdus[i] for i in current.sci]
@@ -357,10 +350,11 @@ def provenance(header, current: Frame, result: PersistenceResult, model: Persist
 
 
 def apply_persistence_files(current: str, previous, dest: str, *, model: PersistenceModel,
-                            mode: str = "add", time_model: str = "exact", combine: str = "sum",
-                            max_previous: int = 10, units: str | None = None, gain: float | None = None,
+                            mode: str = "add", time_model: str | None = None, combine: str | None = None,
+                            max_previous: int | None = None, units: str | None = None, gain: float | None = None,
                             exptime: float | None = None, gap: float | None = None, overwrite: bool = False,
-                            workers: int = 1, progress=None, stdin=None, stdout=None) -> PersistenceResult:
+                            workers: int = 1, progress=None, stdin=None, stdout=None,
+                            compress: str = "none") -> PersistenceResult:
     """Read frames, apply persistence and write the result: the whole command as a function.
 
     Parameters
@@ -381,6 +375,8 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
         order ``previous..., current`` with ``gap`` seconds between exposures.
     overwrite : bool
         Replace an existing output.
+    compress : {'none', 'gzip', 'rice'}
+        Lossless tile compression of the output's images.
 
     Returns
     -------
@@ -404,7 +400,7 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
             assign_sequence_timing(prevs + [cur], gap, exptime)
         hdus, result = apply_to_frame(cur, prevs, model, mode=mode, time_model=time_model, combine=combine,
                                       max_previous=max_previous, workers=workers, progress=progress)
-        write_hdus(hdus, dest, overwrite=overwrite, stdout=stdout)
+        write_hdus(hdus, dest, overwrite=overwrite, stdout=stdout, compress=compress)
         return result
     finally:
         for frame in opened:

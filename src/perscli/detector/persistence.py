@@ -57,6 +57,14 @@ FERMI_PARAMETERS = {
 TIME_MODELS = ("exact", "galsim")
 COMBINES = ("sum", "max")
 
+#: How a model is applied (not the law itself): name -> (description, allowed values, default).
+SETTINGS = {
+    "time_model": ("exact: integral of the rate over the exposure; galsim: GalSim's mid-exposure rate x 139.8 s",
+                   TIME_MODELS, "exact"),
+    "combine": ("sum over earlier exposures (the paper, GalSim) or per-pixel max (WFC3 pipeline)", COMBINES, "sum"),
+    "max_previous": ("only the N most recent earlier exposures count (0: all; the paper: 10)", "integer >= 0", 10),
+}
+
 
 @dataclass(frozen=True)
 class PersistenceModel:
@@ -74,6 +82,12 @@ class PersistenceModel:
         Fermi parameters (see :data:`FERMI_PARAMETERS`).
     coefficients : tuple of float
         Linear coefficients, most recent exposure first.
+    time_model : {'exact', 'galsim'}
+        How the rate becomes charge (see :data:`SETTINGS`).
+    combine : {'sum', 'max'}
+        How earlier exposures add up.
+    max_previous : int
+        Most recent earlier exposures that count (0: all).
     """
 
     name: str = "typical"
@@ -85,8 +99,19 @@ class PersistenceModel:
     gamma: float = PRESETS["typical"]["gamma"]
     half_well: float = PRESETS["typical"]["half_well"]
     coefficients: tuple = field(default=GALSIM_LINEAR_COEFFICIENTS)
+    time_model: str = "exact"
+    combine: str = "sum"
+    max_previous: int = 10
 
     def __post_init__(self):
+        if self.time_model not in TIME_MODELS:
+            raise PerscliError(f"persistence time_model must be one of {', '.join(TIME_MODELS)}, "
+                               f"not {self.time_model!r}")
+        if self.combine not in COMBINES:
+            raise PerscliError(f"persistence combine must be one of {', '.join(COMBINES)}, not {self.combine!r}")
+        if isinstance(self.max_previous, bool) or not isinstance(self.max_previous, int) or self.max_previous < 0:
+            raise PerscliError(f"persistence max_previous must be a whole number >= 0 (0: all), "
+                               f"not {self.max_previous!r}")
         if self.kind not in ("fermi", "linear"):
             raise PerscliError(f"persistence model kind must be 'fermi' or 'linear', not {self.kind!r}")
         if self.kind == "fermi":
@@ -139,10 +164,13 @@ class PersistenceModel:
         return self.F(x) * (np.asarray(t, dtype=np.float64) / 1000.0) ** (-self.gamma)
 
     def params(self) -> dict:
-        """The parameters as a plain dict (for headers and YAML)."""
+        """The parameters and settings as a plain dict (for headers and YAML)."""
         if self.kind == "linear":
-            return {"coefficients": list(self.coefficients)}
-        return {key: getattr(self, key) for key in FERMI_PARAMETERS}
+            out = {"kind": "linear", "coefficients": list(self.coefficients)}
+        else:
+            out = {key: getattr(self, key) for key in FERMI_PARAMETERS}
+        out.update({key: getattr(self, key) for key in SETTINGS})
+        return out
 
 
 def _number(key, value, source):
@@ -192,17 +220,36 @@ def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence
             items.append((key.strip(), value.strip()))
     if not items:
         return model
-    if model.kind != "fermi":
-        raise PerscliError(f"parameters cannot be overridden for the linear model {model.name!r}; "
-                           "use --model typical|pessimistic|FILE.yaml to set Fermi parameters")
     changes = {}
     for key, value in items:
+        if key in SETTINGS:
+            changes[key] = _setting(key, value, "--param")
+            continue
         if key not in FERMI_PARAMETERS:
-            raise PerscliError(
-                f"unknown persistence parameter {key!r}: valid are {', '.join(FERMI_PARAMETERS)}")
+            raise PerscliError(f"unknown persistence parameter {key!r}: valid are "
+                               f"{', '.join([*FERMI_PARAMETERS, *SETTINGS])}")
+        if model.kind != "fermi":
+            raise PerscliError(f"parameter {key} cannot be set for the linear model {model.name!r}; "
+                               "use --model typical|pessimistic|FILE.yaml to set Fermi parameters")
         changes[key] = _number(key, value, "--param")
-    desc = ",".join(f"{k}={v:g}" for k, v in changes.items())
+    desc = ",".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in changes.items())
     return dataclasses.replace(model, name=f"{model.name}+{desc}", **changes)
+
+
+def _setting(key, value, source):
+    """A model setting (time_model, combine, max_previous) from YAML or the command line, checked."""
+    if key == "max_previous":
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            number = float("nan")
+        if isinstance(value, bool) or not math.isfinite(number) or number != int(number) or number < 0:
+            raise PerscliError(f"{source}: persistence max_previous={value!r} must be a whole number >= 0 (0: all)")
+        return int(number)
+    allowed = SETTINGS[key][1]
+    if value not in allowed:
+        raise PerscliError(f"{source}: persistence {key}={value!r} must be one of {', '.join(allowed)}")
+    return value
 
 
 def _model_from_yaml(path: str) -> PersistenceModel:
@@ -226,6 +273,7 @@ def _model_from_mapping(doc: dict, path: str) -> PersistenceModel:
     kind = doc.pop("kind", doc.pop("model", "fermi"))
     base = doc.pop("base", None)
     doc.pop("enabled", None)
+    settings = {key: _setting(key, doc.pop(key), path) for key in list(doc) if key in SETTINGS}
     if kind == "linear":
         coeffs = doc.pop("coefficients", GALSIM_LINEAR_COEFFICIENTS)
         if doc:
@@ -233,7 +281,7 @@ def _model_from_mapping(doc: dict, path: str) -> PersistenceModel:
         if not isinstance(coeffs, (list, tuple)):
             raise PerscliError(f"{path}: coefficients must be a list of numbers")
         return PersistenceModel(name=path, kind="linear",
-                                coefficients=tuple(_number("coefficients", c, path) for c in coeffs))
+                                coefficients=tuple(_number("coefficients", c, path) for c in coeffs), **settings)
     if kind != "fermi":
         raise PerscliError(f"{path}: kind must be 'fermi' or 'linear', not {kind!r}")
     if base is not None and base not in PRESETS:
@@ -248,8 +296,8 @@ def _model_from_mapping(doc: dict, path: str) -> PersistenceModel:
     if missing:
         raise PerscliError(f"{path}: missing {', '.join(missing)} (or give 'base: typical' to start from a preset)")
     params.update({k: _number(k, v, path) for k, v in doc.items()})
-    name = base if base and not doc else path
-    return PersistenceModel(name=name, **params)
+    name = base if base and not doc and not settings else path
+    return PersistenceModel(name=name, **params, **settings)
 
 
 def time_factor(t_start, t_end, gamma: float) -> np.ndarray:
@@ -357,3 +405,139 @@ def accumulate(fluence, acc, time_factors, model: PersistenceModel, *, scale: fl
         nonfinite += bad
         datasum = ones_complement_add(datasum, part)
     return nonfinite, datasum
+
+
+# -- persistence on arrays ------------------------------------------------------------------------
+
+def exposure_time_factors(gap: float, ends, recency: int, model: PersistenceModel, *, label: str = "an earlier "
+                          "exposure"):
+    """What one earlier exposure contributes per unit of ``F(x)``, for each output plane.
+
+    Parameters
+    ----------
+    gap : float
+        Seconds from the end of the earlier exposure to the start of the current one.
+    ends : sequence of float
+        Seconds from the start of the current exposure to the end of each
+        output plane: ``[exptime]`` for an image, the read times of a ramp.
+    recency : int
+        0 for the most recent earlier exposure (GalSim's time model and the
+        linear model depend on it).
+    model : PersistenceModel
+
+    Returns
+    -------
+    list of float or None
+        Seconds (the time integral of ``(t/1000)^-gamma``; GalSim's
+        ``rate((0.5 + i) 139.8 s) 139.8 s`` with ``time_model='galsim'``), or
+        the linear coefficient; None when the exposure is beyond the linear
+        model's coefficients.
+    """
+    ends = np.atleast_1d(np.asarray(ends, dtype=np.float64))
+    if model.kind == "linear":
+        if len(ends) > 1:
+            raise PerscliError("the linear model has no time dependence and cannot be applied read by read; "
+                               "use a Fermi model (typical, pessimistic) for ramps")
+        return [model.coefficients[recency]] if recency < len(model.coefficients) else None
+    if model.time_model == "galsim":
+        if len(ends) > 1:
+            raise PerscliError("time_model galsim has no notion of reads; use time_model exact for ramps")
+        mid = (0.5 + recency) * GALSIM_EXPTIME
+        return [GALSIM_EXPTIME * (mid / 1000.0) ** (-model.gamma)]
+    if gap <= 0 and model.gamma >= 1:
+        raise PerscliError(f"{label} ends exactly when the current exposure starts: with gamma={model.gamma:g} the "
+                           "persistence integral diverges at zero delay; check the timestamps (a reset takes time)")
+    try:
+        return [float(v) for v in time_factor(np.full_like(ends, gap), gap + ends, model.gamma)]
+    except ValueError as exc:
+        raise PerscliError(f"{label}: {exc}") from None
+
+
+def order_earlier(ends, start: float, model: PersistenceModel, names=None):
+    """Which earlier exposures count, most recent first, after checking their times.
+
+    Parameters
+    ----------
+    ends : sequence of float
+        End of each earlier exposure (any clock, seconds or days, as ``start``).
+    start : float
+        Start of the current exposure, same clock.
+    names : sequence of str, optional
+        For messages.
+
+    Returns
+    -------
+    (list of int, list of int)
+        Indices used (most recent first, at most ``model.max_previous`` unless
+        0) and indices left out.
+
+    Raises
+    ------
+    PerscliError
+        An exposure that does not end before ``start``, or one given twice
+        (two earlier exposures of one detector cannot end at the same moment).
+    """
+    ends = [float(e) for e in ends]
+    names = list(names) if names is not None else [f"earlier exposure {i + 1}" for i in range(len(ends))]
+    for i, end in enumerate(ends):
+        if end > start:
+            raise PerscliError(f"{names[i]} ends after the current exposure starts: it is not an earlier exposure; "
+                               "check the order or the timestamps")
+    order = sorted(range(len(ends)), key=lambda i: ends[i], reverse=True)
+    for a, b in zip(order, order[1:]):
+        if ends[a] == ends[b]:
+            raise PerscliError(f"{names[b]} and {names[a]} end at the same moment: the same earlier exposure is "
+                               "given twice; give each earlier exposure once")
+    keep = order if model.max_previous == 0 else order[:model.max_previous]
+    return keep, order[len(keep):]
+
+
+def persistence_charge(fluences, ends, start: float, plane_ends, model: PersistenceModel, *, scales=None):
+    """The persistence charge that earlier exposures leave in the current one: arrays in, array out.
+
+    The file-free core of ``perscli apply-persistence`` (which streams the
+    same computation block by block from files) and of ``perscli render``.
+
+    Parameters
+    ----------
+    fluences : sequence of ndarray
+        Fluence of each earlier exposure, all of one shape (electrons, or
+        times ``scales``).  Non-finite values count as zero.
+    ends : sequence of float
+        End of each earlier exposure, in seconds on the clock of ``start``.
+    start : float
+        Start of the current exposure, seconds.
+    plane_ends : float or sequence of float
+        Seconds from ``start`` to the end of the exposure (an image), or to
+        each read (a ramp: one output plane per read).
+    model : PersistenceModel
+        The law and its settings (time_model, combine, max_previous).
+    scales : sequence of float, optional
+        Multiply each fluence into electrons (gain, exposure time).
+
+    Returns
+    -------
+    ndarray of float64, shape ``(nplanes,) + fluence shape``
+        Electrons.
+    """
+    fluences = [np.asarray(f) for f in fluences]
+    if len(fluences) != len(ends):
+        raise ValueError("one end time per fluence array")
+    plane_ends = np.atleast_1d(np.asarray(plane_ends, dtype=np.float64))
+    if not fluences:
+        raise PerscliError("no earlier exposure: persistence needs at least one")
+    shape = fluences[0].shape
+    for f in fluences:
+        if f.shape != shape:
+            raise PerscliError(f"earlier exposures differ in shape ({f.shape} and {shape}): they must cover the same "
+                               "detector pixels")
+    scales = [1.0] * len(fluences) if scales is None else [float(s) for s in scales]
+    keep, _ = order_earlier(ends, start, model)
+    acc = np.zeros((len(plane_ends),) + shape)
+    for recency, i in enumerate(keep):
+        factors = exposure_time_factors(start - float(ends[i]), plane_ends, recency, model,
+                                        label=f"earlier exposure {i + 1}")
+        if factors is None:
+            continue
+        accumulate(np.ascontiguousarray(fluences[i]), acc, factors, model, scale=scales[i], combine=model.combine)
+    return acc

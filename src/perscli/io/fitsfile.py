@@ -591,6 +591,26 @@ class HDU:
         self.verified = True
         return datasum
 
+    def verify_header(self) -> None:
+        """Check the header against CHECKSUM with the DATASUM it states, without reading the data.
+
+        Cheap (the header's own bytes), so it is done for every HDU when a file
+        is opened: a corrupted keyword (EXPEND read as EZPEND) is caught even in
+        an HDU whose data are never read.  :meth:`verify` checks the data too.
+        """
+        if not checksums_enabled():
+            return
+        from .. import _kernels
+
+        raw = bytes(self.source.pread(self.header_offset, self.data_offset - self.header_offset))
+        stored = _stored_cards(raw)
+        stated = str(stored.get("DATASUM", "")).strip()
+        if "CHECKSUM" not in stored or not stated.isdigit() or int(stated) > 0xFFFFFFFF:
+            return
+        if ones_complement_add(_kernels.datasum(raw), int(stated)) != 0xFFFFFFFF:
+            raise PerscliError(f"{self.file.label}: {self.label}: the header does not match its CHECKSUM: "
+                               f"corrupt or stale; {CHECKSUM_HINT}")
+
     # -- reading images ----------------------------------------------------------------------------
     def stream_rows(self, r0: int, r1: int, plane: int = 0) -> np.ndarray:
         """Rows of a plain image as stored (big-endian, unscaled), WITHOUT verifying checksums.
@@ -732,6 +752,17 @@ def _describe_cfitsio(label: str, exc: Exception) -> PerscliError:
                         "or check that it really is FITS")
 
 
+def _image_view(cards) -> list:
+    """The header of a tile-compressed image as its reader sees it: ZBITPIX, ZNAXISn become BITPIX,
+    NAXISn (the stored table's own structure is dropped), the other cards as they are."""
+    stored = Header(cards)
+    out = [format_card("XTENSION", "IMAGE"), format_card("BITPIX", int(stored.get("ZBITPIX", -32)))]
+    naxis = int(stored.get("ZNAXIS", 0))
+    out.append(format_card("NAXIS", naxis))
+    out += [format_card(f"NAXIS{k}", int(stored.get(f"ZNAXIS{k}", 0))) for k in range(1, naxis + 1)]
+    return out + [c for c in cards if not _is_structural(c[:8].rstrip()) or c[:8].rstrip() in ("EXTNAME",)]
+
+
 def _stored_size(label: str, index: int, header: Header, fallback: int) -> int:
     """Bytes of an HDU's data without padding (FITS Standard 4.4.1), from its header."""
     try:
@@ -808,6 +839,8 @@ class FitsFile:
             self.hdus = []
             for i, (offsets, exttype, compressed, cards) in enumerate(infos):
                 kind = "image" if exttype == "IMAGE_HDU" else "table"
+                if compressed:
+                    cards = _image_view(cards)
                 header = Header(cards)
                 start = int(offsets["data_start"])
                 # CFITSIO's data_end includes the block padding; the data's own size is the header's
@@ -823,6 +856,8 @@ class FitsFile:
                 self.hdus.append(hdu)
             if not self.hdus:
                 raise PerscliError(f"{self.label}: no HDU could be read; the file is corrupt")
+            for hdu in self.hdus:
+                hdu.verify_header()
             end = padded(self.hdus[-1].data_end)
             if end > self.source.size:
                 raise PerscliError(f"{self.label}: the file is truncated (the last HDU's padding is missing); "

@@ -64,7 +64,7 @@ def _exposure_cards(exposure: Exposure, optics, seed: int, bunit: str, gain: flo
 
 def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, seed: int,
                 previous=(), overwrite: bool = False, workers: int = 1, progress=None,
-                plot: str | None = None) -> dict:
+                plot: str | None = None, compress: str = "none") -> dict:
     """Render ``exposure`` of the truth catalogue ``truth`` and write ``dest``.
 
     Parameters
@@ -85,6 +85,8 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         As for every command.
     plot : str, optional
         Also write a PNG of the frame and its persistence.
+    compress : {'none', 'gzip', 'rice'}
+        Lossless tile compression of the images (a full SCA: ~40% of the plain size with gzip).
 
     Returns
     -------
@@ -136,7 +138,7 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         if result.persistence is not None:
             hdus.append(image(result.persistence, "PERSIST", e_cards))
         _provenance(hdus[0], truth, cols["datasum"], exposure, model, seed, opened, pers_info)
-        write_hdus(hdus, dest, overwrite=overwrite)
+        write_hdus(hdus, dest, overwrite=overwrite, compress=compress)
         if plot:
             from .plots import frame_figure
 
