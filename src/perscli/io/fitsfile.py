@@ -1168,9 +1168,29 @@ def _write_one(fits, hdu: OutHDU, *, first: bool, compress: str) -> None:
             kwargs = dict(compress="GZIP_2" if compress == "gzip" else "RICE", qlevel=0.0)
             if data.ndim == 2:
                 kwargs["tile_dims"] = [1, data.shape[1]]
-        fits.write(None if data is None else _native(data), extname=extname, **kwargs)
+        if data is None or not data.size:
+            fits.write(None, extname=extname)
+            _write_cards(fits, hdu.cards)
+        else:
+            # the header first, then the data: cards written after the data would make CFITSIO move
+            # the whole data unit each time the header grows by a block
+            data = _native(data)
+            if kwargs:
+                fits.create_image_hdu(dims=data.shape, dtype=data.dtype, extname=extname, **kwargs)
+                _write_cards(fits, hdu.cards)
+            else:
+                # one pixel while the header is written, then the real size: the data unit is never moved
+                fits.create_image_hdu(dims=[1] * data.ndim, dtype=data.dtype, extname=extname)
+                _write_cards(fits, hdu.cards)
+                fits[-1].reshape(data.shape)
+            fits[-1].write(data)
+        return
+    _write_cards(fits, hdu.cards)
+
+
+def _write_cards(fits, cards) -> None:
     ext = len(fits)
-    for card in _header_cards(hdu.cards):
+    for card in _header_cards(cards):
         try:
             fits._FITS.write_record(ext, card)
         except (OSError, ValueError) as exc:
