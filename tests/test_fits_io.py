@@ -309,3 +309,32 @@ def test_gzipped_stdin(chain, tmp_path):
     assert proc.returncode == 0, proc.stderr
     run("apply-persistence", chain["e2"], chain["e1"], "--mode", "predict", "-o", tmp_path / "p.fits")
     np.testing.assert_array_equal(science(tmp_path / "o.fits"), science(tmp_path / "p.fits"))
+
+
+def test_the_fast_writer_and_fitsio_write_the_same_file(tmp_path, monkeypatch):
+    """The hand-written path for plain images (kept for speed) against the fitsio path."""
+    import perscli.io.fitsfile as fitsfile
+    from perscli.io.fitsfile import OutHDU, format_card, write_fits_path
+
+    rng = np.random.default_rng(2)
+    cards = [format_card("BUNIT", "electron"), format_card("EXPSTART", 61541.123456789012),
+             format_card("LONGNAME", "x" * 150, "a long string"), format_card("HISTORY", "made here")]
+    hdus = [OutHDU([format_card("CREATOR", "test")]),
+            OutHDU(cards, rng.normal(0, 1, (37, 53)).astype(">f4"), extname="SCI"),
+            OutHDU(list(cards), rng.integers(-5, 5, (4, 6, 7)).astype(np.int16), extname="DQ"),
+            OutHDU([format_card("EXTNAME", "EMPTY")], None)]
+    write_fits_path(hdus, str(tmp_path / "fast.fits"))
+    monkeypatch.setattr(fitsfile, "_plain_image", lambda data: False)
+    write_fits_path(hdus, str(tmp_path / "cfitsio.fits"))
+
+    def content(path):
+        with fits.open(path, checksum=True) as hdul:
+            hdul.verify("exception")
+            return [(h.name, None if h.data is None else h.data.tolist(),
+                     [(k, v) for k, v in h.header.items() if k not in ("COMMENT", "CHECKSUM")]) for h in hdul]
+
+    assert content(tmp_path / "fast.fits") == content(tmp_path / "cfitsio.fits")
+    with fitsio.FITS(str(tmp_path / "fast.fits")) as f:
+        for hdu in f:
+            hdu.verify_checksum()
+        assert f["SCI"].read_header()["EXPSTART"] == 61541.123456789012

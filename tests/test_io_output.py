@@ -37,18 +37,19 @@ def open_verified(path):
 
 @pytest.fixture
 def failing_writer(monkeypatch):
-    """Make the FITS writer fail after the first HDU, as a full disk or a bug mid-file would."""
+    """Make the FITS writer fail at its second HDU, as a full disk or a bug mid-file would."""
     import perscli.io.fitsfile as fitsfile
 
-    real = fitsfile._write_one
-    state = {"exc": OSError}
+    real = fitsfile._header_cards
+    state = {"exc": OSError, "calls": 0}
 
-    def write_one(fits_out, hdu, *, first, compress):
-        if not first:
+    def header_cards(cards):
+        state["calls"] += 1
+        if state["calls"] > 1:
             raise state["exc"]("simulated failure while writing")
-        return real(fits_out, hdu, first=first, compress=compress)
+        return real(cards)
 
-    monkeypatch.setattr(fitsfile, "_write_one", write_one)
+    monkeypatch.setattr(fitsfile, "_header_cards", header_cards)
     return state
 
 
@@ -164,7 +165,7 @@ def test_write_fits_failure_keeps_the_old_file(tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise OSError("simulated failure while writing")
 
-    monkeypatch.setattr(fitsfile, "_write_one", broken)
+    monkeypatch.setattr(fitsfile, "_header_cards", broken)
     with pytest.raises(OSError, match="simulated"):
         write_fits(small_hdul(2.0), str(dest), overwrite=True)
     assert dest.read_bytes() == before
@@ -174,10 +175,10 @@ def test_write_fits_failure_keeps_the_old_file(tmp_path, monkeypatch):
 def test_write_fits_failure_inside_the_checksum_pass_leaves_nothing_behind(tmp_path, monkeypatch):
     import perscli.io.fitsfile as fitsfile
 
-    def broken(path):
+    def broken(value):
         raise RuntimeError("simulated: disk full")
 
-    monkeypatch.setattr(fitsfile, "_finish_checksums", broken)
+    monkeypatch.setattr(fitsfile, "_ascii_checksum", broken)
     with pytest.raises(RuntimeError, match="disk full"):
         write_fits(small_hdul(), str(tmp_path / "out.fits"))
     assert listing(tmp_path) == []

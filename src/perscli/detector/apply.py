@@ -149,51 +149,76 @@ def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str |
     return result
 
 
-def persistence_blocks(the_plan: PersistencePlan, model: PersistenceModel, *, combine: str | None = None,
-                       block_rows: int = BLOCK_ROWS, workers: int = 1, progress=None):
-    """Stream the persistence on the current frame, in electrons, block of rows by block of rows.
+def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, block_rows: int = BLOCK_ROWS,
+               workers: int = 1, progress=None) -> list:
+    """Compute the persistence block of rows by block of rows and hand each block to ``consume``.
 
-    Yields
-    ------
-    (r0, r1, ndarray)
-        Rows ``r0:r1`` and the persistence there, shape ``(nplanes, r1 - r0, nx)``
-        (one plane per read of a ramp).  The array is reused: copy it to keep it.
+    Parameters
+    ----------
+    the_plan : PersistencePlan
+    model : PersistenceModel
+        Its ``combine`` setting adds up or takes the maximum over earlier exposures.
+    consume : callable
+        ``consume(r0, r1, electrons)`` with the persistence of rows ``r0:r1``
+        in electrons, shape ``(nplanes, r1 - r0, nx)`` (one plane per read of
+        a ramp; the array is reused afterwards); its return values are
+        returned in block order.
+    workers : int
+        Threads, each taking whole blocks (reading, the compiled kernel and
+        ``consume`` all release the GIL on large arrays).  Inputs that are read
+        through CFITSIO (compressed, sections, ramps) are read in one thread.
+    progress : callable, optional
+        ``progress(done, total)``.
 
     Notes
     -----
     Every earlier frame is read once, a block at a time, by the compiled
     kernel directly from its stored bytes where it can; the DATASUM of each
-    is gathered on the way and checked against its header at the end.
+    is gathered on the way (in any order: the ones'-complement sum is
+    commutative) and checked against its header at the end.
     """
-    combine = combine or model.combine
+    import threading
+
     current = the_plan.current
     ny, nx = current.shape
     nplanes = current.nreads
-    storage = np.empty(nplanes * min(block_rows, ny) * nx, dtype=np.float64)
-    pool = None
-    if workers > 1:
+    starts = list(range(0, ny, block_rows))
+    local = threading.local()
+    nused = len(the_plan.used)
+
+    def work(r0):
+        r1 = min(ny, r0 + block_rows)
+        storage = getattr(local, "storage", None)
+        if storage is None:
+            storage = local.storage = np.empty(nplanes * min(block_rows, ny) * nx, dtype=np.float64)
+        acc = storage[:nplanes * (r1 - r0) * nx].reshape(nplanes, r1 - r0, nx)
+        acc.fill(0.0)
+        sums = []
+        for rec in the_plan.used:
+            fluence, scale = rec.frame.fluence_rows(r0, r1)
+            sums.append(accumulate(fluence, acc, rec.factors, model, scale=scale, combine=model.combine))
+        return sums, consume(r0, r1, acc)
+
+    threads_ok = all(rec.frame.fluence_is_raw for rec in the_plan.used)
+    results = []
+    if workers > 1 and threads_ok and len(starts) > 1:
         from concurrent.futures import ThreadPoolExecutor
 
-        pool = ThreadPoolExecutor(workers)
-    try:
-        nblocks = (ny + block_rows - 1) // block_rows
-        for b, r0 in enumerate(range(0, ny, block_rows)):
-            r1 = min(ny, r0 + block_rows)
-            acc = storage[:nplanes * (r1 - r0) * nx].reshape(nplanes, r1 - r0, nx)
-            acc.fill(0.0)
-            for rec in the_plan.used:
-                fluence, scale = rec.frame.fluence_rows(r0, r1)
-                bad, dsum = accumulate(fluence, acc, rec.factors, model, scale=scale, combine=combine,
-                                       pool=pool, workers=workers)
-                rec.nonfinite += bad
-                rec.datasum = ones_complement_add(rec.datasum, dsum)
-            yield r0, r1, acc
+        with ThreadPoolExecutor(workers) as pool:
+            for done, result in enumerate(pool.map(work, starts), 1):
+                results.append(result)
+                if progress is not None:
+                    progress(done, len(starts))
+    else:
+        for done, r0 in enumerate(starts, 1):
+            results.append(work(r0))
             if progress is not None:
-                progress(b + 1, nblocks)
-    finally:
-        if pool is not None:
-            pool.shutdown()
-    for rec in the_plan.used:
+                progress(done, len(starts))
+    for i, rec in enumerate(the_plan.used[:nused]):
+        for sums, _ in results:
+            bad, dsum = sums[i]
+            rec.nonfinite += bad
+            rec.datasum = ones_complement_add(rec.datasum, dsum)
         frame = rec.frame
         if frame.fluence_is_raw:
             rec.datasum = frame.verify(frame.fluence_source, rec.datasum)
@@ -201,13 +226,14 @@ def persistence_blocks(the_plan: PersistencePlan, model: PersistenceModel, *, co
             rec.datasum = frame.datasum(frame.provenance_hdu)
         if rec.nonfinite:
             log.warning("%s: %d non-finite pixels counted as zero fluence", frame.label, rec.nonfinite)
+    return [extra for _, extra in results]
 
 
 def persistence_image(current: Frame, previous, model: PersistenceModel, *, time_model: str | None = None,
                       combine: str | None = None, max_previous: int | None = None, workers: int = 1) -> np.ndarray:
     """The persistence that earlier exposures leave in ``current``, in electrons.
 
-    Parameters are those of :func:`plan` and :func:`persistence_blocks`.
+    Parameters are those of :func:`plan` and :func:`map_blocks`.
 
     Returns
     -------
@@ -216,8 +242,11 @@ def persistence_image(current: Frame, previous, model: PersistenceModel, *, time
     model = with_settings(model, time_model=time_model, combine=combine, max_previous=max_previous)
     the_plan = plan(current, previous, model)
     out = np.zeros((current.nreads,) + current.shape)
-    for r0, r1, block in persistence_blocks(the_plan, model, workers=workers):
+
+    def keep(r0, r1, block):
         out[:, r0:r1] = block
+
+    map_blocks(the_plan, model, keep, workers=workers)
     return out
 
 
@@ -240,7 +269,7 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
     Parameters
     ----------
     current, previous, model, time_model, combine, max_previous, workers, progress
-        See :func:`plan` and :func:`persistence_blocks`.
+        See :func:`plan` and :func:`map_blocks`.
     mode : {'add', 'subtract', 'predict'}
         Data plus persistence, data minus persistence, or persistence alone;
         always in the current frame's units.  Integer data become float32;
@@ -265,12 +294,10 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
     factors = [_unit_factor(current, k) for k in range(nplanes)]
     # the fast path: the current frame's stored bytes are checksummed as they are used
     fold_current = current.rows_are_raw
-    current_sum = 0
-    peak = total = 0.0
-    tmp = np.empty((min(BLOCK_ROWS, ny), nx))
-    for r0, r1, electrons in persistence_blocks(the_plan, model, combine=combine, workers=workers,
-                                                progress=progress):
-        work = tmp[:r1 - r0]
+
+    def consume(r0, r1, electrons):
+        work = np.empty((r1 - r0, nx))
+        part = 0
         for k in range(nplanes):
             if factors[k] == 0.0:
                 work.fill(0.0)
@@ -279,14 +306,21 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
             if mode != "predict":
                 rows = current.raw_rows(r0, r1) if fold_current else current.rows(k, r0, r1)
                 if fold_current:
-                    current_sum = ones_complement_add(current_sum, _kernels.datasum(rows))
+                    part = ones_complement_add(part, _kernels.datasum(rows))
                 if mode == "add":
                     np.add(rows, work, out=work)
                 else:
                     np.subtract(rows, work, out=work)
             out[k, r0:r1] = work
-        peak = max(peak, float(electrons[-1].max()))
-        total += float(electrons[-1].sum())
+        return part, float(electrons[-1].max()), float(electrons[-1].sum())
+
+    threads = workers if (fold_current or mode == "predict") else 1  # CFITSIO reads stay in one thread
+    parts = map_blocks(the_plan, model, consume, workers=threads, progress=progress)
+    current_sum = 0
+    for part, _, _ in parts:
+        current_sum = ones_complement_add(current_sum, part)
+    peak = max((p for _, p, _ in parts), default=0.0)
+    total = float(sum(t for _, _, t in parts))
     if fold_current and mode != "predict":
         current_sum = current.verify(current.sci[0], current_sum)
     else:

@@ -1262,10 +1262,85 @@ def write_fits_path(hdus, path: str, *, compress: str = "none") -> None:
 
     if compress not in COMPRESSIONS:
         raise PerscliError(f"--compress must be one of {', '.join(COMPRESSIONS)}, not {compress!r}")
+    if compress == "none" and all(_plain_image(h.data) for h in hdus):
+        _write_plain(hdus, path)
+        return
     with fitsio.FITS(path, "rw", clobber=True, ignore_empty=True) as out:
         for i, hdu in enumerate(hdus):
             _write_one(out, hdu, first=i == 0, compress=compress)
     _finish_checksums(path)
+
+
+_PLAIN_BITPIX = {"f4": -32, "f8": -64, "i2": 16, "i4": 32, "i8": 64, "u1": 8}
+
+
+def _plain_image(data) -> bool:
+    """Data the fast writer stores as they are: no table, no scaling needed (no unsigned 16/32/64-bit)."""
+    return data is None or (isinstance(data, np.ndarray) and not data.dtype.names
+                            and data.dtype.str[1:] in _PLAIN_BITPIX)
+
+
+def _write_plain(hdus, path: str) -> None:
+    """The fast path for plain images: cards and big-endian bytes streamed, checksums computed on the way.
+
+    benchmarks/bench_apply_persistence.py shows why it exists: CFITSIO sizes
+    a new image by writing zeros over its data unit before the data are
+    written, and writing a 67 MB frame that way costs three times as long
+    (0.17 s against 0.055 s, a third of the whole apply-persistence run).
+    The bytes are what the fitsio path writes, apart from CFITSIO's own
+    comment cards (tests/test_fits_io.py compares the two).
+    """
+    from .. import _kernels
+
+    with open(path, "wb") as fh:
+        for i, hdu in enumerate(hdus):
+            data = hdu.data
+            if data is not None and data.size == 0:
+                data = None
+            extname = hdu.extname
+            if extname is None:
+                extname = Header(hdu.cards).get("EXTNAME")
+            bitpix = 16 if data is None else _PLAIN_BITPIX[data.dtype.str[1:]]  # 16 for no data, as CFITSIO
+            naxis = () if data is None else data.shape[::-1]
+            head = [format_card("SIMPLE", True, "conforms to FITS standard") if i == 0
+                    else format_card("XTENSION", "IMAGE", "image extension"),
+                    format_card("BITPIX", bitpix, "array data type"),
+                    format_card("NAXIS", len(naxis), "number of array dimensions")]
+            head += [format_card(f"NAXIS{k}", int(n)) for k, n in enumerate(naxis, 1)]
+            head += ([format_card("EXTEND", True)] if i == 0
+                     else [format_card("PCOUNT", 0, "number of parameters"), format_card("GCOUNT", 1, "number of groups")])
+            if extname:
+                head.append(format_card("EXTNAME", str(extname).strip(), "extension name"))
+            cards = head + [c for c in _header_cards(hdu.cards) if c[:8] not in ("CHECKSU_", "DATASUM_")]
+            cards.append(format_card("CHECKSUM", "0" * 16, "HDU checksum"))
+            cards.append(format_card("DATASUM", "0", "data unit checksum"))
+            start = fh.tell()
+            fh.write(_header_bytes(cards))  # its size does not depend on the checksum values
+            datasum, nbytes = 0, 0
+            if data is not None:
+                # big-endian a slab at a time: no second copy of the whole image in memory
+                be = data.dtype.newbyteorder(">")
+                flat = data.reshape(-1) if data.flags.c_contiguous else np.ascontiguousarray(data).reshape(-1)
+                step = max(1, (1 << 22) // data.dtype.itemsize)
+                for a in range(0, flat.size, step):
+                    chunk = memoryview(np.ascontiguousarray(flat[a:a + step], dtype=be)).cast("B")
+                    datasum = ones_complement_add(datasum, _kernels.datasum(chunk))
+                    fh.write(chunk)
+                    nbytes += len(chunk)
+                fh.write(b"\0" * (padded(nbytes) - nbytes))
+            end = fh.tell()
+            cards[-1] = format_card("DATASUM", str(datasum), "data unit checksum")
+            total = ones_complement_add(_kernels.datasum(_header_bytes(cards)), datasum)
+            cards[-2] = format_card("CHECKSUM", _ascii_checksum(total), "HDU checksum")
+            fh.seek(start)
+            fh.write(_header_bytes(cards))
+            fh.seek(end)
+
+
+def _header_bytes(cards) -> bytes:
+    text = "".join(c.ljust(CARD)[:CARD] for c in cards) + "END".ljust(CARD)
+    text += " " * (padded(len(text)) - len(text))
+    return text.encode("ascii")
 
 
 def gzip_file(src: str, dest_fd: int) -> None:
