@@ -214,7 +214,10 @@ def test_add_provenance_records_creator_date_history_params_and_inputs():
     assert header["PSP01"] == "stdin"
     assert header["PSP01DS"] == "7"
     assert header["SEED"] == 42
-    assert list(header["HISTORY"]) == [f"perscli {perscli.__version__}: apply-persistence mode=add"]
+    history = list(header["HISTORY"])
+    assert history[0] == f"perscli {perscli.__version__}: apply-persistence mode=add"
+    assert "".join(history[1:]) == ("  inputs: PSCUR=cur.fits (DATASUM 12345), PSP01=stdin (DATASUM 7), "
+                                    "seed=42")
 
 
 # -- provenance and reproducibility of apply-persistence ----------------------------------------
@@ -378,3 +381,9 @@ def test_a_chained_run_leaves_no_stale_provenance(tmp_path):
         assert hdr["PSCUR"] == "first.fits"
         stale = [k for k in hdr if re.fullmatch(r"PSP(0[2-9]|[1-9]\d)\w*", k)]
         assert stale == []
+        # the history keeps both steps and the inputs of each
+        history = "".join(hdr["HISTORY"])
+        assert history.count("apply-persistence mode=add") == 2
+        assert history.count("=p2.fits (DATASUM") == 1 and history.count("=p0.fits (DATASUM") == 2
+        assert "PSCUR=current.fits" in history
+        assert "PSCUR=first.fits" in history

@@ -83,7 +83,15 @@ def add_provenance(header, *, step: str, params: dict | None = None, inputs=(), 
         header[f"{stem}DS"] = (str(datasum), f"DATASUM of {stem}'s data as read")
     if seed is not None:
         header["SEED"] = (int(seed), "random seed")
+    # the keywords describe the latest step only (a chained run replaces them); the HISTORY cards
+    # keep every step with its inputs, so a chain of commands can be traced back to its files
     header.add_history(f"{CREATOR}: {step}")
+    names = [f"{stem}={os.path.basename(name) if name != '-' else 'stdin'} (DATASUM {datasum})"
+             for stem, name, datasum in inputs]
+    if seed is not None:
+        names.append(f"seed={int(seed)}")
+    if names:
+        header.add_history("  inputs: " + ", ".join(names))
     return header
 
 
