@@ -12,6 +12,16 @@ from .options import compress_opt, no_checksum_opt, output_opt, overwrite_opt, w
 log = logging.getLogger("perscli")
 
 
+def _list_effects(ctx, param, value):
+    """--list-effects: print the registry's schema and stop (no TRUTH.fits, --seed or -o needed)."""
+    if not value or ctx.resilient_parsing:
+        return
+    from ..detector.effects import format_schema
+
+    click.echo(format_schema(), nl=False)
+    ctx.exit(0)
+
+
 @click.command("render", short_help="Draw a Roman SCA exposure of a truth catalogue through a detector model.")
 @click.argument("truth", metavar="TRUTH.fits")
 @click.option("--pointings", "pointings_file", metavar="FILE",
@@ -30,8 +40,9 @@ log = logging.getLogger("perscli")
               help="Detector 1-18 (default: the pointing's sca column).")
 @click.option("--bounds", type=int, nargs=4, metavar="XMIN XMAX YMIN YMAX",
               help="Render a cutout: 1-indexed inclusive SCA pixels [default: the full 4088 x 4088].")
-@click.option("--model", "model_spec", default="roman", show_default=True, metavar="roman|MODEL.yaml",
-              help="Detector model: GalSim's Roman chain, or a YAML list of effects in physical order.")
+@click.option("--model", "model_spec", default="roman", show_default=True, metavar="roman|MODEL.yaml|FRAME.fits",
+              help="Detector model: GalSim's Roman chain (with saturation), a YAML list of effects in physical "
+                   "order, or a frame perscli rendered (the model that made it). See --list-effects.")
 @click.option("--set", "settings", multiple=True, metavar="EFFECT.KEY=VALUE",
               help="Override the model: e.g. read_noise.sigma=5, persistence.base=pessimistic, ipc=off.")
 @click.option("--previous", multiple=True, metavar="FRAME",
@@ -41,6 +52,8 @@ log = logging.getLogger("perscli")
               help="Seed of every random stream: same seed, same bytes; one effect's noise does not depend "
                    "on which other effects are on.")
 @click.option("--plot", metavar="PNG", help="Also write a picture of the frame and of its persistence.")
+@click.option("--list-effects", is_flag=True, expose_value=False, is_eager=True, callback=_list_effects,
+              help="Print every effect's parameters (type, unit, default, allowed values) and exit.")
 @output_opt
 @compress_opt
 @no_checksum_opt

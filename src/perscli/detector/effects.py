@@ -1,9 +1,27 @@
-"""The detector model: a chain of effects in physical order, each switchable.
+"""The detector model: a registry of effects, applied in physical order, each switchable.
+
+Every effect is one class registered by name (:data:`REGISTRY`, in physical
+order) with a parameter schema (:class:`Param`: type, unit, default, allowed
+range, description) and three methods:
+
+``sample(image, ctx)``
+    what ``perscli render`` does to a frame, drawing from the effect's own
+    random stream;
+``expectation(mean, ctx)``
+    the noise-free forward model of the mean signal;
+``variance(mean, var, ctx)``
+    how the effect changes the variance per pixel of a signal whose mean
+    (before the effect) is ``mean``.
+
+Expectation and variance are what a likelihood needs (``perscli diagnose``);
+:func:`forward` chains them, :func:`run_chain` chains ``sample``.  ``ctx``
+(:class:`ChainContext`) carries the exposure time, the seed, the sky rate and
+the persistence charge supplied by the caller.
 
 A detector model is a YAML file listing effects in the order they happen
 physically, each with its parameters; every effect can be switched off with
-``enabled: false``.  The defaults (:data:`DEFAULTS`) are GalSim's Roman
-module (galsim.roman) and follow its order::
+``enabled: false``.  The default (:func:`default_model`) is GalSim's Roman
+chain (galsim.roman) in its order, with saturation added::
 
     effects:
       - sky:          {level: auto}        # zodiacal + thermal, e-/pixel/s ('auto': galsim.roman)
@@ -11,6 +29,7 @@ module (galsim.roman) and follow its order::
       - reciprocity:  {alpha: 0.0065, base_flux: 1.0}
       - dark:         {current: 0.015}     # e-/pixel/s, Poisson
       - persistence:  {base: typical}      # the Fermi model of earlier exposures (--previous)
+      - saturation:   {full_well: 1.0e5}   # e-: collected charge is clipped here
       - nonlinearity: {beta: -6.0e-7}      # x + beta x^2
       - ipc:          {kernel: roman}      # 3x3 interpixel capacitance
       - read_noise:   {sigma: 8.5}         # e-, Gaussian
@@ -22,6 +41,15 @@ seed and the effect's name, so switching one effect on or off leaves the
 noise of every other effect unchanged: a frame rendered with persistence and
 one without differ only by the persistence (what a paired measurement needs).
 
+Stages: 'scene' effects (sky) make the IDEAL frame with the sources;
+'charge' effects (up to saturation) make the FLUENCE, the charge collected in
+the pixels that drives later persistence; 'readout' effects act on the
+signal after the charge is collected.
+
+A rendered frame carries its resolved model in a MODEL table
+(:func:`model_table`); :func:`load_detector_model` reads it back from the
+frame, so that ``perscli render --model FRAME.fits`` reproduces the model.
+
 Persistence is not implemented here: the chain calls
 :mod:`perscli.detector.persistence`, the one home of that model.
 """
@@ -29,216 +57,191 @@ Persistence is not implemented here: the chain calls
 from __future__ import annotations
 
 import copy
+import json
+import math
+import os
 import zlib
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, ClassVar
 
 import numpy as np
 
 from .. import PerscliError
 
-ORDER = ("sky", "poisson", "reciprocity", "dark", "persistence", "nonlinearity", "ipc",
-         "read_noise", "gain", "quantize")
-
-#: GalSim's Roman values (galsim.roman: reciprocity_alpha, dark_current, nonlinearity_beta,
-#: ipc_kernel, read_noise, gain); persistence parameters are those of the paper's 'typical' set.
-DEFAULTS = {
-    "sky": {"level": "auto"},
-    "poisson": {},
-    "reciprocity": {"alpha": 0.0065, "base_flux": 1.0},
-    "dark": {"current": 0.015},
-    "persistence": {"base": "typical"},
-    "nonlinearity": {"beta": -6.0e-7},
-    "ipc": {"kernel": "roman"},
-    "read_noise": {"sigma": 8.5},
-    "gain": {"gain": 1.0},
-    "quantize": {},
-}
-
-DESCRIPTIONS = {
-    "sky": "zodiacal and thermal background, e-/pixel/s ('auto': galsim.roman.getSkyLevel + thermal)",
-    "poisson": "Poisson noise of the collected charge",
-    "reciprocity": "reciprocity failure x (1 + alpha log10(x / (base_flux t))) (GalSim: its power-law form)",
-    "dark": "dark current (e-/pixel/s) with its Poisson noise",
-    "persistence": "persistence of earlier exposures (perscli's Fermi model, exact time integral)",
-    "nonlinearity": "classical nonlinearity x + beta x^2",
-    "ipc": "interpixel capacitance, 3x3 kernel ('roman' or a 3x3 list)",
-    "read_noise": "Gaussian read noise sigma (e-)",
-    "gain": "conversion to DN with gain (e-/DN)",
-    "quantize": "rounding to integer values",
-}
+# -- parameter schemas ---------------------------------------------------------------------------
 
 
-@dataclass
-class Effect:
-    """One step of the chain."""
+@dataclass(frozen=True)
+class Param:
+    """One parameter of an effect: what it is and which values it may take.
+
+    Attributes
+    ----------
+    name : str
+    kind : {'float', 'int', 'choice', 'kernel', 'floats'}
+        'float': a finite number; 'int': a whole number; 'choice': one of
+        ``choices``; 'kernel': 'roman' or a 3x3 list of numbers; 'floats': a
+        non-empty list of finite numbers.
+    default
+        The value when not given; None for a value taken from another
+        parameter (``derived``).
+    unit : str
+    description : str
+    lo, hi : float, optional
+        Bounds (None: unbounded).
+    lo_open, hi_open : bool
+        The bound itself is excluded.
+    choices : tuple of str
+        Allowed words ('choice'), or words accepted besides numbers (e.g.
+        'auto' for the sky level).
+    derived : str
+        For ``default=None``: where the value comes from (e.g. 'from base').
+    """
 
     name: str
-    params: dict = field(default_factory=dict)
-    enabled: bool = True
+    kind: str
+    default: object
+    unit: str = ""
+    description: str = ""
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple = ()
+    derived: str = ""
+
+    def allowed(self, unit: bool = False) -> str:
+        """The allowed values as text, e.g. '(0, inf)' or 'typical | pessimistic' (with the unit if asked)."""
+        if self.kind == "choice":
+            return " | ".join(self.choices)
+        if self.kind == "kernel":
+            return "roman | 3x3 list"
+        lo = "-inf" if self.lo is None else f"{self.lo:g}"
+        hi = "inf" if self.hi is None else f"{self.hi:g}"
+        text = f"{'(' if self.lo_open or self.lo is None else '['}{lo}, {hi}{')' if self.hi_open or self.hi is None else ']'}"
+        if self.kind == "int":
+            text = f"integer {text}"
+        if self.kind == "floats":
+            text = f"list, each {text}"
+        if unit and self.unit:
+            text += f" {self.unit}"
+        if self.choices:
+            text += " | " + " | ".join(self.choices)
+        return text
+
+    def _requirement(self) -> str:
+        if self.kind == "choice":
+            return f"must be one of {', '.join(self.choices)}"
+        if self.kind == "kernel":
+            return "must be 'roman' or a 3x3 list of finite numbers"
+        if self.lo == 0 and self.hi is None:
+            return "must be positive" if self.lo_open else "must not be negative"
+        if self.lo is None and self.hi is None:
+            return "must be a finite number"
+        return f"must be in {self.allowed()}"
+
+    def check(self, effect: str, value, where: str):
+        """``value`` converted to this parameter's type, or a PerscliError naming effect.param, value and range."""
+        def fail(requirement):
+            allowed = "" if self.kind in ("choice", "kernel") else f" (allowed: {self.allowed(unit=True)})"
+            return PerscliError(f"{where}: {effect}.{self.name} {requirement}{allowed}, not {value!r}")
+
+        if value is None and self.default is None:
+            return None
+        if self.kind == "choice":
+            if not isinstance(value, str) or value not in self.choices:
+                raise fail(self._requirement())
+            return value
+        if self.kind == "kernel":
+            if value == "roman":
+                return value
+            arr = np.asarray(value, dtype=float) if isinstance(value, (list, tuple)) and _numbers(value) else None
+            if arr is None or arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
+                raise fail(self._requirement())
+            return [[float(v) for v in row] for row in value]
+        if isinstance(value, str) and value in self.choices:
+            return value
+        if self.kind == "floats":
+            if not isinstance(value, (list, tuple)) or not value:
+                raise fail("must be a non-empty list of finite numbers")
+            return [self._number(effect, v, where, fail) for v in value]
+        return self._number(effect, value, where, fail)
+
+    def _number(self, effect, value, where, fail):
+        number = value
+        if isinstance(number, str):
+            # YAML 1.1 reads '-6e-7' (no decimal point) as text: accept any number Python can parse
+            try:
+                number = float(number)
+            except ValueError:
+                pass
+        if isinstance(number, bool) or not isinstance(number, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(number):
+            raise fail("must be a whole number" if self.kind == "int" else "must be a finite number")
+        if self.kind == "int":
+            if number != int(number):
+                raise fail("must be a whole number")
+            number = int(number)
+        else:
+            number = float(number)
+        if self.lo is not None and (number < self.lo or (self.lo_open and number == self.lo)):
+            raise fail(self._requirement())
+        if self.hi is not None and (number > self.hi or (self.hi_open and number == self.hi)):
+            raise fail(self._requirement())
+        return number
+
+
+def _numbers(rows) -> bool:
+    try:
+        return all(not isinstance(v, (bool, str)) and isinstance(v, (int, float))
+                   for row in rows for v in row)
+    except TypeError:
+        return False
+
+
+# -- what the chain carries --------------------------------------------------------------------
 
 
 @dataclass
-class DetectorModel:
-    """An ordered list of effects."""
-
-    effects: list
-    source: str = "roman"
-
-    def get(self, name: str) -> Effect | None:
-        for eff in self.effects:
-            if eff.name == name:
-                return eff
-        return None
-
-    def enabled(self, name: str) -> bool:
-        eff = self.get(name)
-        return eff is not None and eff.enabled
-
-    def describe(self) -> list:
-        """[(name, enabled, params)] for headers and logs."""
-        return [(e.name, e.enabled, dict(e.params)) for e in self.effects]
-
-    def persistence_model(self):
-        """The :class:`~perscli.detector.persistence.PersistenceModel` of the persistence step."""
-        from .persistence import _model_from_mapping
-
-        eff = self.get("persistence")
-        return _model_from_mapping(dict(eff.params) if eff else {}, f"{self.source}: persistence")
-
-
-def default_model() -> DetectorModel:
-    """GalSim's Roman chain, every effect on."""
-    return DetectorModel([Effect(name, copy.deepcopy(DEFAULTS[name])) for name in ORDER], source="roman")
-
-
-def load_detector_model(spec: str | None = None, overrides=()) -> DetectorModel:
-    """Read a detector model and apply ``EFFECT.KEY=VALUE`` overrides.
+class ChainContext:
+    """What effects need besides the image: exposure time, seed, sky and persistence.
 
     Parameters
     ----------
-    spec : str, optional
-        'roman' (or None) for :func:`default_model`, or a YAML file: either a
-        list under ``effects:`` (in physical order) of ``{name: {params}}``
-        mappings, or a mapping ``name: {params}``.  Effects not listed are
-        off; parameters not given take the Roman defaults.
-    overrides : sequence of str
-        'EFFECT.KEY=VALUE' (e.g. 'read_noise.sigma=5'), 'EFFECT=off' or
-        'EFFECT=on'.
-
-    Returns
-    -------
-    DetectorModel
+    exptime : float
+        Seconds.
+    seed : int
+        Seed of every random stream.
+    sky_rate : float or callable
+        The automatic sky level in e-/pixel/s, or a function returning it
+        (called at most once, and only if the sky effect asks for 'auto').
+    persistence : ndarray or callable, optional
+        The persistence charge in electrons (the image's shape), or a
+        function returning it (called at most once, only when the
+        persistence effect is on); None: no earlier exposures.
     """
-    if spec in (None, "roman", "default"):
-        model = default_model()
-    else:
-        model = _from_yaml(spec)
-    for text in overrides:
-        _override(model, text)
-    return model
 
+    exptime: float
+    seed: int = 0
+    sky_rate: float | Callable[[], float] = 0.0
+    persistence: np.ndarray | Callable[[], np.ndarray] | None = None
+    #: what the chain used: the sky rate (e-/pixel/s) and the persistence charge (electrons)
+    used_sky_rate: float = 0.0
+    used_persistence: np.ndarray | None = None
+    _cache: dict = field(default_factory=dict, repr=False)
 
-def _from_yaml(path: str) -> DetectorModel:
-    from ..io.config import load_yaml
+    def sky(self) -> float:
+        if "sky" not in self._cache:
+            self._cache["sky"] = float(self.sky_rate() if callable(self.sky_rate) else self.sky_rate)
+        return self._cache["sky"]
 
-    doc = load_yaml(path, "detector model")
-    if isinstance(doc, dict) and "effects" in doc:
-        doc = doc["effects"]
-    if isinstance(doc, dict):
-        items = list(doc.items())
-    elif isinstance(doc, list):
-        items = []
-        for entry in doc:
-            if isinstance(entry, str):
-                items.append((entry, {}))
-            elif isinstance(entry, dict) and len(entry) == 1:
-                items.append(next(iter(entry.items())))
-            else:
-                raise PerscliError(f"{path}: each effect must be a name or a one-key mapping, not {entry!r}")
-    else:
-        raise PerscliError(f"{path}: expected 'effects:' with a list of effects in physical order")
-    effects, seen = [], set()
-    for name, params in items:
-        if name not in DEFAULTS:
-            raise PerscliError(f"{path}: unknown effect {name!r}; known: {', '.join(ORDER)}")
-        if name in seen:
-            raise PerscliError(f"{path}: effect {name!r} is listed twice")
-        seen.add(name)
-        params = dict(params or {})
-        enabled = params.pop("enabled", True)
-        if not isinstance(enabled, bool):
-            raise PerscliError(f"{path}: {name}.enabled must be true or false, not {enabled!r}")
-        merged = copy.deepcopy(DEFAULTS[name])
-        merged.update(params)
-        eff = Effect(name, merged, enabled)
-        _validate(eff, path)
-        effects.append(eff)
-    order = [ORDER.index(e.name) for e in effects]
-    if order != sorted(order):
-        raise PerscliError(f"{path}: effects must be listed in physical order: {', '.join(ORDER)}")
-    return DetectorModel(effects, source=path)
-
-
-def _override(model: DetectorModel, text: str) -> None:
-    if "=" not in text:
-        raise PerscliError(f"--set {text!r} is not EFFECT.KEY=VALUE or EFFECT=on|off")
-    key, value = (s.strip() for s in text.split("=", 1))
-    name, _, param = key.partition(".")
-    if name not in DEFAULTS:
-        raise PerscliError(f"--set {text!r}: unknown effect {name!r}; known: {', '.join(ORDER)}")
-    eff = model.get(name)
-    if eff is None:
-        eff = Effect(name, copy.deepcopy(DEFAULTS[name]), enabled=False)
-        model.effects.append(eff)
-        model.effects.sort(key=lambda e: ORDER.index(e.name))
-    if not param:
-        if value.lower() not in ("on", "off", "true", "false"):
-            raise PerscliError(f"--set {text!r}: use {name}=on or {name}=off")
-        eff.enabled = value.lower() in ("on", "true")
-        return
-    import yaml
-
-    eff.params[param] = yaml.safe_load(value)
-    eff.enabled = True
-    _validate(eff, "--set")
-
-
-def _validate(eff: Effect, where: str) -> None:
-    """Reject unknown parameters and values of the wrong kind."""
-    if eff.name == "persistence":
-        eff.params.pop("enabled", None)
-        from .persistence import _model_from_mapping
-
-        _model_from_mapping(dict(eff.params), f"{where}: persistence")
-        return
-    allowed = set(DEFAULTS[eff.name])
-    unknown = set(eff.params) - allowed
-    if unknown:
-        raise PerscliError(f"{where}: unknown parameter(s) {', '.join(sorted(unknown))} for effect "
-                           f"{eff.name!r}; valid: {', '.join(sorted(allowed)) or 'none'}")
-    for key, value in eff.params.items():
-        if eff.name == "sky" and key == "level" and value == "auto":
-            continue
-        if eff.name == "ipc" and key == "kernel":
-            if value == "roman":
-                continue
-            arr = np.asarray(value, dtype=float) if isinstance(value, list) else None
-            if arr is None or arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
-                raise PerscliError(f"{where}: ipc.kernel must be 'roman' or a 3x3 list of numbers")
-            continue
-        if isinstance(value, str):
-            # YAML 1.1 reads '-6e-7' (no decimal point) as text: accept any number Python can parse
-            try:
-                value = eff.params[key] = float(value)
-            except ValueError:
-                pass
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-            raise PerscliError(f"{where}: {eff.name}.{key}={value!r} must be a finite number")
-        if key in ("gain", "base_flux") and value <= 0:
-            raise PerscliError(f"{where}: {eff.name}.{key}={value!r} must be positive")
-        if key in ("current", "sigma", "level") and value < 0:
-            raise PerscliError(f"{where}: {eff.name}.{key}={value!r} must not be negative")
+    def persistence_charge(self) -> np.ndarray | None:
+        if self.persistence is None:
+            return None
+        if "persistence" not in self._cache:
+            value = self.persistence() if callable(self.persistence) else self.persistence
+            self._cache["persistence"] = np.asarray(value, dtype=np.float64)
+        return self._cache["persistence"]
 
 
 def _stream(seed: int, name: str) -> np.random.Generator:
@@ -267,6 +270,553 @@ def apply_ipc(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
                              mode="constant", cval=0.0)
 
 
+# -- the effects ---------------------------------------------------------------------------------
+
+#: name -> effect class, in physical order
+REGISTRY: dict = {}
+
+
+def register(cls):
+    """Add an effect class to :data:`REGISTRY` (registration order is the physical order)."""
+    if cls.name in REGISTRY:
+        raise ValueError(f"effect {cls.name!r} registered twice")
+    names = [p.name for p in cls.schema]
+    if len(set(names)) != len(names) or "enabled" in names:
+        raise ValueError(f"effect {cls.name!r}: parameter names must be unique and not 'enabled'")
+    REGISTRY[cls.name] = cls
+    return cls
+
+
+class DetectorEffect:
+    """Base class of the effects: a schema, ``sample``, ``expectation`` and ``variance``.
+
+    An instance holds resolved, checked parameters (``self.p``).
+    """
+
+    name: ClassVar[str] = ""
+    stage: ClassVar[str] = "charge"          # 'scene', 'charge' or 'readout'
+    unit_out: ClassVar[str | None] = None    # the units after this effect, if it changes them
+    description: ClassVar[str] = ""
+    schema: ClassVar[tuple] = ()
+
+    def __init__(self, params: dict):
+        self.p = dict(params)
+
+    @classmethod
+    def param(cls, key: str) -> Param:
+        return next(p for p in cls.schema if p.name == key)
+
+    @classmethod
+    def defaults(cls) -> dict:
+        return {p.name: copy.deepcopy(p.default) for p in cls.schema}
+
+    @classmethod
+    def resolve(cls, params: dict) -> dict:
+        """Every parameter with its value (derived ones worked out): the model as it acts."""
+        out = cls.defaults()
+        out.update(params)
+        return out
+
+    @classmethod
+    def validate(cls, params: dict, where: str) -> dict:
+        """Checked and converted parameters; unknown names, wrong types and values out of range are errors."""
+        known = {p.name for p in cls.schema}
+        unknown = [k for k in params if k not in known]
+        if unknown:
+            raise PerscliError(f"{where}: unknown parameter(s) {', '.join(map(str, unknown))} for effect "
+                               f"{cls.name!r}; valid: {', '.join(p.name for p in cls.schema) or 'none'}")
+        return {k: cls.param(k).check(cls.name, v, where) for k, v in params.items()}
+
+    def sample(self, image: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        """The image after this effect, drawn from the effect's own stream (may work in place)."""
+        raise NotImplementedError
+
+    def expectation(self, mean: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        """The noise-free forward model: the mean signal after this effect."""
+        return mean
+
+    def variance(self, mean: np.ndarray, var: np.ndarray, ctx: ChainContext) -> np.ndarray:
+        """The variance after this effect, for a signal of mean ``mean`` and variance ``var`` before it."""
+        return var
+
+    def rng(self, ctx: ChainContext) -> np.random.Generator:
+        return _stream(ctx.seed, self.name)
+
+
+@register
+class Sky(DetectorEffect):
+    name = "sky"
+    stage = "scene"
+    description = "zodiacal and thermal background, added to the sources (noise-free: Poisson comes next)"
+    schema = (Param("level", "float", "auto", "e-/pixel/s", "background rate; 'auto': galsim.roman.getSkyLevel "
+                    "(zodiacal) + thermal at the pointing", lo=0.0, choices=("auto",)),)
+
+    def rate(self, ctx):
+        rate = ctx.sky() if self.p["level"] == "auto" else float(self.p["level"])
+        ctx.used_sky_rate = rate
+        return rate
+
+    def sample(self, image, ctx):
+        image += self.rate(ctx) * ctx.exptime
+        return image
+
+    def expectation(self, mean, ctx):
+        return mean + self.rate(ctx) * ctx.exptime
+
+
+@register
+class Poisson(DetectorEffect):
+    name = "poisson"
+    description = "Poisson noise of the collected charge (integer electrons; negative expectations count as 0)"
+
+    def sample(self, image, ctx):
+        return self.rng(ctx).poisson(np.clip(image, 0.0, None)).astype(np.float64)
+
+    def expectation(self, mean, ctx):
+        return np.clip(mean, 0.0, None)
+
+    def variance(self, mean, var, ctx):
+        return var + np.clip(mean, 0.0, None)
+
+
+@register
+class Reciprocity(DetectorEffect):
+    name = "reciprocity"
+    description = ("reciprocity failure x (1 + alpha log10(x / (base_flux t))) on positive pixels "
+                   "(GalSim uses its power-law form)")
+    schema = (Param("alpha", "float", 0.0065, "", "fractional change per decade of flux (galsim.roman: 0.0065)",
+                    lo=0.0),
+              Param("base_flux", "float", 1.0, "e-/s", "flux at which the response is unchanged", lo=0.0,
+                    lo_open=True))
+
+    def _apply(self, img, t, out):
+        # the empirical law itself, x (1 + alpha log10(x / (base_flux t))); GalSim's
+        # Image.addReciprocityFailure uses its power-law approximation x (x/x0)^(alpha/ln 10),
+        # 3e-4 apart at 1e6 e-.  Zero and negative pixels are left alone.
+        pos = img > 0
+        factor = np.log10(img, where=pos, out=np.zeros_like(img))
+        factor -= np.log10(self.p["base_flux"] * t)
+        factor *= self.p["alpha"]
+        factor += 1.0
+        np.multiply(img, factor, out=out, where=pos)
+        return out
+
+    def sample(self, image, ctx):
+        return self._apply(image, ctx.exptime, image)
+
+    def expectation(self, mean, ctx):
+        mean = np.asarray(mean, dtype=np.float64)
+        return self._apply(mean, ctx.exptime, mean.copy())
+
+    def variance(self, mean, var, ctx):
+        mean = np.asarray(mean, dtype=np.float64)
+        pos = mean > 0
+        slope = np.log10(mean, where=pos, out=np.zeros_like(mean))
+        slope -= np.log10(self.p["base_flux"] * ctx.exptime)
+        slope += 1.0 / math.log(10.0)
+        slope *= self.p["alpha"]
+        slope += 1.0
+        return np.where(pos, var * slope * slope, var)
+
+
+@register
+class Dark(DetectorEffect):
+    name = "dark"
+    description = "dark current, with its Poisson noise"
+    schema = (Param("current", "float", 0.015, "e-/pixel/s", "dark current (galsim.roman: 0.015)", lo=0.0),)
+
+    def sample(self, image, ctx):
+        image += self.rng(ctx).poisson(self.p["current"] * ctx.exptime, size=image.shape)
+        return image
+
+    def expectation(self, mean, ctx):
+        return mean + self.p["current"] * ctx.exptime
+
+    def variance(self, mean, var, ctx):
+        return var + self.p["current"] * ctx.exptime
+
+
+def _persistence_schema():
+    from .persistence import COMBINES, FERMI_PARAMETERS, GALSIM_LINEAR_COEFFICIENTS, PRESETS, TIME_MODELS
+
+    bounds = {"A": dict(lo=0.0), "x0": dict(lo=0.0, lo_open=True), "dx": dict(lo=0.0, lo_open=True),
+              "half_well": dict(lo=0.0, lo_open=True)}
+    law = tuple(Param(key, "float", None, unit, f"{text} (default: from base)", derived="base", **bounds.get(key, {}))
+                for key, (text, unit) in FERMI_PARAMETERS.items())
+    return (
+        Param("base", "choice", "typical", "", "the paper's parameter set (Table 1) the law starts from",
+              choices=tuple(PRESETS)),
+        Param("kind", "choice", "fermi", "", "fermi: the paper's rate F(x) (t/1000 s)^-gamma; linear: GalSim's "
+              "coefficients x fluence", choices=("fermi", "linear")),
+        *law,
+        Param("coefficients", "floats", list(GALSIM_LINEAR_COEFFICIENTS), "",
+              "kind linear: fraction of each earlier exposure's fluence, most recent first (galsim.roman)"),
+        Param("time_model", "choice", "exact", "", "exact: the rate integrated over the exposure; galsim: "
+              "GalSim's mid-exposure rate x 139.8 s", choices=TIME_MODELS),
+        Param("combine", "choice", "sum", "", "sum over earlier exposures (the paper, GalSim) or per-pixel max "
+              "(WFC3 pipeline)", choices=COMBINES),
+        Param("max_previous", "int", 10, "", "only the N most recent earlier exposures count (0: all)", lo=0),
+    )
+
+
+@register
+class Persistence(DetectorEffect):
+    name = "persistence"
+    description = ("charge released by earlier exposures (--previous), from their FLUENCE "
+                   "(perscli.detector.persistence; added as its expectation)")
+    schema = _persistence_schema()
+
+    @classmethod
+    def resolve(cls, params):
+        from .persistence import PRESETS
+
+        out = super().resolve(params)
+        for key, value in PRESETS[out["base"]].items():
+            if out.get(key) is None:
+                out[key] = float(value)
+        out["coefficients"] = [float(c) for c in out["coefficients"]]
+        return out
+
+    @classmethod
+    def validate(cls, params, where):
+        out = super().validate(params, where)
+        cls.model(out, where)          # the law's own checks (e.g. its combination of parameters)
+        return out
+
+    @classmethod
+    def model(cls, params: dict, name: str = "persistence"):
+        """The :class:`~perscli.detector.persistence.PersistenceModel` of these parameters."""
+        import dataclasses
+
+        from .persistence import FERMI_PARAMETERS, PersistenceModel
+
+        p = cls.resolve(params)
+        explicit = [k for k in FERMI_PARAMETERS if params.get(k) is not None] or p["kind"] != "fermi"
+        fields = {f.name for f in dataclasses.fields(PersistenceModel)}
+        kwargs = {k: v for k, v in p.items() if k in fields and k not in ("name",)}
+        kwargs["coefficients"] = tuple(p["coefficients"])
+        return PersistenceModel(name=name if explicit else p["base"], **kwargs)
+
+    def sample(self, image, ctx):
+        charge = ctx.persistence_charge()
+        if charge is not None:
+            ctx.used_persistence = charge
+            image += charge
+        return image
+
+    def expectation(self, mean, ctx):
+        charge = ctx.persistence_charge()
+        return mean if charge is None else mean + charge
+
+
+#: the full well of Roman's H4RG-10 pixels, electrons (see README: detector model)
+FULL_WELL = 1.0e5
+
+
+@register
+class Saturation(DetectorEffect):
+    name = "saturation"
+    description = ("the pixel's full well: collected charge above it is lost (clipped), so FLUENCE, "
+                   "what drives later persistence, never exceeds it")
+    schema = (Param("full_well", "float", FULL_WELL, "e-", "charge a pixel holds (H4RG-10: ~1e5; the paper's "
+                    "half_well is half of it)", lo=0.0, lo_open=True),)
+
+    def sample(self, image, ctx):
+        np.minimum(image, self.p["full_well"], out=image)
+        return image
+
+    def expectation(self, mean, ctx):
+        # the deterministic limit; near the well the mean of a clipped noisy signal is slightly lower
+        return np.minimum(mean, self.p["full_well"])
+
+    def variance(self, mean, var, ctx):
+        # a saturated pixel carries no noise (and no information)
+        return np.where(np.asarray(mean) >= self.p["full_well"], 0.0, var)
+
+
+@register
+class Nonlinearity(DetectorEffect):
+    name = "nonlinearity"
+    stage = "readout"
+    description = "classical nonlinearity x + beta x^2 of the collected charge"
+    schema = (Param("beta", "float", -6.0e-7, "1/e-", "quadratic coefficient (galsim.roman: -6e-7)"),)
+
+    def sample(self, image, ctx):
+        image += self.p["beta"] * image * image
+        return image
+
+    def expectation(self, mean, ctx):
+        return mean + self.p["beta"] * mean * mean
+
+    def variance(self, mean, var, ctx):
+        slope = 1.0 + 2.0 * self.p["beta"] * np.asarray(mean, dtype=np.float64)
+        return var * slope * slope
+
+
+@register
+class IPC(DetectorEffect):
+    name = "ipc"
+    stage = "readout"
+    description = "interpixel capacitance: each pixel receives fractions of its neighbours' signal"
+    schema = (Param("kernel", "kernel", "roman", "", "3x3 kernel: 'roman' (galsim.roman.ipc_kernel) or a list; "
+                    "kernel[j][i] is what a pixel receives from its neighbour at (i-1, j-1)"),)
+
+    def kernel(self) -> np.ndarray:
+        k = self.p["kernel"]
+        return roman_ipc_kernel() if k == "roman" else np.asarray(k, dtype=float)
+
+    def sample(self, image, ctx):
+        return apply_ipc(image, self.kernel())
+
+    def expectation(self, mean, ctx):
+        return apply_ipc(mean, self.kernel())
+
+    def variance(self, mean, var, ctx):
+        # independent pixels: each neighbour's variance enters with its weight squared
+        return apply_ipc(var, self.kernel() ** 2)
+
+
+@register
+class ReadNoise(DetectorEffect):
+    name = "read_noise"
+    stage = "readout"
+    description = "Gaussian read noise"
+    schema = (Param("sigma", "float", 8.5, "e-", "standard deviation (galsim.roman: 8.5)", lo=0.0),)
+
+    def sample(self, image, ctx):
+        image += self.rng(ctx).normal(0.0, self.p["sigma"], size=image.shape)
+        return image
+
+    def variance(self, mean, var, ctx):
+        return var + self.p["sigma"] ** 2
+
+
+@register
+class Gain(DetectorEffect):
+    name = "gain"
+    stage = "readout"
+    unit_out = "DN"
+    description = "conversion of electrons to DN"
+    schema = (Param("gain", "float", 1.0, "e-/DN", "electrons per DN (galsim.roman: 1.0)", lo=0.0, lo_open=True),)
+
+    def sample(self, image, ctx):
+        image /= self.p["gain"]
+        return image
+
+    def expectation(self, mean, ctx):
+        return mean / self.p["gain"]
+
+    def variance(self, mean, var, ctx):
+        return var / self.p["gain"] ** 2
+
+
+@register
+class Quantize(DetectorEffect):
+    name = "quantize"
+    stage = "readout"
+    description = "rounding to integer values (the A/D converter); adds 1/12 unit^2 of variance"
+
+    def sample(self, image, ctx):
+        return np.round(image)
+
+    def variance(self, mean, var, ctx):
+        # uniform rounding error: exact when the noise before it is well above one unit
+        return var + 1.0 / 12.0
+
+
+#: effect names in physical order
+ORDER = tuple(REGISTRY)
+
+#: default parameters of each effect (None: derived, e.g. from the persistence base)
+DEFAULTS = {name: cls.defaults() for name, cls in REGISTRY.items()}
+
+DESCRIPTIONS = {name: cls.description for name, cls in REGISTRY.items()}
+
+
+# -- the model -----------------------------------------------------------------------------------
+
+
+@dataclass
+class Effect:
+    """One step of a detector model: an effect's name, its parameters and whether it is on."""
+
+    name: str
+    params: dict = field(default_factory=dict)
+    enabled: bool = True
+
+    @property
+    def cls(self):
+        return REGISTRY[self.name]
+
+    def resolved(self) -> dict:
+        """Every parameter with the value it acts with."""
+        return self.cls.resolve(self.params)
+
+    def instance(self) -> DetectorEffect:
+        return self.cls(self.resolved())
+
+
+@dataclass
+class DetectorModel:
+    """An ordered list of effects."""
+
+    effects: list
+    source: str = "roman"
+
+    def get(self, name: str) -> Effect | None:
+        for eff in self.effects:
+            if eff.name == name:
+                return eff
+        return None
+
+    def enabled(self, name: str) -> bool:
+        eff = self.get(name)
+        return eff is not None and eff.enabled
+
+    def value(self, name: str, key: str, off=None):
+        """A parameter's resolved value, or ``off`` when the effect is absent or switched off."""
+        eff = self.get(name)
+        if eff is None or not eff.enabled:
+            return off
+        return eff.resolved()[key]
+
+    def describe(self) -> list:
+        """[(name, enabled, resolved params)], in order: the model as it acts (two equal models describe equal)."""
+        return [(e.name, e.enabled, e.resolved()) for e in self.effects]
+
+    def persistence_model(self):
+        """The :class:`~perscli.detector.persistence.PersistenceModel` of the persistence step."""
+        eff = self.get("persistence")
+        return Persistence.model(dict(eff.params) if eff else {}, f"{os.path.basename(self.source)}: persistence")
+
+
+def default_model() -> DetectorModel:
+    """GalSim's Roman chain with saturation at :data:`FULL_WELL`, every effect on."""
+    return DetectorModel([Effect(name, copy.deepcopy(DEFAULTS[name])) for name in ORDER], source="roman")
+
+
+def load_detector_model(spec: str | None = None, overrides=()) -> DetectorModel:
+    """Read a detector model and apply ``EFFECT.KEY=VALUE`` overrides.
+
+    Parameters
+    ----------
+    spec : str, optional
+        'roman' (or None) for :func:`default_model`; a YAML file: either a
+        list under ``effects:`` (in physical order) of ``{name: {params}}``
+        mappings, or a mapping ``name: {params}``, effects not listed are
+        off, parameters not given take the defaults; or a FITS frame that
+        ``perscli render`` wrote: the model that made it (its MODEL table).
+    overrides : sequence of str
+        'EFFECT.KEY=VALUE' (e.g. 'read_noise.sigma=5'), 'EFFECT=off' or
+        'EFFECT=on'.
+
+    Returns
+    -------
+    DetectorModel
+    """
+    if spec in (None, "roman", "default"):
+        model = default_model()
+    elif _is_fits(spec):
+        model = _from_fits(spec)
+    else:
+        model = _from_yaml(spec)
+    for text in overrides:
+        _override(model, text)
+    return model
+
+
+def _is_fits(spec: str) -> bool:
+    name = spec.split("[", 1)[0]
+    if name.lower().endswith((".fits", ".fit", ".fts", ".fits.gz", ".fit.gz", ".fz")):
+        return True
+    try:
+        with open(name, "rb") as fh:
+            head = fh.read(9)
+    except OSError:
+        return False
+    return head == b"SIMPLE  =" or head[:2] == b"\x1f\x8b"
+
+
+def _from_yaml(path: str) -> DetectorModel:
+    from ..io.config import load_yaml
+
+    doc = load_yaml(path, "detector model")
+    if isinstance(doc, dict) and "effects" in doc:
+        doc = doc["effects"]
+    if isinstance(doc, dict):
+        items = list(doc.items())
+    elif isinstance(doc, list):
+        items = []
+        for entry in doc:
+            if isinstance(entry, str):
+                items.append((entry, {}))
+            elif isinstance(entry, dict) and len(entry) == 1:
+                items.append(next(iter(entry.items())))
+            else:
+                raise PerscliError(f"{path}: each effect must be a name or a one-key mapping, not {entry!r}")
+    else:
+        raise PerscliError(f"{path}: expected 'effects:' with a list of effects in physical order")
+    for name, params in items:
+        if params is not None and not isinstance(params, dict):
+            raise PerscliError(f"{path}: the parameters of {name!r} must be a mapping, not {params!r}")
+    return _build([(name, dict(params or {})) for name, params in items], path)
+
+
+def _build(items, where: str) -> DetectorModel:
+    """A model from [(name, {params, optionally 'enabled'})] in the order given, checked."""
+    effects, seen = [], set()
+    for name, params in items:
+        if name not in REGISTRY:
+            raise PerscliError(f"{where}: unknown effect {name!r}; known: {', '.join(ORDER)}")
+        if name in seen:
+            raise PerscliError(f"{where}: effect {name!r} is listed twice")
+        seen.add(name)
+        params = dict(params)
+        enabled = params.pop("enabled", True)
+        if not isinstance(enabled, bool):
+            raise PerscliError(f"{where}: {name}.enabled must be true or false, not {enabled!r}")
+        merged = copy.deepcopy(DEFAULTS[name])
+        merged.update(REGISTRY[name].validate(params, where))
+        effects.append(Effect(name, merged, enabled))
+    order = [ORDER.index(e.name) for e in effects]
+    if order != sorted(order):
+        raise PerscliError(f"{where}: effects must be listed in physical order: {', '.join(ORDER)}")
+    return DetectorModel(effects, source=where)
+
+
+def _override(model: DetectorModel, text: str) -> None:
+    if "=" not in text:
+        raise PerscliError(f"--set {text!r} is not EFFECT.KEY=VALUE or EFFECT=on|off")
+    key, value = (s.strip() for s in text.split("=", 1))
+    name, _, param = key.partition(".")
+    if name not in REGISTRY:
+        raise PerscliError(f"--set {text!r}: unknown effect {name!r}; known: {', '.join(ORDER)}")
+    eff = model.get(name)
+    if eff is None:
+        eff = Effect(name, copy.deepcopy(DEFAULTS[name]), enabled=False)
+        model.effects.append(eff)
+        model.effects.sort(key=lambda e: ORDER.index(e.name))
+    if not param:
+        if value.lower() not in ("on", "off", "true", "false"):
+            raise PerscliError(f"--set {text!r}: use {name}=on or {name}=off")
+        eff.enabled = value.lower() in ("on", "true")
+        return
+    import yaml
+
+    try:
+        parsed = yaml.safe_load(value)
+    except yaml.YAMLError:
+        parsed = value
+    params = dict(eff.params)
+    params.update(eff.cls.validate({param: parsed}, "--set"))
+    eff.cls.validate(params, "--set")
+    eff.params = params
+    eff.enabled = True
+
+
+# -- running the chain ---------------------------------------------------------------------------
+
+
 @dataclass
 class ChainResult:
     """What the chain produced."""
@@ -281,8 +831,8 @@ class ChainResult:
 
 def run_chain(sources: np.ndarray, model: DetectorModel, *, exptime: float, seed: int,
               sky_rate: Callable[[], float] | float = 0.0,
-              persistence: Callable[[], np.ndarray] | None = None) -> ChainResult:
-    """Apply the detector chain to an image of source electrons.
+              persistence: Callable[[], np.ndarray] | np.ndarray | None = None) -> ChainResult:
+    """Apply the detector chain to an image of source electrons: ``sample`` of each effect in order.
 
     Parameters
     ----------
@@ -296,65 +846,208 @@ def run_chain(sources: np.ndarray, model: DetectorModel, *, exptime: float, seed
     sky_rate : float or callable
         The automatic sky level in e-/pixel/s (called only if the sky effect
         is on with level 'auto').
-    persistence : callable, optional
-        Returns the persistence in electrons (same shape) when the
-        persistence effect is on; None means no earlier exposures.
+    persistence : ndarray or callable, optional
+        The persistence in electrons (same shape), or a function returning
+        it, called only when the persistence effect is on; None means no
+        earlier exposures.
 
     Returns
     -------
     ChainResult
+        IDEAL is the image before the first effect after the 'scene' stage,
+        FLUENCE before the first 'readout' effect (whether those are on or not).
     """
+    ctx = ChainContext(exptime=exptime, seed=seed, sky_rate=sky_rate, persistence=persistence)
     img = np.array(sources, dtype=np.float64)
     unit = "electron"
-    rate = 0.0
-    pers = None
-    ideal = None
-    fluence = None
-    after_persistence = ORDER.index("persistence")
+    ideal = fluence = None
     for eff in model.effects:
-        if fluence is None and ORDER.index(eff.name) > after_persistence:
+        cls = eff.cls
+        if ideal is None and cls.stage != "scene":
+            ideal = img.copy()
+        if fluence is None and cls.stage == "readout":
             # the charge collected so far is what traps hold on to: it drives later persistence
             fluence = img.copy()
         if not eff.enabled:
             continue
-        p = eff.params
-        if eff.name == "sky":
-            rate = float(sky_rate() if callable(sky_rate) else sky_rate) if p["level"] == "auto" else float(p["level"])
-            img += rate * exptime
-        elif eff.name == "poisson":
-            if ideal is None:
-                ideal = img.copy()
-            img = _stream(seed, "poisson").poisson(np.clip(img, 0.0, None)).astype(np.float64)
-        elif eff.name == "reciprocity":
-            # the empirical law itself, x (1 + alpha log10(x / (base_flux t))); GalSim's
-            # Image.addReciprocityFailure uses its power-law approximation x (x/x0)^(alpha/ln 10),
-            # 3e-4 apart at 1e6 e-.  Zero and negative pixels are left alone.
-            pos = img > 0
-            factor = np.log10(img, where=pos, out=np.zeros_like(img))
-            factor -= np.log10(p["base_flux"] * exptime)
-            factor *= p["alpha"]
-            factor += 1.0
-            np.multiply(img, factor, out=img, where=pos)
-        elif eff.name == "dark":
-            img += _stream(seed, "dark").poisson(p["current"] * exptime, size=img.shape)
-        elif eff.name == "persistence":
-            if persistence is not None:
-                pers = np.asarray(persistence(), dtype=np.float64)
-                img += pers
-        elif eff.name == "nonlinearity":
-            img += p["beta"] * img * img
-        elif eff.name == "ipc":
-            kernel = roman_ipc_kernel() if p["kernel"] == "roman" else np.asarray(p["kernel"], dtype=float)
-            img = apply_ipc(img, kernel)
-        elif eff.name == "read_noise":
-            img += _stream(seed, "read_noise").normal(0.0, p["sigma"], size=img.shape)
-        elif eff.name == "gain":
-            img /= p["gain"]
-            unit = "DN"
-        elif eff.name == "quantize":
-            img = np.round(img)
+        img = eff.instance().sample(img, ctx)
+        unit = cls.unit_out or unit
     if ideal is None:
-        ideal = np.array(sources, dtype=np.float64) + rate * exptime
+        ideal = img.copy()
     if fluence is None:
         fluence = img.copy()
-    return ChainResult(sci=img, unit=unit, ideal=ideal, fluence=fluence, persistence=pers, sky_rate=rate)
+    return ChainResult(sci=img, unit=unit, ideal=ideal, fluence=fluence, persistence=ctx.used_persistence,
+                       sky_rate=ctx.used_sky_rate)
+
+
+@dataclass
+class Forward:
+    """The noise-free forward model of a frame: mean and variance per pixel."""
+
+    mean: np.ndarray         # expected SCI, in ``unit``
+    variance: np.ndarray     # its variance per pixel (pixels taken as independent), ``unit`` squared
+    unit: str
+    fluence: np.ndarray      # expected collected charge, electrons
+    sky_rate: float = 0.0
+
+
+def forward(sources: np.ndarray, model: DetectorModel, *, exptime: float,
+            sky_rate: Callable[[], float] | float = 0.0,
+            persistence: Callable[[], np.ndarray] | np.ndarray | None = None) -> Forward:
+    """Expectation and variance of a frame through the chain: what a likelihood of measured frames needs.
+
+    Parameters are those of :func:`run_chain` (no seed: nothing is drawn).
+    The mean is each effect's ``expectation`` of the previous mean; the
+    variance is propagated with each effect's ``variance`` (first order in
+    the noise: e.g. nonlinearity scales it by (1 + 2 beta x)^2).
+    """
+    ctx = ChainContext(exptime=exptime, seed=0, sky_rate=sky_rate, persistence=persistence)
+    mean = np.array(sources, dtype=np.float64)
+    var = np.zeros_like(mean)
+    unit = "electron"
+    fluence = None
+    for eff in model.effects:
+        if fluence is None and eff.cls.stage == "readout":
+            fluence = mean.copy()
+        if not eff.enabled:
+            continue
+        step = eff.instance()
+        var = step.variance(mean, var, ctx)
+        mean = step.expectation(mean, ctx)
+        unit = eff.cls.unit_out or unit
+    if fluence is None:
+        fluence = mean.copy()
+    return Forward(mean=mean, variance=np.broadcast_to(var, mean.shape).copy(), unit=unit, fluence=fluence,
+                   sky_rate=ctx.used_sky_rate)
+
+
+# -- the schema as a table, and the model in a FITS file ---------------------------------------
+
+def _show(value) -> str:
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, list):
+        return f"[{len(value)} values]" if len(value) > 3 else json.dumps(value)
+    return str(value)
+
+
+def schema_rows() -> list:
+    """(effect, parameter, type, unit, default, allowed, description) for every effect and parameter.
+
+    An effect's own row has an empty parameter, 'on' as default and its description.
+    """
+    rows = []
+    for name, cls in REGISTRY.items():
+        rows.append((name, "", "", "", "on", "", cls.description))
+        for p in cls.schema:
+            default = f"({p.derived})" if p.default is None else _show(p.default)
+            kind = {"choice": "str", "kernel": "str|3x3", "floats": "list"}.get(p.kind, p.kind)
+            rows.append(("", p.name, kind, p.unit, default, p.allowed(), p.description))
+    return rows
+
+
+def format_schema(width: int = 120) -> str:
+    """The schema as a plain-text table, in physical order (``perscli render --list-effects``)."""
+    import textwrap
+
+    head = ("EFFECT", "PARAMETER", "TYPE", "UNIT", "DEFAULT", "ALLOWED", "DESCRIPTION")
+    rows = schema_rows()
+    widths = [max(len(r[i]) for r in rows + [head]) for i in range(6)]
+    indent = sum(widths) + 2 * 6
+    desc_width = max(30, width - indent)
+    lines = []
+    for row in [head] + rows:
+        cells = "  ".join(c.ljust(w) for c, w in zip(row[:6], widths))
+        wrapped = textwrap.wrap(row[6], desc_width) or [""]
+        lines.append(f"{cells}  {wrapped[0]}".rstrip())
+        lines.extend((" " * indent + more).rstrip() for more in wrapped[1:])
+    lines.append("")
+    lines.append("Effects act in this order; --set EFFECT=off|on, --set EFFECT.PARAMETER=VALUE, or a YAML "
+                 "model file (--model).")
+    return "\n".join(lines) + "\n"
+
+
+#: columns of the MODEL table: name, numpy type
+MODEL_COLUMNS = ("EFFECT", "ENABLED", "PARAM", "VALUE", "UNIT")
+
+
+def model_rows(model: DetectorModel) -> list:
+    """(effect, enabled, parameter, value as JSON, unit) for every resolved parameter, in order.
+
+    An effect without parameters has one row with an empty parameter, so
+    that its place and its on/off state are recorded too.
+    """
+    rows = []
+    for name, enabled, params in model.describe():
+        cls = REGISTRY[name]
+        if not cls.schema:
+            rows.append((name, enabled, "", "", ""))
+        for p in cls.schema:
+            rows.append((name, enabled, p.name, json.dumps(params[p.name]), p.unit))
+    return rows
+
+
+def model_table(model: DetectorModel) -> tuple:
+    """The MODEL binary table of a rendered frame: (structured array, column units)."""
+    rows = model_rows(model)
+
+    def width(i):
+        return max([1] + [len(r[i]) for r in rows])
+
+    dtype = [("EFFECT", f"S{width(0)}"), ("ENABLED", "?"), ("PARAM", f"S{width(2)}"),
+             ("VALUE", f"S{width(3)}"), ("UNIT", f"S{width(4)}")]
+    data = np.array([(r[0].encode(), bool(r[1]), r[2].encode(), r[3].encode(), r[4].encode()) for r in rows],
+                    dtype=dtype)
+    return data, ["", "", "", "", ""]
+
+
+def model_from_table(columns: dict, where: str) -> DetectorModel:
+    """The detector model of a MODEL table's columns (EFFECT, ENABLED, PARAM, VALUE), checked."""
+    missing = [c for c in ("EFFECT", "ENABLED", "PARAM", "VALUE") if c not in columns]
+    if missing:
+        raise PerscliError(f"{where}: the MODEL table lacks column(s) {', '.join(missing)}")
+
+    def text(v):
+        return (v.decode("ascii", "replace") if isinstance(v, bytes) else str(v)).strip()
+
+    items, index = [], {}
+    for i, (name, enabled, param, value) in enumerate(zip(*(columns[c] for c in ("EFFECT", "ENABLED", "PARAM",
+                                                                                   "VALUE"))), 1):
+        name, param, value = text(name), text(param), text(value)
+        if name not in index:
+            index[name] = len(items)
+            items.append((name, {"enabled": bool(enabled)}))
+        params = items[index[name]][1]
+        if params["enabled"] != bool(enabled):
+            raise PerscliError(f"{where}: MODEL row {i}: {name} is both on and off")
+        if not param:
+            continue
+        try:
+            params[param] = json.loads(value)
+        except ValueError:
+            raise PerscliError(f"{where}: MODEL row {i}: the value {value!r} of {name}.{param} is not valid JSON; "
+                               "the table is corrupt") from None
+    return _build(items, where)
+
+
+def _from_fits(path: str) -> DetectorModel:
+    from ..io.fitsfile import open_fits
+
+    with open_fits(path) as f:
+        tables = [h for h in f.hdus if h.name == "MODEL" and h.kind == "table"]
+        if not tables:
+            raise PerscliError(f"{path}: no MODEL table: not a frame perscli render wrote (or one written before "
+                               "models were stored); give 'roman' or a YAML model file")
+        hdu = tables[0]
+        columns = {name.upper(): hdu.read_column(name) for name in hdu.colnames}
+        return model_from_table(columns, path)
+
+
+def model_of_frame(frame) -> DetectorModel | None:
+    """The detector model stored in an opened frame (:class:`perscli.io.frames.Frame`), or None."""
+    tables = [h for h in getattr(frame, "hdus", []) or [] if h.name == "MODEL" and h.kind == "table"]
+    if not tables:
+        return None
+    hdu = tables[0]
+    columns = {name.upper(): hdu.read_column(name) for name in hdu.colnames}
+    return model_from_table(columns, frame.label)

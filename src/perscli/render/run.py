@@ -7,7 +7,7 @@ import os
 
 import numpy as np
 
-from ..detector.effects import DetectorModel, run_chain
+from ..detector.effects import DetectorModel, model_table, run_chain
 from ..io.fitsfile import OutHDU, format_card
 from ..io.output import add_provenance, check_output, write_hdus
 from .exposure import Exposure, draw_sources, read_truth
@@ -120,7 +120,7 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
 
         result = run_chain(sources, model, exptime=exposure.exptime, seed=seed, sky_rate=optics.sky_rate,
                            persistence=persistence if opened else None)
-        gain = model.get("gain").params["gain"] if model.enabled("gain") else 1.0
+        gain = model.value("gain", "gain", off=1.0)
         common = _wcs_cards(optics, exposure.full_bounds)
         sci_cards = common + _exposure_cards(exposure, optics, seed, result.unit, gain) + [
             format_card("SKYRATE", result.sky_rate, "[e-/pixel/s] sky background used"),
@@ -137,6 +137,7 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         hdus.append(image(result.fluence, "FLUENCE", e_cards))
         if result.persistence is not None:
             hdus.append(image(result.persistence, "PERSIST", e_cards))
+        hdus.append(_model_hdu(model))
         _provenance(hdus[0], truth, cols["datasum"], exposure, model, seed, opened, pers_info)
         write_hdus(hdus, dest, overwrite=overwrite, compress=compress)
         if plot:
@@ -151,15 +152,25 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
             frame.close()
 
 
+def _model_hdu(model: DetectorModel) -> OutHDU:
+    """The resolved detector model as a MODEL table: one row per effect parameter, in physical order.
+
+    ``perscli render --model FRAME.fits`` (:func:`~perscli.detector.effects.load_detector_model`)
+    reads it back; values are JSON text, so every digit survives.
+    """
+    data, units = model_table(model)
+    cards = [format_card("COMMENT", "the detector model that made this frame, one row per parameter in physical"),
+             format_card("COMMENT", "order (VALUE: JSON); perscli render --model THIS.fits reproduces it")]
+    return OutHDU(cards, data, extname="MODEL", units=units)
+
+
 def _provenance(primary: OutHDU, truth, truth_datasum, exposure: Exposure, model: DetectorModel, seed, opened,
                 used):
     params = {
-        "DETMODEL": (os.path.basename(model.source)[-68:], "detector model"),
+        "DETMODEL": (os.path.basename(model.source)[-68:], "detector model given; as resolved: MODEL table"),
         "FILTER": exposure.filter, "SCA": exposure.sca,
     }
-    for i, (name, enabled, p) in enumerate(model.describe(), 1):
-        text = ",".join(f"{k}={v}" for k, v in p.items())
-        params[f"EFF{i:02d}"] = (f"{name}{'' if enabled else ' off'} {text}".strip()[:68], "detector effect, in order")
+    params["DETNEFF"] = (len(model.effects), "effects in the MODEL table, in physical order")
     inputs = [("TRUTH", truth, truth_datasum)]
     for i, frame in enumerate(opened, 1):
         inputs.append((f"PRV{i:02d}", frame.name,

@@ -539,18 +539,18 @@ def read_patch_centers(path: str, coords: str) -> np.ndarray:
     with open(path, "rb") as fh:
         is_fits = fh.read(9) == b"SIMPLE  ="
     if is_fits:
-        from astropy.io import fits
+        from ..io.fitsfile import open_fits
 
-        try:
-            with fits.open(path, memmap=False) as hdul:
-                tables = [h for h in hdul if isinstance(h, fits.BinTableHDU)]
-                named = [h for h in tables if h.name == "PATCHES"]
-                if not tables:
-                    raise PerscliError(f"{path}: has no binary table of patch centres (--patch-centers)")
-                hdu = (named or tables)[0]
-                data = {n.lower(): np.asarray(hdu.data[n], dtype=np.float64) for n in hdu.columns.names}
-        except (OSError, ValueError, TypeError, KeyError) as exc:
-            raise PerscliError(f"{path}: not a readable FITS table of patch centres ({exc})") from None
+        with open_fits(path) as fitsin:
+            tables = [h for h in fitsin.hdus if h.kind == "table"]
+            named = [h for h in tables if h.name == "PATCHES"]
+            if not tables:
+                raise PerscliError(f"{path}: has no binary table of patch centres (--patch-centers)")
+            hdu = (named or tables)[0]
+            try:
+                data = {n.lower(): np.asarray(hdu.read_column(n), dtype=np.float64) for n in hdu.colnames}
+            except (TypeError, ValueError) as exc:
+                raise PerscliError(f"{path}: not a readable FITS table of patch centres ({exc})") from None
     else:
         try:
             arr = np.genfromtxt(path, names=True, dtype=np.float64)
