@@ -1159,6 +1159,13 @@ def _write_one(fits, hdu: OutHDU, *, first: bool, compress: str) -> None:
         if first:
             fits.write(None)
         fits.write_table(_native(data), extname=extname, units=hdu.units)
+        # column descriptions given as comments of TTYPEn cards are kept (fitsio writes bare TTYPEn)
+        for card in hdu.cards:
+            key = card[:8].rstrip()
+            if re.fullmatch(r"TTYPE\d+", key) and card[8:10] == "= ":
+                value, comment = _parse_value(card[10:])
+                if comment:
+                    fits[-1].write_key(key, value, comment=comment)
     else:
         kwargs = {}
         if compress != "none" and data is not None and data.size and not first:
