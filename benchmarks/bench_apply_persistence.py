@@ -46,11 +46,13 @@ from pathlib import Path
 
 import numpy as np
 
+from perscli.instrument import ROMAN_EXPTIME, ROMAN_SCA_SIZE, ROMAN_WAS_CADENCE
+
 HERE = Path(__file__).resolve().parent
-SIZE = 4088
+SIZE = ROMAN_SCA_SIZE
 NPREV = 10
-EXPTIME = 139.8          # s, galsim.roman.exptime
-CADENCE = 169.8          # s between exposure starts (30 s of reset/slew between exposures)
+EXPTIME = ROMAN_EXPTIME       # s, galsim.roman.exptime
+CADENCE = ROMAN_WAS_CADENCE   # s between exposure starts (30 s of reset/slew between exposures)
 MJD0 = 61541.0           # start of the earliest exposure
 HALF_WELL = 5.0e4        # e-, the 'typical' model's half_well
 NSTARS = 150

@@ -55,6 +55,8 @@ from pathlib import Path
 
 import numpy as np
 
+from perscli.instrument import ROMAN_SCA_SIZE
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_apply_persistence import machine, perscli_command, run_child, write_section  # noqa: E402
@@ -103,8 +105,8 @@ def ensure_catalog(path: Path, n: int, seed: int, regenerate: bool = False) -> f
     g1b, g2b = rng.normal(0, 0.27, n), rng.normal(0, 0.27, n)
     cols = [fits.Column("id", "K", array=np.arange(1, n + 1)),
             fits.Column("frame", "I", array=np.zeros(n, dtype=np.int16)),
-            fits.Column("x", "D", unit="pix", array=rng.uniform(1, 4088, n)),
-            fits.Column("y", "D", unit="pix", array=rng.uniform(1, 4088, n)),
+            fits.Column("x", "D", unit="pix", array=rng.uniform(1, ROMAN_SCA_SIZE, n)),
+            fits.Column("y", "D", unit="pix", array=rng.uniform(1, ROMAN_SCA_SIZE, n)),
             fits.Column("ra", "D", unit="deg", array=ra), fits.Column("dec", "D", unit="deg", array=dec),
             fits.Column("g1", "D", array=g1b + de1), fits.Column("g2", "D", array=g2b + de2),
             fits.Column("g1_err", "D", array=np.full(n, 0.01)), fits.Column("g2_err", "D", array=np.full(n, 0.01)),

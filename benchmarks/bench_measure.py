@@ -59,6 +59,8 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from perscli.instrument import ROMAN_EXPTIME, ROMAN_PIXEL_SCALE  # noqa: E402
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_apply_persistence import (  # noqa: E402  (helpers shared with the other benchmarks)
@@ -76,8 +78,8 @@ OFFSET = 0.499             # sub-pixel offset of the centre: uniform in [-OFFSET
 SEED = 20240612
 REQUIRED = 150.0           # fits per second per core
 NGMIX_MS = 6.0             # ngmix exp fit with a fixed PSF, ms per galaxy (NOTES.md section 4)
-ZPT_AB, EXPTIME = 26.0, 139.8   # header values of the frame of the whole-process run (start flux)
-PIXEL_SCALE = 0.11
+ZPT_AB, EXPTIME = 26.0, ROMAN_EXPTIME   # header values of the frame of the whole-process run (start flux)
+PIXEL_SCALE = ROMAN_PIXEL_SCALE
 
 
 # --------------------------------------------------------------------------------------------

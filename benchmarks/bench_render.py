@@ -50,6 +50,8 @@ from pathlib import Path
 
 import numpy as np
 
+from perscli.instrument import ROMAN_SCA_SIZE
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_apply_persistence import (  # noqa: E402  (helpers shared with the other benchmark)
@@ -68,7 +70,7 @@ RATIO_REQUIRED = 3.0
 INNER_TOL = 1.0e-3         # central half of every stamp: |perscli - GalSim| < INNER_TOL x the object's peak
 SAME_PERIOD_TOL = 1.0e-6   # perscli's drawer on GalSim's FFT period: |diff| < this x the peak
 ACCURATE_MAXK = 1.0e-5     # GalSim's maxk_threshold for the galaxies in the tightened run (default 1e-3)
-SIZE = 4088
+SIZE = ROMAN_SCA_SIZE
 
 
 def exposure_of(bounds=None):
@@ -190,7 +192,7 @@ def render_command(truth: Path, dest: Path, workers: int, bounds) -> list:
 # --------------------------------------------------------------------------------------------
 
 def perscli_stamp(drawer, optics, cols, i, x, y, flux, n):
-    """One object's stamp exactly as ``perscli.render.exposure._draw_one`` draws it."""
+    """One object's stamp exactly as ``perscli.render.exposure.draw_one`` draws it."""
     import galsim
 
     profile = None

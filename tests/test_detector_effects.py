@@ -159,7 +159,9 @@ def test_fluence_excludes_everything_after_persistence(sources):
     r = run_chain(sources, model, exptime=T, seed=1, sky_rate=1.0)
     x = sources + T
     x = x * (1 + 0.0065 * np.log10(x / T))
-    np.testing.assert_allclose(r.fluence, x, rtol=1e-13)         # sky + reciprocity, nothing later
+    x = np.minimum(x, effects.FULL_WELL)
+    assert np.count_nonzero(x == effects.FULL_WELL) > 5             # the peak is saturated
+    np.testing.assert_allclose(r.fluence, x, rtol=1e-13)         # sky + reciprocity + saturation, nothing later
     assert not np.allclose(r.sci, r.fluence)
 
 
@@ -244,11 +246,13 @@ def test_quantize_rounds_to_nearest_integer(sources):
 
 
 def test_default_chain_without_noise_is_the_composition_in_physical_order(sources):
-    """sky -> reciprocity -> nonlinearity -> ipc -> gain -> quantize, written out by hand."""
-    model = load_detector_model("roman", ["poisson=off", "dark=off", "read_noise=off", "gain.gain=1.6"])
+    """sky -> reciprocity -> saturation -> nonlinearity -> ipc -> gain -> quantize, written out by hand."""
+    model = load_detector_model("roman", ["poisson=off", "dark=off", "read_noise=off", "gain.gain=1.6",
+                                          "saturation.full_well=1.5e5"])
     r = run_chain(sources, model, exptime=T, seed=1, sky_rate=0.8)
     x = sources + 0.8 * T
     x = x * (1 + 0.0065 * np.log10(x / T))
+    x = np.minimum(x, 1.5e5)
     x = x - 6.0e-7 * x * x
     x = apply_ipc(x, effects.roman_ipc_kernel())
     np.testing.assert_array_equal(r.sci, np.round(x / 1.6))
@@ -383,7 +387,7 @@ def test_yaml_enabled_false_is_respected(tmp_path):
     ("effects:\n  - ipc: {kernel: [[1, 0], [0, 1]]}\n", "3x3"),
     ("effects:\n  - ipc: {kernel: galsim}\n", "3x3"),
     ("effects:\n  - persistence: {base: awful}\n", "base must be one of"),
-    ("effects:\n  - persistence: {Q: 1}\n", "unknown persistence parameter"),
+    ("effects:\n  - persistence: {Q: 1}\n", "unknown parameter(s) Q for effect 'persistence'"),
     ("effects:\n  - {sky: {}, dark: {}}\n", "one-key mapping"),
     ("effects: 3\n", "expected 'effects:'"),
     ("effects:\n  - sky: [\n", "not valid YAML"),
@@ -463,7 +467,7 @@ def test_override_of_a_disabled_parameter_enables_the_effect(tmp_path):
     ("sky.level=-2", "must not be negative"),
     ("ipc.kernel=[1,2,3]", "3x3"),
     ("persistence.base=awful", "base must be one of"),
-    ("persistence.bogus=1", "unknown persistence parameter"),
+    ("persistence.bogus=1", "unknown parameter(s) bogus for effect 'persistence'"),
 ])
 def test_bad_overrides_rejected(text, needle):
     with pytest.raises(PerscliError) as err:

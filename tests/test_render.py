@@ -81,11 +81,20 @@ def render(out, truth, *extra, bounds=SMALL, mjd=MJD1, ra=RA, seed=1, expect=0):
 
 
 def load(path):
-    """{extname: (float64 data, header)} and the primary header."""
+    """{extname: (float64 data, header)} of the images, the primary header, the MODEL table and the path."""
     with fits.open(path) as hdul:
-        out = {h.name: (np.asarray(h.data, dtype=np.float64), h.header.copy()) for h in hdul[1:]}
+        out = {h.name: (np.asarray(h.data, dtype=np.float64), h.header.copy()) for h in hdul[1:] if h.is_image}
         out["PRIMARY"] = (None, hdul[0].header.copy())
+        out["MODEL"] = (Table(hdul["MODEL"].data), hdul["MODEL"].header.copy())
+    out["path"] = str(path)
     return out
+
+
+def model_of(f):
+    """The detector model a rendered frame carries, read back as --model FRAME.fits reads it."""
+    from perscli.detector.effects import load_detector_model
+
+    return load_detector_model(f["path"])
 
 
 def expected_electrons(mag, header):
@@ -128,10 +137,10 @@ def dilate(mask):
 @pytest.fixture(scope="module")
 def grids(work, optics):
     """Two 768 x 768 renders of the 3 x 3 grid: at the SCA origin (noisy chain with gain 2, no
-    reciprocity or nonlinearity) and elsewhere (the default chain)."""
+    reciprocity, saturation or nonlinearity: linear) and elsewhere (the default chain)."""
     out = {}
     for name, bounds, extra in [("origin", ORIGIN, ["--set", "reciprocity=off", "--set", "nonlinearity=off",
-                                                     "--set", "gain.gain=2"]),
+                                                     "--set", "saturation=off", "--set", "gain.gain=2"]),
                                 ("elsewhere", ELSEWHERE, [])]:
         objects = grid_objects(bounds)
         truth = write_catalog(work / f"grid_{name}.fits", optics, objects)
@@ -301,7 +310,7 @@ def test_no_effects_gives_the_sources(effect_frames):
     np.testing.assert_array_equal(sci, f["FLUENCE"][0])
     assert hdr["SKYRATE"] == 0.0 and hdr["BUNIT"] == "electron" and hdr["NOBJ"] == 3
     assert sci.max() > 1e5 and sci.min() > -1.0           # the bright star; no sky
-    assert [f["PRIMARY"][1].get(f"EFF{i:02d}") for i in (1, 2)] == [None, None]
+    assert len(f["MODEL"][0]) == 0 and model_of(f).effects == []
 
 
 def test_sky_adds_skyrate_times_exptime(effect_frames, optics):
@@ -313,7 +322,7 @@ def test_sky_adds_skyrate_times_exptime(effect_frames, optics):
     level = effect_frames("sky_level")
     assert level["SCI"][1]["SKYRATE"] == 2.5
     np.testing.assert_allclose(level["SCI"][0] - bare["SCI"][0], 2.5 * T, atol=0.02)
-    assert level["PRIMARY"][1]["EFF01"] == "sky level=2.5"
+    assert model_of(level).describe() == [("sky", True, {"level": 2.5})]
 
 
 def test_poisson_gives_integers_with_variance_equal_to_mean(effect_frames):
@@ -325,7 +334,7 @@ def test_poisson_gives_integers_with_variance_equal_to_mean(effect_frames):
     n = sci.size
     assert abs(z.mean()) < 5 / math.sqrt(n)
     assert abs(z.var() - 1) < 5 * math.sqrt(2.0 / n)
-    assert [f["PRIMARY"][1]["EFF01"], f["PRIMARY"][1]["EFF02"]] == ["sky level=auto", "poisson"]
+    assert model_of(f).describe() == [("sky", True, {"level": "auto"}), ("poisson", True, {})]
 
 
 def test_reciprocity_formula(effect_frames):
@@ -337,7 +346,8 @@ def test_reciprocity_formula(effect_frames):
     # switched off with --set: the parameters stay, the frame is the sky's
     off = effect_frames("reciprocity_off")
     np.testing.assert_array_equal(off["SCI"][0], x)
-    assert "reciprocity off alpha=0.02" in off["PRIMARY"][1]["EFF02"]
+    rec = model_of(off).get("reciprocity")
+    assert not rec.enabled and rec.params == {"alpha": 0.02, "base_flux": 1.0}
 
 
 def test_dark_adds_current_times_exptime_with_poisson_noise(effect_frames):
@@ -409,10 +419,10 @@ def test_roman_chain_effects_switched_off_with_set(effect_frames):
     f = effect_frames("roman")
     assert np.abs(full - noipc).max() > 100                      # around the bright star
     assert np.median(np.abs(full - noipc)) < 10
-    eff = [f["PRIMARY"][1][f"EFF{i:02d}"] for i in range(1, 11)]
-    assert [e.split()[0] for e in eff] == ["sky", "poisson", "reciprocity", "dark", "persistence",
-                                           "nonlinearity", "ipc", "read_noise", "gain", "quantize"]
-    assert effect_frames("roman_no_ipc")["PRIMARY"][1]["EFF07"].startswith("ipc off")
+    assert [e.name for e in model_of(f).effects] == ["sky", "poisson", "reciprocity", "dark", "persistence",
+                                                     "saturation", "nonlinearity", "ipc", "read_noise", "gain",
+                                                     "quantize"]
+    assert not model_of(effect_frames("roman_no_ipc")).enabled("ipc")
 
 
 # -- reproducibility ------------------------------------------------------------------------------
@@ -451,7 +461,8 @@ def pairs(work, pers_truth):
     sky0.write_text("effects: []\n")
     p["e1_bare"] = render(work / "e1_bare.fits", pers_truth, "--model", sky0, bounds=PERS, seed=1)
     ra2 = RA + 0.0012
-    simple = ["--set", "nonlinearity=off", "--set", "ipc=off", "--set", "quantize=off", "--set", "gain.gain=2"]
+    simple = ["--set", "nonlinearity=off", "--set", "ipc=off", "--set", "quantize=off", "--set", "saturation=off",
+              "--set", "gain.gain=2"]
     p["with"] = render(work / "e2_with.fits", pers_truth, "--previous", p["e1"], *simple,
                        bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
     p["off"] = render(work / "e2_off.fits", pers_truth, "--previous", p["e1"], "--set", "persistence=off",
@@ -498,9 +509,8 @@ def test_persistence_with_the_full_chain_changes_only_persistent_pixels(pairs):
 
 
 def test_persist_matches_apply_persistence_predict(pairs, work):
-    from perscli.detector.apply import persistence_image
-    from perscli.detector.persistence import PRESETS, PersistenceModel
-    from perscli.io.frames import Frame, open_frame
+    from perscli.detector.persistence import PRESETS, PersistenceModel, persistence_charge
+    from perscli.io.frames import SECONDS_PER_DAY, open_frame
 
     w = load(pairs["with"])
     pers, hdr = w["PERSIST"][0], w["SCI"][1]
@@ -511,14 +521,13 @@ def test_persist_matches_apply_persistence_predict(pairs, work):
     with fits.open(out) as hdul:
         pred = np.asarray(hdul["SCI"].data, dtype=np.float64)
     np.testing.assert_allclose(pred * hdr["GAIN"], pers, rtol=1e-6, atol=1e-6)
-    # the library, from e1's FLUENCE and e2's EXPSTART/EXPEND
-    frame = Frame.planned("e2", pers.shape, hdr["EXPSTART"], hdr["EXPEND"], hdr["EXPTIME"],
-                          offsets=(hdr["LTV1"], hdr["LTV2"]))
-    prev = open_frame(pairs["e1"])
-    try:
-        lib = persistence_image(frame, [prev], PersistenceModel(name="typical", **PRESETS["typical"]))[0]
-    finally:
-        prev.close()
+    # the library on arrays, from e1's FLUENCE and e2's EXPSTART/EXPEND
+    with open_frame(pairs["e1"]) as prev:
+        fluence, scale = prev.fluence()
+        end = prev.end
+    lib = persistence_charge([fluence * scale], [end * SECONDS_PER_DAY], hdr["EXPSTART"] * SECONDS_PER_DAY,
+                             (hdr["EXPEND"] - hdr["EXPSTART"]) * SECONDS_PER_DAY,
+                             PersistenceModel(name="typical", **PRESETS["typical"]))[0]
     np.testing.assert_allclose(pers, lib.astype(np.float32), rtol=1e-6, atol=1e-7)
     # and by hand: F(fluence) times the integral of (t / 1000 s)^-1 over exposure 2
     e1 = load(pairs["e1"])
@@ -545,12 +554,13 @@ def test_persistence_provenance(pairs):
 # -- output structure -----------------------------------------------------------------------------
 
 def test_hdus_and_headers(pairs):
-    for name, ext in (("with", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "PERSIST"]),
-                      ("none", ["PRIMARY", "SCI", "IDEAL", "FLUENCE"])):
+    for name, ext in (("with", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "PERSIST", "MODEL"]),
+                      ("none", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "MODEL"])):
         with fits.open(pairs[name]) as hdul:
             assert [h.name for h in hdul] == ext
-            assert all(h.data.dtype == np.dtype(">f4") and h.data.shape == (128, 128) for h in hdul[1:])
-            for h in hdul[1:]:
+            assert all(h.data.dtype == np.dtype(">f4") and h.data.shape == (128, 128) for h in hdul[1:-1])
+            assert hdul["MODEL"].columns.names == ["EFFECT", "ENABLED", "PARAM", "VALUE", "UNIT"]
+            for h in hdul[1:-1]:
                 hdr = h.header
                 for key in ("EXPSTART", "EXPEND", "EXPTIME", "SCA", "FILTER", "GAIN", "BUNIT", "CTYPE1",
                             "CRVAL1", "CD1_1", "LTV1", "LTV2", "DATE-OBS"):
@@ -604,11 +614,12 @@ def test_provenance(pairs, pers_truth):
     with fits.open(pers_truth, checksum=True) as hdul:
         table = [h for h in hdul if isinstance(h, fits.BinTableHDU)][0]
         assert prim["TRUTHDS"] == str(table._calculate_datasum())
-    assert prim["SEED"] == 2 and prim["DETMODEL"] == "roman"
+    assert prim["SEED"] == 2 and prim["DETMODEL"] == "roman" and prim["DETNEFF"] == 11
     assert prim["FILTER"] == FILTER and prim["SCA"] == SCA
-    effs = [prim[f"EFF{i:02d}"] for i in range(1, 11)]
-    assert effs[0] == "sky level=auto" and effs[7] == "read_noise sigma=8.5" and effs[9] == "quantize"
-    assert "EFF11" not in prim
+    from perscli.detector.effects import load_detector_model
+
+    assert model_of(load(pairs["full_none"])).describe() == load_detector_model("roman").describe()
+    assert "EFF01" not in prim                                   # the model is in the MODEL table
     assert any("render sca=7 filter=J129" in h for h in prim["HISTORY"])
     assert "DATE" in prim
 

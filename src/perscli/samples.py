@@ -16,9 +16,11 @@ import os
 
 import numpy as np
 
+from .instrument import ROMAN_EXPTIME, ROMAN_WAS_CADENCE
+
 #: Roman WAS cadence: 139.8 s exposures starting ~169.8 s apart (a ~30 s gap).
-EXPTIME = 139.8
-CADENCE = 169.8
+EXPTIME = ROMAN_EXPTIME
+CADENCE = ROMAN_WAS_CADENCE
 
 
 def make_sample_sequence(outdir: str, *, n: int = 4, size: int = 256, seed: int = 20231101,

@@ -6,9 +6,9 @@ import logging
 
 import click
 
-from .helpers import progress_reporter, report_errors
-from .options import (compress_opt, exptime_opt, gain_opt, no_checksum_opt, output_opt, overwrite_opt, units_opt,
-                      workers_opt)
+from .helpers import check_outputs, progress_reporter, report_errors
+from .options import (compress_opt, exptime_opt, gain_opt, model_opt, no_checksum_opt, output_opt, overwrite_opt,
+                      units_opt, verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -17,9 +17,9 @@ log = logging.getLogger("perscli")
 @click.argument("current", metavar="CURRENT")
 @click.argument("previous", nargs=-1, required=True, metavar="PREVIOUS...")
 @output_opt
-@click.option("--model", "model_spec", default="typical", show_default=True, metavar="NAME|FILE.yaml",
-              help="typical or pessimistic (the paper's Table 1), galsim-linear (GalSim's 8 coefficients), "
-                   "or a YAML file of parameters.")
+@model_opt("typical", "NAME|FILE.yaml",
+           "the persistence law: typical or pessimistic (the paper's Table 1), galsim-linear (GalSim's 8 "
+           "coefficients), or a YAML file of parameters")
 @click.option("--param", "params", multiple=True, metavar="KEY=VALUE",
               help="Override a model parameter (A, x0, dx, alpha, gamma, half_well) or setting (time_model, "
                    "combine, max_previous). Repeatable.")
@@ -43,7 +43,8 @@ log = logging.getLogger("perscli")
 @compress_opt
 @no_checksum_opt
 @overwrite_opt
-@workers_opt
+@workers_opt("threads over blocks of rows (the output does not depend on N)")
+@verbosity_opts
 @report_errors
 def apply_persistence(current, previous, output, model_spec, params, mode, time_model, combine,
                       max_previous, gap, units, gain, exptime, compress, overwrite, workers):
@@ -74,6 +75,7 @@ def apply_persistence(current, previous, output, model_spec, params, mode, time_
     from ..detector.apply import apply_persistence_files
     from ..detector.persistence import load_model
 
+    check_outputs(output, inputs=[current, *previous, model_spec], overwrite=overwrite)
     model = load_model(model_spec, params)
     result = apply_persistence_files(
         current, previous, output, model=model, mode=mode, time_model=time_model, combine=combine,

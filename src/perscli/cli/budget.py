@@ -6,8 +6,8 @@ import logging
 
 import click
 
-from .helpers import report_errors
-from .options import output_opt, overwrite_opt
+from .helpers import check_outputs, report_errors
+from .options import output_opt, overwrite_opt, plot_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
 
@@ -30,12 +30,12 @@ BAND_NAMES = ("dore2018", "troxel2021", "hirata")
               help="Without XI: smallest and largest separation of the table [default: 0.1 300].")
 @click.option("--nbins", type=click.IntRange(min=1), default=None, metavar="N",
               help="Without XI: number of log-spaced separations [default: 50].")
-@click.option("--plot", metavar="PNG", default=None,
-              help="Also draw xi+ with error bars against the budget (log theta, symlog xi+, linear range shaded).")
+@plot_opt("xi+ with error bars against the budget (log theta, symlog xi+, linear range shaded)")
 @click.option("--check", is_flag=True, default=False,
               help="Exit with status 1 (after writing the outputs) if any bin exceeds the budget.")
 @output_opt
 @overwrite_opt
+@verbosity_opts
 @click.pass_context
 @report_errors
 def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, check, output, overwrite):
@@ -78,12 +78,9 @@ def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, check, outp
         raise click.BadParameter(f"the smallest separation must come first: {theta_range[0]:g} >= "
                                  f"{theta_range[1]:g}", ctx, param_hint="'--theta-range'")
 
-    if plot == "-":
-        raise click.BadParameter("the figure cannot go to standard output: give a PNG file name", ctx,
-                                 param_hint="'--plot'")
-
     from ..stats.budget import DEFAULT_GRID, budget_file
 
+    check_outputs(output, inputs=[xi], plot=plot, overwrite=overwrite)
     lo, hi = theta_range if theta_range is not None else DEFAULT_GRID[:2]
     grid = (lo, hi, nbins if nbins is not None else DEFAULT_GRID[2])
     result = budget_file(output, xi, bands=bands, modes=modes.upper(), n_sigma=n_sigma, grid=grid, plot=plot,

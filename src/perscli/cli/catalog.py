@@ -6,8 +6,8 @@ import logging
 
 import click
 
-from .helpers import report_errors
-from .options import dec_opt, output_opt, overwrite_opt, ra_opt, seed_opt
+from .helpers import check_outputs, report_errors
+from .options import dec_opt, output_opt, overwrite_opt, ra_opt, seed_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
 
@@ -27,6 +27,7 @@ log = logging.getLogger("perscli")
 @seed_opt
 @output_opt
 @overwrite_opt
+@verbosity_opts
 @report_errors
 def catalog(ra, dec, size, galaxy_density, star_density, gaia, seed, output, overwrite):
     """Draw a truth catalog of galaxies and stars for a square field.
@@ -61,6 +62,7 @@ def catalog(ra, dec, size, galaxy_density, star_density, gaia, seed, output, ove
     """
     from ..scene.catalog import make_truth_catalog_file
 
+    check_outputs(output, inputs=gaia, overwrite=overwrite)
     table = make_truth_catalog_file(output, ra, dec, size, overwrite=overwrite, galaxy_density=galaxy_density,
                                     star_density=star_density, gaia=gaia or None, seed=seed)
     log.info("%s: %d galaxies and %d %s stars in %.6g arcmin^2",

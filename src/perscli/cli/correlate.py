@@ -7,8 +7,8 @@ import logging
 import click
 from click.core import ParameterSource
 
-from .helpers import report_errors
-from .options import output_opt, overwrite_opt, seed_opt
+from .helpers import check_outputs, report_errors
+from .options import output_opt, overwrite_opt, plot_opt, seed_opt, verbosity_opts, workers_opt
 
 log = logging.getLogger("perscli")
 
@@ -66,13 +66,13 @@ def _numbers(ctx, param, value):
 @click.option("--nboot", type=click.IntRange(min=2), default=200, show_default=True, metavar="N",
               help="Bootstrap resamples for the errors of the position-angle distribution.")
 @seed_opt
-@click.option("--plot", metavar="XI.png", default=None, help="Also draw xi+/- with its errors.")
+@plot_opt("xi+/- with its errors")
 @click.option("--plots", "plots_dir", metavar="DIR", default=None,
               help="Also draw xi.png, hist_de.png and bin_theta.png in DIR (created if needed).")
 @output_opt
 @overwrite_opt
-@click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
-              help="Threads for TreeCorr [default: all cores].")
+@workers_opt("TreeCorr's threads (results agree to rounding: threads add pairs up in varying order)")
+@verbosity_opts
 @click.pass_context
 @report_errors
 def correlate(ctx, shapes, frames, de1, de2, common_ids, positions, pixel_scale, min_sep, max_sep, nbins, sep_units,
@@ -139,8 +139,7 @@ def correlate(ctx, shapes, frames, de1, de2, common_ids, positions, pixel_scale,
         raise click.UsageError("--patch-centers and --npatch: give one (the centres fix the number of patches)", ctx)
     if min_sep >= max_sep:
         raise click.UsageError(f"--min-sep {min_sep} must be less than --max-sep {max_sep}", ctx)
-    if plot is not None and not plot.lower().endswith(".png"):
-        raise click.UsageError("--plot needs a .png file name", ctx)
+    check_outputs(output, inputs=[*shapes, patch_centers], plot=plot, overwrite=overwrite)
     summary = correlate_files(
         shapes, output, frames=frames, de_columns=(de1, de2) if de1 is not None else None, common_ids=common_ids,
         positions=positions, pixel_scale=pixel_scale, min_sep=min_sep, max_sep=max_sep, nbins=nbins,

@@ -11,10 +11,48 @@ import click
 from .. import PerscliError
 
 
+class _StderrFormatter(logging.Formatter):
+    def format(self, record):
+        return f"perscli: {record.levelname.lower()}: {record.getMessage()}" + (
+            "\n" + self.formatException(record.exc_info) if record.exc_info else "")
+
+
+def configure_logging(verbosity: int) -> None:
+    """WARNING by default; -v INFO, -vv DEBUG (with tracebacks); -q ERROR."""
+    level = max(10, logging.WARNING - 10 * verbosity)
+    logger = logging.getLogger("perscli")
+    logger.handlers[:] = []
+    handler = logging.StreamHandler()
+    handler.setFormatter(_StderrFormatter())
+    logger.addHandler(handler)
+    logger.setLevel(level)
+    logger.propagate = False
+
+
 class DataError(click.ClickException):
     """A runtime or data error: one line on stderr, exit status 1."""
 
     exit_code = 1
+
+
+def check_outputs(output: str, *, inputs=(), plot: str | None = None, overwrite: bool = False) -> None:
+    """Refuse, before any work, an output (-o, --plot) that would replace any input or each other.
+
+    ``inputs`` are every file the command reads (None, '-' and names that
+    are not files, such as a model's name, are skipped).  Raises PerscliError:
+    one line, exit status 1.
+    """
+    import os
+
+    from .. import PerscliError
+    from ..io.output import check_output
+
+    inputs = [str(name) for name in inputs if name is not None]
+    check_output(output, overwrite=overwrite, inputs=inputs)
+    if plot is not None:
+        check_output(plot, overwrite=overwrite, inputs=inputs)
+        if output != "-" and os.path.abspath(plot) == os.path.abspath(output):
+            raise PerscliError(f"{plot}: --plot and -o name the same file: choose another name for the figure")
 
 
 def report_errors(func):

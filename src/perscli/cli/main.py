@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import logging
-
 import click
 
 from .. import __version__
@@ -14,25 +12,8 @@ from .budget import budget
 from .correlate import correlate
 from .catalog import catalog
 from .pointings import pointings
+from .helpers import configure_logging  # noqa: F401  (re-exported: perscli.cli.main.configure_logging)
 from .options import no_checksum_opt
-
-
-class _StderrFormatter(logging.Formatter):
-    def format(self, record):
-        return f"perscli: {record.levelname.lower()}: {record.getMessage()}" + (
-            "\n" + self.formatException(record.exc_info) if record.exc_info else "")
-
-
-def configure_logging(verbosity: int) -> None:
-    """WARNING by default; -v INFO, -vv DEBUG (with tracebacks); -q ERROR."""
-    level = max(10, logging.WARNING - 10 * verbosity)
-    logger = logging.getLogger("perscli")
-    logger.handlers[:] = []
-    handler = logging.StreamHandler()
-    handler.setFormatter(_StderrFormatter())
-    logger.addHandler(handler)
-    logger.setLevel(level)
-    logger.propagate = False
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -62,5 +43,23 @@ cli.add_command(pointings)
 
 
 def main():
-    """Console-script entry point."""
-    cli(prog_name="perscli")
+    """Console-script entry point.
+
+    SIGTERM and SIGHUP end a command cleanly: the stack unwinds (``finally``
+    blocks remove temporary outputs, worker processes are ended), one line
+    goes to stderr and the exit status is 128 + the signal's number.
+    """
+    import sys
+
+    from ..executor import Terminated, install_signal_handlers
+
+    install_signal_handlers()
+    try:
+        cli(prog_name="perscli")
+    except Terminated as exc:
+        try:
+            sys.stderr.write(f"Error: terminated by {exc.signal_name}; no output written\n")
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
+        sys.exit(exc.code)

@@ -6,8 +6,8 @@ import logging
 
 import click
 
-from .helpers import progress_reporter, report_errors
-from .options import output_opt, overwrite_opt, workers_opt
+from .helpers import check_outputs, progress_reporter, report_errors
+from .options import output_opt, overwrite_opt, verbosity_opts, workers_opt
 
 log = logging.getLogger("perscli")
 
@@ -25,13 +25,15 @@ log = logging.getLogger("perscli")
 @click.option("--stamp", type=int, default=48, show_default=True, metavar="PIXELS", help="Stamp side.")
 @click.option("--sky", type=float, default=None, metavar="LEVEL",
               help="Background per pixel in the frame's units [default: SKYRATE x EXPTIME + dark].")
-@click.option("--read-noise", type=click.FloatRange(min=0), default=8.5, show_default=True, metavar="E",
-              help="Read noise (electrons) of the noise model, when the frame has no weight HDU.")
+@click.option("--read-noise", type=click.FloatRange(min=0), default=None, metavar="E",
+              help="Read noise (electrons) of the noise model, when the frame has no weight HDU [default: "
+                   "read_noise.sigma of the frame's detector model (MODEL table), else Roman's 8.5].")
 @click.option("--blend-radius", type=click.FloatRange(min=0), default=4.0, show_default=True, metavar="PIXELS",
               help="Flag objects with another catalogue object this close (0: never).")
 @output_opt
 @overwrite_opt
-@workers_opt
+@workers_opt("processes fitting the objects (the output does not depend on N)")
+@verbosity_opts
 @report_errors
 def measure(frames, catalog, psf, method, stamp, sky, read_noise, blend_radius, output, overwrite, workers):
     """Measure the shapes of the catalogue's objects on each FRAME.
@@ -41,8 +43,9 @@ def measure(frames, catalog, psf, method, stamp, sky, read_noise, blend_radius, 
     in Fourier space (the PSF's transform times the pixel response, folded
     above Nyquist), and fitted by Levenberg-Marquardt with the analytic
     Jacobian in float64 to 1e-10.  The start (catalogue position, round, the
-    catalogue's size and flux) and the weights (WHT/VAR/ERR HDU, else sky, dark
-    and read noise from the header) never depend on the frame's pixel noise,
+    catalogue's size and flux) and the weights (WHT/VAR/ERR HDU, else the sky
+    from the header, and the dark current, read noise and gain of the detector
+    model that rendered the frame, or Roman's) never depend on its pixel noise,
     so shape changes between two frames that differ by a small pattern are
     that pattern's alone (linear down to ~1e-10).  Only when the catalogue has
     no magnitude for the frame's FILTER is the start flux solved from the data.
@@ -65,6 +68,7 @@ def measure(frames, catalog, psf, method, stamp, sky, read_noise, blend_radius, 
     """
     from ..measure.shapes import measure_files
 
+    check_outputs(output, inputs=[catalog, *frames, psf], overwrite=overwrite)
     summary = measure_files(frames, catalog, output, psf=psf, method=method, stamp=stamp, sky=sky,
                             read_noise=read_noise, blend_radius=blend_radius, workers=workers, overwrite=overwrite,
                             progress=progress_reporter("objects"))

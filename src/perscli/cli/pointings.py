@@ -7,8 +7,9 @@ import logging
 import click
 from click.core import ParameterSource
 
-from .helpers import report_errors
-from .options import dec_opt, filter_opt, output_opt, overwrite_opt, ra_opt, sca_opt, seed_opt
+from ..instrument import ROMAN_EXPTIME, ROMAN_WAS_GAP
+from .helpers import check_outputs, report_errors
+from .options import dec_opt, filter_opt, output_opt, overwrite_opt, ra_opt, sca_opt, seed_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
 
@@ -37,16 +38,18 @@ PLAN_ONLY = ("n", "dither", "start", "exptime", "gap", "pa", "seed")
               help="--plan: offsets uniform within +-ARCSEC east and north of the field centre.")
 @click.option("--start", type=float, default=60000.0, show_default=True, metavar="MJD",
               help="--plan: start of the first exposure.")
-@click.option("--exptime", type=click.FloatRange(min=0, min_open=True), default=139.8, show_default=True,
-              metavar="SECONDS", help="--plan: exposure time (Roman survey: 139.8 s).")
-@click.option("--gap", type=click.FloatRange(min=0), default=30.0, show_default=True, metavar="SECONDS",
-              help="--plan: from the end of one exposure to the start of the next (Roman survey: ~30 s).")
+@click.option("--exptime", type=click.FloatRange(min=0, min_open=True), default=ROMAN_EXPTIME, show_default=True,
+              metavar="SECONDS", help=f"--plan: exposure time (Roman survey: {ROMAN_EXPTIME:g} s).")
+@click.option("--gap", type=click.FloatRange(min=0), default=ROMAN_WAS_GAP, show_default=True, metavar="SECONDS",
+              help=f"--plan: from the end of one exposure to the start of the next (Roman survey: "
+                   f"~{ROMAN_WAS_GAP:g} s).")
 @click.option("--pa", type=float, default=0.0, show_default=True, metavar="DEG",
               help="--plan: position angle of every exposure.")
 @sca_opt
 @seed_opt
 @output_opt
 @overwrite_opt
+@verbosity_opts
 @click.pass_context
 @report_errors
 def pointings(ctx, schedule, plan, ra, dec, radius, filter_name, limit, after, n, dither, start, exptime, gap,
@@ -93,6 +96,8 @@ def pointings(ctx, schedule, plan, ra, dec, radius, filter_name, limit, after, n
             raise click.UsageError("--schedule needs --radius DEG", ctx)
 
     from ..scene.pointings import plan_dithers_file, select_covering_file
+
+    check_outputs(output, inputs=[schedule], overwrite=overwrite)
 
     if plan:
         chosen = plan_dithers_file(output, ra, dec, n, dither=dither, filter=filter_name or "J129", start=start,

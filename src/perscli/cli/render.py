@@ -6,8 +6,10 @@ import logging
 
 import click
 
-from .helpers import progress_reporter, report_errors
-from .options import compress_opt, no_checksum_opt, output_opt, overwrite_opt, workers_opt
+from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
+from .helpers import check_outputs, progress_reporter, report_errors
+from .options import (compress_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, required_seed_opt,
+                      verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -16,9 +18,11 @@ def _list_effects(ctx, param, value):
     """--list-effects: print the registry's schema and stop (no TRUTH.fits, --seed or -o needed)."""
     if not value or ctx.resilient_parsing:
         return
+    import shutil
+
     from ..detector.effects import format_schema
 
-    click.echo(format_schema(), nl=False)
+    click.echo(format_schema(width=max(100, shutil.get_terminal_size((120, 24)).columns)), nl=False)
     ctx.exit(0)
 
 
@@ -34,12 +38,13 @@ def _list_effects(ctx, param, value):
 @click.option("--pa", type=float, metavar="DEG", help="Observatory position angle (GalSim's convention).")
 @click.option("--mjd", type=float, metavar="MJD", help="Start of the exposure.")
 @click.option("--exptime", type=click.FloatRange(min=0, min_open=True), metavar="SECONDS",
-              help="Exposure time [default: 139.8, or the pointing's].")
-@click.option("--filter", "filter_name", metavar="NAME", help="Roman filter: R062 Z087 Y106 J129 H158 F184 K213 W146.")
-@click.option("--sca", type=click.IntRange(1, 18), metavar="N",
-              help="Detector 1-18 (default: the pointing's sca column).")
+              help=f"Exposure time [default: {ROMAN_EXPTIME:g}, or the pointing's].")
+@click.option("--filter", "filter_name", metavar="NAME", help=f"Roman filter: {' '.join(ROMAN_FILTERS)}.")
+@click.option("--sca", type=click.IntRange(1, ROMAN_N_SCA), metavar="N",
+              help=f"Detector 1-{ROMAN_N_SCA} (default: the pointing's sca column).")
 @click.option("--bounds", type=int, nargs=4, metavar="XMIN XMAX YMIN YMAX",
-              help="Render a cutout: 1-indexed inclusive SCA pixels [default: the full 4088 x 4088].")
+              help="Render a cutout: 1-indexed inclusive SCA pixels "
+                   f"[default: the full {ROMAN_SCA_SIZE} x {ROMAN_SCA_SIZE}].")
 @click.option("--model", "model_spec", default="roman", show_default=True, metavar="roman|MODEL.yaml|FRAME.fits",
               help="Detector model: GalSim's Roman chain (with saturation), a YAML list of effects in physical "
                    "order, or a frame perscli rendered (the model that made it). See --list-effects.")
@@ -48,17 +53,16 @@ def _list_effects(ctx, param, value):
 @click.option("--previous", multiple=True, metavar="FRAME",
               help="An earlier exposure of the same SCA (a frame perscli rendered); repeatable. Its FLUENCE "
                    "leaves persistence in this one.")
-@click.option("--seed", type=click.IntRange(min=0), required=True, metavar="S",
-              help="Seed of every random stream: same seed, same bytes; one effect's noise does not depend "
-                   "on which other effects are on.")
-@click.option("--plot", metavar="PNG", help="Also write a picture of the frame and of its persistence.")
+@required_seed_opt
+@plot_opt("the frame and its persistence")
 @click.option("--list-effects", is_flag=True, expose_value=False, is_eager=True, callback=_list_effects,
               help="Print every effect's parameters (type, unit, default, allowed values) and exit.")
 @output_opt
 @compress_opt
 @no_checksum_opt
 @overwrite_opt
-@workers_opt
+@workers_opt("processes drawing the objects' stamps (the output does not depend on N)")
+@verbosity_opts
 @report_errors
 def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds, model_spec, settings,
            previous, seed, plot, output, compress, overwrite, workers):
@@ -69,15 +73,16 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     the filter's AB zeropoint and the zodiacal plus thermal sky.  Stamps grow
     with flux so that bright stars keep their diffraction spikes, the source of
     their persistence ghosts.  The detector chain (sky, Poisson noise,
-    reciprocity failure, dark current, persistence, nonlinearity, IPC, read
-    noise, gain, quantisation) follows the model file; each effect has its own
-    random stream, so frames rendered with and without persistence share their
-    noise.
+    reciprocity failure, dark current, persistence, saturation at the full
+    well, nonlinearity, IPC, read noise, gain, quantisation) follows the model
+    (--list-effects prints every parameter); each effect has its own random
+    stream, so frames rendered with and without persistence share their noise.
 
     The output has SCI (the frame, DN after gain), IDEAL (noise-free electrons
-    from sky and sources), FLUENCE (the charge that drives later persistence)
-    and, with --previous, PERSIST (electrons of persistence), with WCS, timing,
-    SCA, FILTER, GAIN and the model in the headers.
+    from sky and sources), FLUENCE (the charge collected, at most the full
+    well: what drives later persistence), with --previous PERSIST (electrons
+    of persistence), and MODEL (the resolved detector model, which --model
+    FRAME.fits reads back); WCS, timing, SCA, FILTER and GAIN in the headers.
 
     \b
     Examples:
@@ -85,12 +90,13 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
       perscli render truth.fits --pointings seq.fits --row 1 --sca 7 --seed 2 --previous e1.fits -o e2.fits
       perscli render truth.fits --pointings seq.fits --row 1 --sca 7 --seed 2 --set persistence=off -o e2_nop.fits
       perscli render truth.fits --pointings seq.fits --sca 7 --bounds 1 512 1 512 --seed 1 -o cutout.fits
+      perscli render truth.fits --pointings seq.fits --row 2 --sca 7 --seed 3 --model e2.fits -o e3.fits
+      perscli render --list-effects
     """
     from ..detector.effects import load_detector_model
     from ..render.run import render_file
 
-    if plot is not None and not plot.lower().endswith(".png"):
-        raise click.UsageError("--plot needs a .png file name")
+    check_outputs(output, inputs=[truth, pointings_file, model_spec, *previous], plot=plot, overwrite=overwrite)
     exposure = _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds)
     model = load_detector_model(model_spec, settings)
     summary = render_file(truth, exposure, output, model=model, seed=seed, previous=previous,
@@ -125,8 +131,8 @@ def _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, 
                                    f"(missing {' '.join(missing)})")
         values, expid = explicit, -1
     if sca is None:
-        raise click.UsageError("give --sca N (1-18): the pointing does not name a detector")
+        raise click.UsageError(f"give --sca N (1-{ROMAN_N_SCA}): the pointing does not name a detector")
     return Exposure(ra=values["--ra"], dec=values["--dec"], pa=values["--pa"], sca=sca,
                     filter=values["--filter"], mjd=values["--mjd"],
-                    exptime=exptime if exptime is not None else 139.8,
+                    exptime=exptime if exptime is not None else ROMAN_EXPTIME,
                     bounds=tuple(bounds) if bounds else None, expid=expid)

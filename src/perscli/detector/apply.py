@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError, _kernels
+from ..executor import thread_map
 from ..io.fitsfile import OutHDU
 from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, require_timing
 from ..io.output import add_provenance
@@ -82,6 +83,44 @@ def with_settings(model: PersistenceModel, *, time_model=None, combine=None, max
     return dataclasses.replace(model, **changes) if changes else model
 
 
+def check_earlier(prev: Frame, *, label: str, shape: tuple, detector=None, offsets=(None, None),
+                  start: float | None = None) -> None:
+    """Refuse an earlier exposure that cannot leave persistence in the current one.
+
+    Parameters
+    ----------
+    prev : Frame
+        The earlier exposure.
+    label : str
+        The current exposure, for messages.
+    shape : tuple
+        The current exposure's image shape.
+    detector : optional
+        Its SCA/DETECTOR keyword, when known.
+    offsets : (LTV1, LTV2)
+        Its subarray offsets, when known.
+    start : float, optional
+        Its start (MJD).
+    """
+    require_timing(prev)
+    if prev.shape != tuple(shape):
+        raise PerscliError(f"{prev.label}: image shape {prev.shape} differs from {label}'s "
+                           f"{tuple(shape)}; earlier exposures must be of the same detector area")
+    theirs = prev.keyword("SCA", prev.keyword("DETECTOR"))
+    if None not in (theirs, detector) and str(theirs).strip() != str(detector).strip():
+        raise PerscliError(f"{prev.label}: detector SCA/DETECTOR={theirs} differs from "
+                           f"{label}'s {detector}: persistence stays on the detector that saw "
+                           "the light; give earlier exposures of the same detector")
+    mine = (prev.keyword("LTV1"), prev.keyword("LTV2"))
+    if None not in mine + tuple(offsets) and tuple(float(v) for v in mine) != tuple(float(v) for v in offsets):
+        raise PerscliError(f"{prev.label}: subarray offset LTV1/LTV2={mine} differs from "
+                           f"{label}'s {tuple(offsets)}: not the same pixels of the detector")
+    if start is not None and prev.end > start:
+        raise PerscliError(
+            f"{prev.label} ends at MJD {prev.end:.8f}, after {label} starts "
+            f"(MJD {start:.8f}): it is not an earlier exposure; check the order or the timestamps")
+
+
 def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str | None = None,
          max_previous: int | None = None) -> PersistencePlan:
     """Check the earlier exposures, order them by time and work out their time factors.
@@ -111,23 +150,9 @@ def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str |
     previous = list(previous)
     require_timing(current)
     for prev in previous:
-        require_timing(prev)
-        if prev.shape != current.shape:
-            raise PerscliError(f"{prev.label}: image shape {prev.shape} differs from {current.label}'s "
-                               f"{current.shape}; earlier exposures must be of the same detector area")
-        detectors = [f.keyword("SCA", f.keyword("DETECTOR")) for f in (prev, current)]
-        if None not in detectors and str(detectors[0]).strip() != str(detectors[1]).strip():
-            raise PerscliError(f"{prev.label}: detector SCA/DETECTOR={detectors[0]} differs from "
-                               f"{current.label}'s {detectors[1]}: persistence stays on the detector that saw "
-                               "the light; give earlier exposures of the same detector")
-        offsets = [(f.keyword("LTV1"), f.keyword("LTV2")) for f in (prev, current)]
-        if None not in offsets[0] + offsets[1] and offsets[0] != offsets[1]:
-            raise PerscliError(f"{prev.label}: subarray offset LTV1/LTV2={offsets[0]} differs from "
-                               f"{current.label}'s {offsets[1]}: not the same pixels of the detector")
-        if prev.end > current.start:
-            raise PerscliError(
-                f"{prev.label} ends at MJD {prev.end:.8f}, after {current.label} starts "
-                f"(MJD {current.start:.8f}): it is not an earlier exposure; check the order or the timestamps")
+        check_earlier(prev, label=current.label, shape=current.shape,
+                      detector=current.keyword("SCA", current.keyword("DETECTOR")),
+                      offsets=(current.keyword("LTV1"), current.keyword("LTV2")), start=current.start)
     keep, left = order_earlier([f.end for f in previous], current.start, model, [f.label for f in previous])
     result = PersistencePlan(current=current, skipped=[previous[i].label for i in left])
     if result.skipped:
@@ -200,20 +225,8 @@ def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, b
         return sums, consume(r0, r1, acc)
 
     threads_ok = all(rec.frame.fluence_is_raw for rec in the_plan.used)
-    results = []
-    if workers > 1 and threads_ok and len(starts) > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(workers) as pool:
-            for done, result in enumerate(pool.map(work, starts), 1):
-                results.append(result)
-                if progress is not None:
-                    progress(done, len(starts))
-    else:
-        for done, r0 in enumerate(starts, 1):
-            results.append(work(r0))
-            if progress is not None:
-                progress(done, len(starts))
+    # threads, not processes: the compiled kernel releases the GIL and the blocks share one frame
+    results = thread_map(work, starts, workers=workers if threads_ok else 1, progress=progress)
     for i, rec in enumerate(the_plan.used[:nused]):
         for sums, _ in results:
             bad, dsum = sums[i]

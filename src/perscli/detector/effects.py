@@ -118,7 +118,9 @@ class Param:
             return "roman | 3x3 list"
         lo = "-inf" if self.lo is None else f"{self.lo:g}"
         hi = "inf" if self.hi is None else f"{self.hi:g}"
-        text = f"{'(' if self.lo_open or self.lo is None else '['}{lo}, {hi}{')' if self.hi_open or self.hi is None else ']'}"
+        left = "(" if self.lo_open or self.lo is None else "["
+        right = ")" if self.hi_open or self.hi is None else "]"
+        text = f"{left}{lo}, {hi}{right}"
         if self.kind == "int":
             text = f"integer {text}"
         if self.kind == "floats":
@@ -226,9 +228,9 @@ class ChainContext:
     sky_rate: float | Callable[[], float] = 0.0
     persistence: np.ndarray | Callable[[], np.ndarray] | None = None
     #: what the chain used: the sky rate (e-/pixel/s) and the persistence charge (electrons)
-    used_sky_rate: float = 0.0
-    used_persistence: np.ndarray | None = None
-    _cache: dict = field(default_factory=dict, repr=False)
+    used_sky_rate: float = field(default=0.0, init=False)
+    used_persistence: np.ndarray | None = field(default=None, init=False)
+    _cache: dict = field(default_factory=dict, init=False, repr=False)
 
     def sky(self) -> float:
         if "sky" not in self._cache:
@@ -479,6 +481,9 @@ class Persistence(DetectorEffect):
 
     @classmethod
     def validate(cls, params, where):
+        if "model" in params and "kind" not in params:
+            # the spelling perscli.detector.persistence files accept
+            params = {("kind" if k == "model" else k): v for k, v in params.items()}
         out = super().validate(params, where)
         cls.model(out, where)          # the law's own checks (e.g. its combination of parameters)
         return out
@@ -1045,9 +1050,10 @@ def _from_fits(path: str) -> DetectorModel:
 
 def model_of_frame(frame) -> DetectorModel | None:
     """The detector model stored in an opened frame (:class:`perscli.io.frames.Frame`), or None."""
-    tables = [h for h in getattr(frame, "hdus", []) or [] if h.name == "MODEL" and h.kind == "table"]
+    tables = [h for h in getattr(frame, "hdus", []) or [] if h.name == "MODEL" and h.kind == "table"
+              and {"EFFECT", "ENABLED", "PARAM", "VALUE"} <= {c.upper() for c in h.colnames}]
     if not tables:
-        return None
+        return None          # not rendered by perscli (another program's MODEL table is not ours)
     hdu = tables[0]
     columns = {name.upper(): hdu.read_column(name) for name in hdu.colnames}
     return model_from_table(columns, frame.label)

@@ -27,6 +27,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .. import PerscliError
+from .. import instrument as _instrument
 
 #: Parameter sets of the paper's Table 1 (GalSim's Roman module uses 'typical').
 PRESETS = {
@@ -42,7 +43,7 @@ GALSIM_LINEAR_COEFFICIENTS = (
 )
 
 #: GalSim's Roman exposure time (galsim.roman.exptime), used by its 'fermi' method.
-GALSIM_EXPTIME = 139.8
+GALSIM_EXPTIME = _instrument.ROMAN_EXPTIME
 
 #: The schema of the Fermi parameters: name -> (description, unit).
 FERMI_PARAMETERS = {

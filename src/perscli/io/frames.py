@@ -149,25 +149,6 @@ class Frame:
     section: tuple | None = None
     overrides: dict = field(default_factory=dict)
 
-    @classmethod
-    def planned(cls, name: str, shape: tuple, start: float, end: float, exptime: float, offsets=None,
-                sca: int | None = None):
-        """An exposure that is being made (no file yet): timing and shape only.
-
-        Used as the 'current' frame when rendering with persistence from
-        earlier exposures; ``offsets`` are its (LTV1, LTV2) for a cutout and
-        ``sca`` its detector.
-        """
-        from .fitsfile import Header, format_card
-
-        cards = [format_card("LTV1", float(offsets[0])), format_card("LTV2", float(offsets[1]))] if offsets else []
-        if sca is not None:
-            cards.append(format_card("SCA", int(sca)))
-        frame = cls(name=name, hdus=[], sci=[], layout="image", unit="electron", gain=None, exptime=exptime,
-                    start=start, end=end, image_shape=tuple(shape))
-        frame._planned_header = Header(cards)
-        return frame
-
     @property
     def label(self) -> str:
         return "stdin" if self.name == "-" else self.name
@@ -176,8 +157,6 @@ class Frame:
     @property
     def header(self):
         """Header of the (first) science HDU."""
-        if not self.sci:
-            return self._planned_header
         return self.hdus[self.sci[0]].header
 
     def keyword(self, key, default=None):

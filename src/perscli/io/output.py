@@ -37,7 +37,8 @@ def check_output(dest: str, *, overwrite: bool = False, inputs=()) -> None:
     overwrite : bool
         Allow replacing an existing file.
     inputs : iterable of str
-        Input paths: an output may never replace one of them.
+        Input paths (None and '-' are skipped; ``file.fits[SCI]`` is
+        ``file.fits``): an output may never replace one of them.
     """
     if dest == "-":
         if sys.stdout.isatty():
@@ -49,7 +50,14 @@ def check_output(dest: str, *, overwrite: bool = False, inputs=()) -> None:
     if os.path.isdir(dest):
         raise PerscliError(f"{dest}: is a directory; give a file name for the output")
     for name in inputs:
-        if name != "-" and os.path.exists(name) and os.path.exists(dest) and os.path.samefile(name, dest):
+        if name is None or name == "-":
+            continue
+        name = str(name)
+        if not os.path.exists(name):
+            from .fitsfile import split_selector
+
+            name = split_selector(name)[0]
+        if os.path.exists(name) and os.path.exists(dest) and os.path.samefile(name, dest):
             raise PerscliError(f"{dest}: is also an input; inputs are never modified: choose another output")
     if os.path.exists(dest) and not overwrite:
         raise PerscliError(f"{dest}: already exists; use --overwrite to replace it")

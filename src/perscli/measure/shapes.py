@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PerscliError
+from ..instrument import ROMAN_PIXEL_SCALE
 from .fit import FLAG_EDGE, P_EXP, ExpModel, fit_exp
 
 log = logging.getLogger(__name__)
@@ -58,10 +59,26 @@ class NoiseModel:
     background: float
     variance: float
     source: str
+    detector: str = ""       # where read noise, dark current and gain came from
 
 
-def noise_model(frame, *, sky=None, read_noise=8.5, dark=0.015) -> NoiseModel:
+def frame_detector_model(frame):
+    """The detector model that made ``frame`` (its MODEL table, written by ``perscli render``),
+    else the default Roman model: ``(DetectorModel, 'MODEL' or 'roman')``."""
+    from ..detector.effects import default_model, model_of_frame
+
+    model = model_of_frame(frame)
+    return (model, "MODEL") if model is not None else (default_model(), "roman")
+
+
+def noise_model(frame, *, sky=None, read_noise=None, dark=None) -> NoiseModel:
     """Background and variance from the frame's headers (never from its pixels).
+
+    Read noise, dark current and gain come from the detector model that made
+    the frame (:func:`frame_detector_model`): its read_noise.sigma,
+    dark.current and gain.gain (0, 0 and the header's GAIN or 1 for effects
+    that are off), or the default Roman model's for frames perscli did not
+    render.
 
     Parameters
     ----------
@@ -69,12 +86,20 @@ def noise_model(frame, *, sky=None, read_noise=8.5, dark=0.015) -> NoiseModel:
     sky : float, optional
         Background in the frame's units per pixel; default SKYRATE x EXPTIME
         (what ``perscli render`` writes) plus dark current.
-    read_noise : float
-        Electrons.
-    dark : float
-        Dark current, e-/pixel/s.
+    read_noise : float, optional
+        Electrons; overrides the model's.
+    dark : float, optional
+        Dark current, e-/pixel/s; overrides the model's.
     """
-    gain = frame.gain or 1.0
+    detector, where = frame_detector_model(frame)
+    if read_noise is None:
+        read_noise = detector.value("read_noise", "sigma", off=0.0)
+    if dark is None:
+        dark = detector.value("dark", "current", off=0.0)
+    if where == "MODEL":
+        gain = detector.value("gain", "gain", off=None) or frame.gain or 1.0
+    else:
+        gain = frame.gain or detector.value("gain", "gain", off=None) or 1.0
     exptime = frame.exptime
     is_dn = frame.unit in ("DN", "DN/s")
     to_units = 1.0 / gain if is_dn else 1.0
@@ -93,7 +118,7 @@ def noise_model(frame, *, sky=None, read_noise=8.5, dark=0.015) -> NoiseModel:
         sky_e = background / to_units
         source = "--sky"
     variance_e = max(sky_e, 0.0) + read_noise ** 2
-    return NoiseModel(background=background, variance=variance_e * to_units ** 2, source=source)
+    return NoiseModel(background=background, variance=variance_e * to_units ** 2, source=source, detector=where)
 
 
 def _weight_hdu(frame):
@@ -241,14 +266,110 @@ def blended(x, y, radius: float) -> np.ndarray:
     return out
 
 
-def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, read_noise=8.5,
-                  blend_radius=4.0, progress=None) -> dict:
+@dataclass
+class _FrameFacts:
+    """The header values :func:`start_point` reads, detached from the open file (picklable)."""
+
+    label: str
+    unit: str
+    gain: float | None
+    exptime: float | None
+    keywords: dict
+
+    @classmethod
+    def of(cls, frame):
+        return cls(frame.label, frame.unit, frame.gain, frame.exptime,
+                   {k: frame.keyword(k) for k in ("ZPT_AB", "FILTER")})
+
+    def keyword(self, name):
+        return self.keywords.get(name)
+
+
+@dataclass
+class FrameContext:
+    """Everything the fit of one object on a frame needs, read once by the parent (see :func:`measure_object`).
+
+    Handed to the worker processes of :func:`perscli.executor.run`: the
+    frame's pixels are read by the parent (from a file or standard input)
+    and never reopened by name.
+    """
+
+    data: np.ndarray
+    weights: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    blends: np.ndarray
+    background: float
+    cat: dict
+    frame: _FrameFacts
+    pixel_scale: float
+    method: str
+    stamp: int
+    model: object = None
+    psf_image: object = None
+
+
+#: float columns of one object's measurement, and the integer ones
+_FLOAT_COLUMNS = ("x", "y", "g1", "g2", "T", "flux", "x_err", "y_err", "g1_err", "g2_err", "T_err", "flux_err",
+                  "s2n", "chi2")
+_INT_COLUMNS = ("nfev", "flags")
+
+
+def measure_object(ctx: FrameContext, i: int) -> dict:
+    """Fit catalogue object ``i`` on the frame of ``ctx``: its columns, as 1-element arrays."""
+    cols = {k: np.full(1, np.nan) for k in _FLOAT_COLUMNS}
+    cols.update({k: np.zeros(1, dtype=np.int32) for k in _INT_COLUMNS})
+    data, weights, stamp, model = ctx.data, ctx.weights, ctx.stamp, ctx.model
+    ny, nx = data.shape
+    half = stamp // 2
+    # 0-indexed array coordinates of the object (FITS pixel 1 is index 0)
+    xi, yi = float(ctx.x[i]) - 1.0, float(ctx.y[i]) - 1.0
+    ix, iy = int(math.floor(xi + 0.5)), int(math.floor(yi + 0.5))
+    x0, y0 = ix - half, iy - half
+    if not (0 <= ix < nx and 0 <= iy < ny):
+        cols["flags"][0] = FLAG_OFF_FRAME
+        return cols
+    a0, a1, b0, b1 = max(x0, 0), min(x0 + stamp, nx), max(y0, 0), min(y0 + stamp, ny)
+    img = np.zeros((stamp, stamp))
+    wt = np.zeros((stamp, stamp))
+    img[b0 - y0:b1 - y0, a0 - x0:a1 - x0] = data[b0:b1, a0:a1] - ctx.background
+    wt[b0 - y0:b1 - y0, a0 - x0:a1 - x0] = weights[b0:b1, a0:a1]
+    edge = FLAG_EDGE if (a0, b0, a1, b1) != (x0, y0, x0 + stamp, y0 + stamp) else 0
+    edge |= FLAG_BLEND if ctx.blends[i] else 0
+    if ctx.method == "exp":
+        start, from_catalogue = start_point(ctx.cat, i, xi - x0, yi - y0, ctx.frame, ctx.pixel_scale)
+        if not from_catalogue:
+            start = start[:5] + (_linear_flux(model, start, img, wt),)
+        res = fit_exp(img, wt, model, start)
+        th, er = res.theta, res.errors
+        cols["x"][0], cols["y"][0] = th[0] + x0 + 1.0, th[1] + y0 + 1.0
+        for j, key in enumerate(("g1", "g2", "T", "flux"), 2):
+            cols[key][0] = th[j]
+            cols[f"{key}_err"][0] = er[j]
+        cols["x_err"][0], cols["y_err"][0] = er[0], er[1]
+        cols["s2n"][0], cols["chi2"][0], cols["nfev"][0] = res.s2n, res.chi2, res.nfev
+        moved = math.hypot(th[0] - start[0], th[1] - start[1]) > MAX_MOVE
+        cols["flags"][0] = (res.flags | edge | (FLAG_MOVED if moved else 0)
+                            | (FLAG_LOW_SN if not res.s2n >= MIN_S2N else 0))
+    else:
+        _hsm(img, wt, ctx.psf_image, cols, 0, x0, y0, edge)
+    return cols
+
+
+def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, read_noise=None,
+                  blend_radius=4.0, progress=None, workers: int = 1) -> dict:
     """Measure every catalogue object on one frame.
+
+    The frame is read here, once; the objects are fitted by
+    :func:`measure_object` on ``workers`` processes
+    (:func:`perscli.executor.run`), with the same results for any number.
 
     Returns
     -------
     dict of column arrays (one row per catalogue object; objects off the frame are flagged).
     """
+    from ..executor import run
+
     wcs = frame_wcs(frame)
     ny, nx = frame.shape
     if "ra" in cat:
@@ -262,7 +383,7 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
             ra, dec = wcs.all_pix2world(x, y, 1)
         else:
             ra = dec = np.full(len(x), np.nan)
-    pixel_scale = 0.11
+    pixel_scale = ROMAN_PIXEL_SCALE
     if wcs is not None:
         from astropy.wcs.utils import proj_plane_pixel_scales
 
@@ -287,10 +408,6 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
         weights = np.full(data.shape, 1.0 / noise.variance)
     weights = np.where(np.isfinite(data), weights, 0.0)
     n = len(x)
-    cols = {k: np.full(n, np.nan) for k in ("x", "y", "g1", "g2", "T", "flux", "x_err", "y_err", "g1_err",
-                                            "g2_err", "T_err", "flux_err", "s2n", "chi2")}
-    cols["nfev"] = np.zeros(n, dtype=np.int32)
-    cols["flags"] = np.zeros(n, dtype=np.int32)
     model = ExpModel(psf_profile(psf, frame, pixel_scale=pixel_scale), stamp) if method == "exp" else None
     psf_image = None
     if method == "hsm":
@@ -298,42 +415,17 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
         import galsim
 
         psf_image = galsim.Convolve(prof, galsim.Pixel(1.0)).drawImage(nx=stamp, ny=stamp, scale=1.0, method="no_pixel")
-    half = stamp // 2
     blends = blended(np.asarray(x, dtype=float), np.asarray(y, dtype=float), blend_radius)
-    for i in range(n):
-        # 0-indexed array coordinates of the object (FITS pixel 1 is index 0)
-        xi, yi = float(x[i]) - 1.0, float(y[i]) - 1.0
-        ix, iy = int(math.floor(xi + 0.5)), int(math.floor(yi + 0.5))
-        x0, y0 = ix - half, iy - half
-        if not (0 <= ix < nx and 0 <= iy < ny):
-            cols["flags"][i] = FLAG_OFF_FRAME
-            continue
-        a0, a1, b0, b1 = max(x0, 0), min(x0 + stamp, nx), max(y0, 0), min(y0 + stamp, ny)
-        img = np.zeros((stamp, stamp))
-        wt = np.zeros((stamp, stamp))
-        img[b0 - y0:b1 - y0, a0 - x0:a1 - x0] = data[b0:b1, a0:a1] - noise.background
-        wt[b0 - y0:b1 - y0, a0 - x0:a1 - x0] = weights[b0:b1, a0:a1]
-        edge = FLAG_EDGE if (a0, b0, a1, b1) != (x0, y0, x0 + stamp, y0 + stamp) else 0
-        edge |= FLAG_BLEND if blends[i] else 0
-        if method == "exp":
-            start, from_catalogue = start_point(cat, i, xi - x0, yi - y0, frame, pixel_scale)
-            if not from_catalogue:
-                start = start[:5] + (_linear_flux(model, start, img, wt),)
-            res = fit_exp(img, wt, model, start)
-            th, er = res.theta, res.errors
-            cols["x"][i], cols["y"][i] = th[0] + x0 + 1.0, th[1] + y0 + 1.0
-            for j, key in enumerate(("g1", "g2", "T", "flux"), 2):
-                cols[key][i] = th[j]
-                cols[f"{key}_err"][i] = er[j]
-            cols["x_err"][i], cols["y_err"][i] = er[0], er[1]
-            cols["s2n"][i], cols["chi2"][i], cols["nfev"][i] = res.s2n, res.chi2, res.nfev
-            moved = math.hypot(th[0] - start[0], th[1] - start[1]) > MAX_MOVE
-            cols["flags"][i] = (res.flags | edge | (FLAG_MOVED if moved else 0)
-                                | (FLAG_LOW_SN if not res.s2n >= MIN_S2N else 0))
-        else:
-            _hsm(img, wt, psf_image, cols, i, x0, y0, edge)
-        if progress is not None:
-            progress(i + 1, n)
+    ctx = FrameContext(data=data, weights=weights, x=np.asarray(x, dtype=np.float64),
+                       y=np.asarray(y, dtype=np.float64), blends=blends, background=float(noise.background),
+                       cat=cat, frame=_FrameFacts.of(frame), pixel_scale=pixel_scale, method=method, stamp=stamp,
+                       model=model, psf_image=psf_image)
+    rows = run(measure_object, range(n), context=ctx, workers=workers, progress=progress)
+    cols = {k: np.full(n, np.nan) for k in _FLOAT_COLUMNS}
+    cols.update({k: np.zeros(n, dtype=np.int32) for k in _INT_COLUMNS})
+    for i, row in enumerate(rows):
+        for key, value in row.items():
+            cols[key][i] = value[0]
     cols["id"] = cat["id"]
     cols["ra"], cols["dec"] = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
     cols["_noise"] = noise
@@ -369,23 +461,8 @@ def _hsm(img, wt, psf_image, cols, i, x0, y0, edge):
     cols["flags"][i] = edge | (FLAG_HSM if res.correction_status != 0 else 0)
 
 
-def _measure_chunk(args):
-    frame_name, cat, kwargs = args
-    from ..io.frames import open_frame
-
-    frame = open_frame(frame_name)
-    try:
-        return measure_frame(frame, cat, **kwargs)
-    finally:
-        frame.close()
-
-
-def _subset(cat, index):
-    return {k: (v[index] if isinstance(v, np.ndarray) else v) for k, v in cat.items()}
-
-
 def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp", stamp=48, sky=None,
-                  read_noise=8.5, blend_radius=4.0, workers=1, overwrite=False, progress=None) -> dict:
+                  read_noise=None, blend_radius=4.0, workers=1, overwrite=False, progress=None) -> dict:
     """``perscli measure`` as a function: shapes of the catalogue's objects on each frame.
 
     Writes a FITS file with a SHAPES table (one row per object per frame,
@@ -409,7 +486,7 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
     if stamp < 16 or stamp % 2:
         raise PerscliError(f"--stamp {stamp} must be an even number of pixels >= 16")
     frames = list(frames)
-    check_output(dest, overwrite=overwrite, inputs=[catalog, *frames])
+    check_output(dest, overwrite=overwrite, inputs=[catalog, *frames, psf if psf != "roman" else None])
     cat = read_positions(catalog)
     tables, inputs, noise_sources = [], [("CAT", catalog, cat["datasum"])], []
     kwargs = dict(psf=psf, method=method, stamp=stamp, sky=sky, read_noise=read_noise, blend_radius=blend_radius)
@@ -417,17 +494,7 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
         frame = open_frame(name)
         try:
             inputs.append((f"FRM{k + 1:02d}", name, frame.datasum(frame.sci[0])))
-            if workers > 1 and len(cat["id"]) > 1:
-                import multiprocessing as mp
-                from concurrent.futures import ProcessPoolExecutor
-
-                chunks = np.array_split(np.arange(len(cat["id"])), workers)
-                with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
-                    parts = list(pool.map(_measure_chunk, [(name, _subset(cat, c), kwargs) for c in chunks]))
-                cols = {key: (np.concatenate([p[key] for p in parts]) if key != "_noise" else parts[0][key])
-                        for key in parts[0]}
-            else:
-                cols = measure_frame(frame, cat, progress=progress, **kwargs)
+            cols = measure_frame(frame, cat, progress=progress, workers=workers, **kwargs)
         finally:
             frame.close()
         noise_sources.append(cols.pop("_noise"))
@@ -447,7 +514,8 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
         hdus.append(_combined(shapes))
     params = {"METHOD": (method, "exp (mixture fit) or hsm (REGAUSS)"),
               "PSF": (psf if psf == "roman" else psf.split("/")[-1], "PSF source"),
-              "STAMP": (stamp, "[pix] stamp side"), "RDNOISE": (read_noise, "[e-] read noise of the noise model"),
+              "STAMP": (stamp, "[pix] stamp side"), "RDNOISE": (read_noise if read_noise is not None else "model",
+                                                            "[e-] read noise ('model': the frame's)"),
               "NFRAMES": (len(frames), "frames measured"), "XTOL": (1e-10, "relative step tolerance"),
               "BLENDRAD": (blend_radius, "[pix] neighbour distance flagged as a blend")}
     for bit, text in FLAGS.items():

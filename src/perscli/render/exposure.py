@@ -12,6 +12,7 @@ by :class:`perscli.render.draw.StampDrawer`; the detector chain of
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import logging
 import math
@@ -20,12 +21,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PerscliError
+from ..executor import imap
+from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
 from .draw import StampDrawer, galaxy_stamp_size, star_stamp_size
 
 log = logging.getLogger(__name__)
 
-FILTERS = ("R062", "Z087", "Y106", "J129", "H158", "F184", "K213", "W146")
-SCA_SIZE = 4088
+FILTERS = ROMAN_FILTERS
+SCA_SIZE = ROMAN_SCA_SIZE
 
 
 @dataclass
@@ -59,15 +62,15 @@ class Exposure:
     sca: int
     filter: str
     mjd: float
-    exptime: float = 139.8
+    exptime: float = ROMAN_EXPTIME
     bounds: tuple | None = None
     expid: int = -1
 
     def __post_init__(self):
         if self.filter not in FILTERS:
             raise PerscliError(f"unknown filter {self.filter!r}: use one of {', '.join(FILTERS)}")
-        if not 1 <= int(self.sca) <= 18:
-            raise PerscliError(f"--sca {self.sca} is not a Roman SCA: use 1 to 18")
+        if not 1 <= int(self.sca) <= ROMAN_N_SCA:
+            raise PerscliError(f"--sca {self.sca} is not a Roman SCA: use 1 to {ROMAN_N_SCA}")
         if not (math.isfinite(self.ra) and -90 <= self.dec <= 90 and math.isfinite(self.pa)):
             raise PerscliError(f"pointing ra={self.ra} dec={self.dec} pa={self.pa} is not valid (degrees)")
         if not self.exptime > 0:
@@ -188,20 +191,30 @@ def plan_objects(cols, optics: Optics, bounds):
     return np.flatnonzero(keep), x, y, flux, sizes
 
 
-_WORKER = {}
+@dataclass
+class DrawContext:
+    """What every stamp needs: the exposure's optics and a drawer holding its PSF (see :func:`draw_context`)."""
+
+    optics: Optics
+    drawer: StampDrawer
 
 
-def _init_worker(exposure: Exposure):
-    _WORKER["optics"] = Optics(exposure)
-    _WORKER["drawer"] = StampDrawer(_WORKER["optics"].psf_pixels)
+def draw_context(exposure: Exposure, optics: Optics | None = None) -> DrawContext:
+    """The :class:`DrawContext` of an exposure (a picklable factory: ``executor.Lazy(draw_context, exposure)``)."""
+    optics = optics if optics is not None else Optics(exposure)
+    return DrawContext(optics, StampDrawer(optics.psf_pixels))
 
 
-def _draw_one(args):
-    """One object's stamp: (index, stamp array, its lower-left pixel)."""
+def draw_one(context: DrawContext, job):
+    """One object's stamp: (index, stamp array, its lower-left pixel).
+
+    ``job`` is (index, x, y, flux, stamp size, kind, hlr, e1, e2), as
+    :func:`draw_sources` makes them.
+    """
     import galsim
 
-    index, x, y, flux, n, kind, hlr, e1, e2 = args
-    optics, drawer = _WORKER["optics"], _WORKER["drawer"]
+    index, x, y, flux, n, kind, hlr, e1, e2 = job
+    optics, drawer = context.optics, context.drawer
     profile = None
     if kind == "galaxy":
         gal = galsim.Exponential(half_light_radius=hlr, flux=1.0).shear(g1=e1, g2=e2)
@@ -214,8 +227,10 @@ def _draw_one(args):
 def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None):
     """Expected electrons from the catalogue's objects on the exposure's pixels.
 
-    Stamps are added in catalogue order whatever the number of workers, so
-    the result is the same bytes for any ``workers``.
+    Stamps are drawn by :func:`draw_one` through :func:`perscli.executor.imap`
+    (``workers`` processes, each handed the optics once) and added in
+    catalogue order whatever the number of workers, so the result is the same
+    bytes for any ``workers``.
 
     Returns
     -------
@@ -229,18 +244,15 @@ def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None):
     todo, x, y, flux, sizes = plan_objects(cols, optics, exposure.full_bounds)
     jobs = [(int(i), float(x[i]), float(y[i]), float(flux[i]), int(sizes[i]), cols["kind"][i],
              float(cols["hlr"][i]), float(cols["e1"][i]), float(cols["e2"][i])) for i in todo]
-    if workers > 1 and len(jobs) > 1:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-
-        pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("fork"), initializer=_init_worker,
-                                   initargs=(exposure,))
-        stamps = pool.map(_draw_one, jobs, chunksize=max(1, len(jobs) // (8 * workers)))
-    else:
-        pool = None
-        _WORKER["optics"], _WORKER["drawer"] = optics, StampDrawer(optics.psf_pixels)
-        stamps = map(_draw_one, jobs)
-    try:
+    context = draw_context(exposure, optics)
+    # the PSF table of each stamp size (the costly part of a large stamp) is made once, here, and
+    # handed to every worker with the context, rather than remade in each of them
+    for n in sorted({job[4] for job in jobs}):
+        context.drawer.table(n)
+    # stamps vary a lot in cost (a bright star's is 2048 pixels wide): small chunks balance the load
+    stamps = imap(draw_one, jobs, context=context, workers=workers,
+                  chunksize=max(1, len(jobs) // (8 * max(1, workers))))
+    with contextlib.closing(stamps):
         for done, (index, stamp, x0, y0) in enumerate(stamps, 1):
             n = stamp.shape[0]
             a0, a1 = max(x0, xmin), min(x0 + n, xmax + 1)
@@ -249,7 +261,4 @@ def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None):
                 image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += stamp[b0 - y0:b1 - y0, a0 - x0:a1 - x0]
             if progress is not None:
                 progress(done, len(jobs))
-    finally:
-        if pool is not None:
-            pool.shutdown()
     return image, len(jobs), optics

@@ -7,6 +7,7 @@ import os
 
 import numpy as np
 
+from .. import PerscliError
 from ..detector.effects import DetectorModel, model_table, run_chain
 from ..io.fitsfile import OutHDU, format_card
 from ..io.output import add_provenance, check_output, write_hdus
@@ -93,9 +94,13 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
     dict
         Summary: objects drawn, sky rate, units, persistence maximum.
     """
-    from ..io.frames import Frame, open_frame
+    from ..io.frames import open_frame
 
     check_output(dest, overwrite=overwrite, inputs=[truth, *previous])
+    if plot:
+        check_output(plot, overwrite=overwrite, inputs=[truth, *previous])
+        if dest != "-" and os.path.abspath(plot) == os.path.abspath(dest):
+            raise PerscliError(f"{plot}: --plot and -o name the same file: choose another name for the figure")
     cols = read_truth(truth, exposure.filter)
     previous = list(previous)
     if previous and not model.enabled("persistence"):
@@ -109,14 +114,28 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         pers_info = []
 
         def persistence():
-            from ..detector.apply import persistence_image, plan
+            # persistence on arrays: the earlier exposures' FLUENCE (electrons) and their end times
+            from ..detector.apply import check_earlier
+            from ..detector.persistence import order_earlier, persistence_charge
+            from ..io.frames import SECONDS_PER_DAY
 
-            current = Frame.planned("render", sources.shape, exposure.mjd, exposure.end, exposure.exptime,
-                                    offsets=(1 - xmin, 1 - ymin), sca=exposure.sca)
             pmodel = model.persistence_model()
-            the_plan = plan(current, opened, pmodel)
-            pers_info.extend(the_plan.used)
-            return persistence_image(current, opened, pmodel, workers=workers)[0]
+            for frame in opened:
+                check_earlier(frame, label="the exposure being rendered", shape=sources.shape, detector=exposure.sca,
+                              offsets=(1 - xmin, 1 - ymin), start=exposure.mjd)
+            # seconds from the start of this exposure (negative: before it), differenced in MJD first as
+            # apply-persistence does, so that both give the same bits
+            start = 0.0
+            ends = [(frame.end - exposure.mjd) * SECONDS_PER_DAY for frame in opened]
+            keep, _ = order_earlier(ends, start, pmodel, [f.label for f in opened])
+            pers_info.extend(start - ends[i] for i in keep)
+            fluences = [frame.fluence() for frame in opened]
+            for frame in opened:
+                frame.verify(frame.fluence_source)
+            # the window from the header times, as for any frame read from a file
+            window = (exposure.end - exposure.mjd) * SECONDS_PER_DAY
+            return persistence_charge([f for f, _ in fluences], ends, start, window, pmodel,
+                                      scales=[scale for _, scale in fluences])[0]
 
         result = run_chain(sources, model, exptime=exposure.exptime, seed=seed, sky_rate=optics.sky_rate,
                            persistence=persistence if opened else None)
@@ -141,10 +160,12 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         _provenance(hdus[0], truth, cols["datasum"], exposure, model, seed, opened, pers_info)
         write_hdus(hdus, dest, overwrite=overwrite, compress=compress)
         if plot:
+            from ..io.output import atomic_path
             from .plots import frame_figure
 
-            frame_figure(result.sci, plot, persist=result.persistence, unit=result.unit,
-                         title=f"SCA {exposure.sca} {exposure.filter} MJD {exposure.mjd:.5f} seed {seed}")
+            with atomic_path(plot, overwrite=overwrite, suffix=".part.png") as tmp:
+                frame_figure(result.sci, tmp, persist=result.persistence, unit=result.unit,
+                             title=f"SCA {exposure.sca} {exposure.filter} MJD {exposure.mjd:.5f} seed {seed}")
         return {"objects": nobj, "sky_rate": result.sky_rate, "unit": result.unit,
                 "persistence_max": float(result.persistence.max()) if result.persistence is not None else 0.0}
     finally:
@@ -175,8 +196,8 @@ def _provenance(primary: OutHDU, truth, truth_datasum, exposure: Exposure, model
     for i, frame in enumerate(opened, 1):
         inputs.append((f"PRV{i:02d}", frame.name,
                        frame.datasum(frame.provenance_hdu)))
-    for i, rec in enumerate(used, 1):
-        params[f"PSP{i:02d}DT"] = (round(rec.gap, 6), "[s] delay after an earlier exposure")
+    for i, gap in enumerate(used, 1):
+        params[f"PSP{i:02d}DT"] = (round(gap, 6), "[s] delay after an earlier exposure")
     add_provenance(primary, step=f"render sca={exposure.sca} filter={exposure.filter} mjd={exposure.mjd} "
                                  f"model={model.source} previous={len(opened)}",
                    params=params, inputs=inputs, seed=seed)

@@ -16,9 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import PerscliError
-
-
-ROMAN_FILTERS = ("R062", "Z087", "Y106", "J129", "H158", "F184", "K213", "W146")
+from ..instrument import ROMAN_FILTERS
 
 #: Effective wavelengths in microns, used only by the simple colour model of
 #: :func:`perscli.scene.catalog.filter_magnitudes`.

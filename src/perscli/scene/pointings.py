@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PerscliError
+from ..instrument import ROMAN_EXPTIME, ROMAN_WAS_GAP
 from ..io.tables import read_table
 from . import check_filter, deproject, separation
 
@@ -51,8 +52,8 @@ POINTING_COLUMNS = {
 }
 
 #: Roman Wide Area Survey cadence (../shared/data/roman): exposure time and gap between exposures, s
-WAS_EXPTIME = 139.8
-WAS_GAP = 30.0
+WAS_EXPTIME = ROMAN_EXPTIME
+WAS_GAP = ROMAN_WAS_GAP
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError
+from ..executor import threads
+from ..instrument import ROMAN_PIXEL_SCALE
 from ..io.tables import open_table
 
 log = logging.getLogger("perscli")
@@ -199,7 +201,7 @@ def _finite_rows(columns: dict, keep: np.ndarray, what: str) -> np.ndarray:
 
 
 def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=False, positions="auto",
-                       pixel_scale=0.11, stdin=None) -> ShapeChanges:
+                       pixel_scale=ROMAN_PIXEL_SCALE, stdin=None) -> ShapeChanges:
     """De from one or two SHAPES tables.
 
     Parameters
@@ -580,7 +582,7 @@ def read_patch_centers(path: str, coords: str) -> np.ndarray:
 
 
 def correlate_de(sc: ShapeChanges, *, min_sep=1.0, max_sep=100.0, nbins=20, sep_units="arcmin", bin_slop=None,
-                 npatch=20, patch_centers=None, cross_patch_weight="match", seed=1, workers=None):
+                 npatch=20, patch_centers=None, cross_patch_weight="match", seed=1, workers=1):
     """xi+/- of De with TreeCorr, and its jackknife covariance.
 
     Parameters
@@ -599,8 +601,9 @@ def correlate_de(sc: ShapeChanges, *, min_sep=1.0, max_sep=100.0, nbins=20, sep_
         ('match': Mohammad & Percival 2022's, recommended for the jackknife).
     seed : int
         Seed of the k-means initialisation (same seed, same patches).
-    workers : int, optional
-        OpenMP threads (None: all cores).
+    workers : int
+        TreeCorr's OpenMP threads (:func:`perscli.executor.threads`: 1 when
+        not given, never all cores unasked).
 
     Returns
     -------
@@ -625,7 +628,8 @@ def correlate_de(sc: ShapeChanges, *, min_sep=1.0, max_sep=100.0, nbins=20, sep_
                            f"only {n} objects: too few for a jackknife over patches "
                            f"(at least {2 * MIN_PER_PATCH} needed)")
     logger = _treecorr_logger()
-    treecorr.set_omp_threads(workers if workers else None, logger=logger)
+    nthreads = threads(workers)
+    treecorr.set_omp_threads(nthreads, logger=logger)
     if sc.coords == "radec":
         where = dict(ra=sc.pos1, dec=sc.pos2, ra_units="deg", dec_units="deg")
     else:
@@ -637,7 +641,7 @@ def correlate_de(sc: ShapeChanges, *, min_sep=1.0, max_sep=100.0, nbins=20, sep_
         gg = treecorr.GGCorrelation(min_sep=min_sep, max_sep=max_sep, nbins=nbins, sep_units=sep_units,
                                     bin_slop=bin_slop, var_method="jackknife",
                                     cross_patch_weight=cross_patch_weight, logger=logger)
-        gg.process(cat, num_threads=workers if workers else None)
+        gg.process(cat, num_threads=nthreads)
         gg.cov  # computed here so that a TreeCorr failure is reported as one
     except (ValueError, RuntimeError) as exc:
         raise PerscliError(f"TreeCorr failed on {n} objects: {exc}") from None
@@ -791,9 +795,9 @@ def _png_targets(plot, plots_dir, overwrite):
 
 
 def correlate_files(catalogs, dest: str, *, frames=None, de_columns=None, common_ids=False, positions="auto",
-                    pixel_scale=0.11, min_sep=1.0, max_sep=100.0, nbins=20, sep_units="arcmin", bin_slop=None,
+                    pixel_scale=ROMAN_PIXEL_SCALE, min_sep=1.0, max_sep=100.0, nbins=20, sep_units="arcmin", bin_slop=None,
                     npatch=20, patch_centers=None, cross_patch_weight="match", thresholds=DEFAULT_THRESHOLDS,
-                    theta_edges=DEFAULT_THETA_EDGES, nboot=200, seed=1, workers=None, plot=None, plots_dir=None,
+                    theta_edges=DEFAULT_THETA_EDGES, nboot=200, seed=1, workers=1, plot=None, plots_dir=None,
                     overwrite=False, stdin=None) -> dict:
     """``perscli correlate`` as a function: xi+/- of De, its covariance and the De statistics.
 
@@ -821,8 +825,14 @@ def correlate_files(catalogs, dest: str, *, frames=None, de_columns=None, common
         raise PerscliError(f"--nboot {nboot}: need at least 2 resamples")
     if not 0 < min_sep < max_sep:
         raise PerscliError(f"--min-sep {min_sep} and --max-sep {max_sep}: need 0 < min-sep < max-sep")
-    check_output(dest, overwrite=overwrite, inputs=list(catalogs))
+    inputs = [*catalogs, patch_centers]
+    check_output(dest, overwrite=overwrite, inputs=inputs)
     pngs = _png_targets(plot, plots_dir, overwrite)
+    for path in pngs.values():
+        if os.path.exists(path):
+            check_output(path, overwrite=overwrite, inputs=inputs)
+        if dest != "-" and os.path.abspath(path) == os.path.abspath(dest):
+            raise PerscliError(f"{path}: a figure and the -o output name the same file: choose another name")
 
     sc = load_shape_changes(catalogs, frames=frames, de_columns=de_columns, common_ids=common_ids,
                             positions=positions, pixel_scale=pixel_scale, stdin=stdin)
