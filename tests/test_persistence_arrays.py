@@ -107,3 +107,32 @@ def test_the_same_earlier_exposure_given_twice_is_an_error(tmp_path):
 def test_an_exposure_that_is_not_earlier_is_refused():
     with pytest.raises(PerscliError, match="not an earlier exposure"):
         persistence_charge([np.ones((2, 2))], [60.0], 50.0, 10.0, load_model("typical"))
+
+
+def test_model_means_the_same_in_render_and_apply_persistence(tmp_path):
+    """apply-persistence --model takes a rendered frame (its MODEL table) or a detector-model YAML, as render does."""
+    from perscli.detector.effects import load_detector_model
+
+    path = tmp_path / "det.yaml"
+    path.write_text("effects:\n  - persistence: {base: pessimistic, combine: max, max_previous: 3}\n")
+    model = load_model(str(path))
+    assert (model.A, model.combine, model.max_previous) == (0.086, "max", 3)
+    from_detector = load_detector_model(str(path)).persistence_model()
+    assert from_detector.params() == model.params()
+
+
+def test_model_from_a_rendered_frame(tmp_path):
+    """A frame rendered with a tweaked persistence step: apply-persistence --model FRAME.fits uses that step."""
+    from test_render import DEC, FILTER, MJD1, PA, RA, SCA
+
+    truth = tmp_path / "truth.fits"
+    from astropy.table import Table
+
+    Table({"id": np.array([1], dtype=np.int64), "ra": [RA], "dec": [DEC], "kind": ["star"], "mag_J129": [25.0],
+           "hlr": [0.3], "e1": [0.0], "e2": [0.0]}).write(truth, format="fits")
+    frame = tmp_path / "f.fits"
+    run("render", truth, "--ra", RA, "--dec", DEC, "--pa", PA, "--mjd", MJD1, "--filter", FILTER, "--sca", SCA,
+        "--bounds", 1, 16, 1, 16, "--seed", 1, "--set", "persistence.base=pessimistic",
+        "--set", "persistence.gamma=1.2", "--set", "persistence.max_previous=4", "-o", frame)
+    model = load_model(str(frame))
+    assert (model.A, model.gamma, model.max_previous) == (0.086, 1.2, 4)

@@ -8,7 +8,7 @@ from scipy import integrate
 
 from perscli import PerscliError, _kernels
 from perscli.detector.persistence import (GALSIM_LINEAR_COEFFICIENTS, PRESETS, PersistenceModel,
-                                          accumulate, load_model, time_factor)
+                                          accumulate, load_model, ones_complement_add, time_factor)
 
 
 def paper_F(x, A, x0, dx, alpha, half_well, **_):
@@ -70,16 +70,28 @@ def test_kernel_max_combine_and_several_planes_and_threads():
     model = load_model("pessimistic")
     a, b = 10 ** rng.uniform(0, 6, (2, 300, 1000))
     acc = np.zeros((2, 300, 1000))
-    with ThreadPoolExecutor(2) as pool:
-        accumulate(a, acc, [1.0, 3.0], model, combine="max", pool=pool, workers=2)
-        accumulate(b, acc, [2.0, 1.0], model, combine="max", pool=pool, workers=2)
-        np.testing.assert_allclose(acc[0], np.maximum(model.F(a), 2 * model.F(b)), rtol=1e-14)
-        np.testing.assert_allclose(acc[1], np.maximum(3 * model.F(a), model.F(b)), rtol=1e-14)
-        summed = np.zeros((1, 300, 1000))
-        _, threaded_sum = accumulate(a, summed, [1.0], model, pool=pool, workers=3, scale=2.0)
+    n = a.size
+    halves = [(0, n // 2), (n // 2, n)]
+
+    def both(x, factors, **kw):
+        with ThreadPoolExecutor(2) as pool:
+            return [f.result() for f in [pool.submit(accumulate, x, acc, factors, model, span=s, **kw)
+                                         for s in halves]]
+
+    both(a, [1.0, 3.0], combine="max")
+    both(b, [2.0, 1.0], combine="max")
+    np.testing.assert_allclose(acc[0], np.maximum(model.F(a), 2 * model.F(b)), rtol=1e-14)
+    np.testing.assert_allclose(acc[1], np.maximum(3 * model.F(a), model.F(b)), rtol=1e-14)
+    summed = np.zeros((1, 300, 1000))
+    parts = []
+    for span in [(0, n // 3), (n // 3, 2 * n // 3), (2 * n // 3, n)]:
+        parts.append(accumulate(a, summed, [1.0], model, scale=2.0, span=span)[1])
     np.testing.assert_allclose(summed[0], model.F(2 * a), rtol=1e-14)
     # DATASUMs of pieces combine by ones'-complement addition
-    assert threaded_sum == _kernels.datasum(a.astype(">f8").tobytes())
+    total = 0
+    for part in parts:
+        total = ones_complement_add(total, part)
+    assert total == _kernels.datasum(a.astype(">f8").tobytes())
 
 
 @pytest.mark.parametrize("gamma", [0.0, 0.3, 0.7, 0.999999, 1.0, 1.000001, 1.3, 2.0])

@@ -25,6 +25,8 @@ ROMAN_READ_NOISE           8.5 e-      per pixel, Gaussian
 ROMAN_DARK_CURRENT         0.015       e-/pixel/s
 ROMAN_NONLINEARITY_BETA    -6e-7       classical nonlinearity: f(x) = x + beta x^2
 ROMAN_RECIPROCITY_ALPHA    0.0065      reciprocity failure per decade of flux
+ROMAN_FULL_WELL            1.0e5 e-    charge a pixel holds before saturating (H4RG-10;
+                                       twice the paper's half_well of 5e4 e-)
 ROMAN_FILTERS              R062 ...    the imaging filters, in order of wavelength
 =========================  ==========  ================================================
 
@@ -39,6 +41,10 @@ from __future__ import annotations
 
 #: [s] exposure time of the Roman Wide Area Survey (``galsim.roman.exptime``).
 ROMAN_EXPTIME = 139.8
+
+#: [e-] full well of Roman's H4RG-10 detectors: collected charge saturates here (twice the
+#: paper's half_well, 5e4 e-; romanisim's 55,000 DN saturation flag is a pipeline threshold, not the well).
+ROMAN_FULL_WELL = 1.0e5
 
 #: [s] GalSim's Roman exposure time before 2023 (and the paper's): for comparisons only.
 GALSIM_OLD_EXPTIME = 140.25

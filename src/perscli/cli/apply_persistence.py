@@ -17,9 +17,10 @@ log = logging.getLogger("perscli")
 @click.argument("current", metavar="CURRENT")
 @click.argument("previous", nargs=-1, required=True, metavar="PREVIOUS...")
 @output_opt
-@model_opt("typical", "NAME|FILE.yaml",
+@model_opt("typical", "NAME|MODEL.yaml|FRAME.fits",
            "the persistence law: typical or pessimistic (the paper's Table 1), galsim-linear (GalSim's 8 "
-           "coefficients), or a YAML file of parameters")
+           "coefficients), a YAML file (persistence parameters, or a detector model as render takes), or a "
+           "frame perscli rendered (the persistence of the model that made it)")
 @click.option("--param", "params", multiple=True, metavar="KEY=VALUE",
               help="Override a model parameter (A, x0, dx, alpha, gamma, half_well) or setting (time_model, "
                    "combine, max_previous). Repeatable.")

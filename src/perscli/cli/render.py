@@ -8,7 +8,7 @@ import click
 
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
 from .helpers import check_outputs, progress_reporter, report_errors
-from .options import (compress_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, required_seed_opt,
+from .options import (model_opt, compress_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, required_seed_opt,
                       verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
@@ -45,9 +45,9 @@ def _list_effects(ctx, param, value):
 @click.option("--bounds", type=int, nargs=4, metavar="XMIN XMAX YMIN YMAX",
               help="Render a cutout: 1-indexed inclusive SCA pixels "
                    f"[default: the full {ROMAN_SCA_SIZE} x {ROMAN_SCA_SIZE}].")
-@click.option("--model", "model_spec", default="roman", show_default=True, metavar="roman|MODEL.yaml|FRAME.fits",
-              help="Detector model: GalSim's Roman chain (with saturation), a YAML list of effects in physical "
-                   "order, or a frame perscli rendered (the model that made it). See --list-effects.")
+@model_opt("roman", "roman|MODEL.yaml|FRAME.fits",
+           "the detector model: GalSim's Roman chain (with saturation), a YAML list of effects in physical "
+           "order, or a frame perscli rendered (the model that made it); see --list-effects")
 @click.option("--set", "settings", multiple=True, metavar="EFFECT.KEY=VALUE",
               help="Override the model: e.g. read_noise.sigma=5, persistence.base=pessimistic, ipc=off.")
 @click.option("--previous", multiple=True, metavar="FRAME",

@@ -67,6 +67,8 @@ from typing import Callable, ClassVar
 import numpy as np
 
 from .. import PerscliError
+from ..instrument import (ROMAN_DARK_CURRENT, ROMAN_FULL_WELL, ROMAN_GAIN, ROMAN_NONLINEARITY_BETA, ROMAN_READ_NOISE,
+                          ROMAN_RECIPROCITY_ALPHA)
 
 # -- parameter schemas ---------------------------------------------------------------------------
 
@@ -386,7 +388,7 @@ class Reciprocity(DetectorEffect):
     name = "reciprocity"
     description = ("reciprocity failure x (1 + alpha log10(x / (base_flux t))) on positive pixels "
                    "(GalSim uses its power-law form)")
-    schema = (Param("alpha", "float", 0.0065, "", "fractional change per decade of flux (galsim.roman: 0.0065)",
+    schema = (Param("alpha", "float", ROMAN_RECIPROCITY_ALPHA, "", "fractional change per decade of flux (galsim.roman: 0.0065)",
                     lo=0.0),
               Param("base_flux", "float", 1.0, "e-/s", "flux at which the response is unchanged", lo=0.0,
                     lo_open=True))
@@ -425,7 +427,7 @@ class Reciprocity(DetectorEffect):
 class Dark(DetectorEffect):
     name = "dark"
     description = "dark current, with its Poisson noise"
-    schema = (Param("current", "float", 0.015, "e-/pixel/s", "dark current (galsim.roman: 0.015)", lo=0.0),)
+    schema = (Param("current", "float", ROMAN_DARK_CURRENT, "e-/pixel/s", "dark current (galsim.roman: 0.015)", lo=0.0),)
 
     def sample(self, image, ctx):
         image += self.rng(ctx).poisson(self.p["current"] * ctx.exptime, size=image.shape)
@@ -515,7 +517,7 @@ class Persistence(DetectorEffect):
 
 
 #: the full well of Roman's H4RG-10 pixels, electrons (see README: detector model)
-FULL_WELL = 1.0e5
+FULL_WELL = ROMAN_FULL_WELL
 
 
 @register
@@ -544,7 +546,7 @@ class Nonlinearity(DetectorEffect):
     name = "nonlinearity"
     stage = "readout"
     description = "classical nonlinearity x + beta x^2 of the collected charge"
-    schema = (Param("beta", "float", -6.0e-7, "1/e-", "quadratic coefficient (galsim.roman: -6e-7)"),)
+    schema = (Param("beta", "float", ROMAN_NONLINEARITY_BETA, "1/e-", "quadratic coefficient (galsim.roman: -6e-7)"),)
 
     def sample(self, image, ctx):
         image += self.p["beta"] * image * image
@@ -586,7 +588,7 @@ class ReadNoise(DetectorEffect):
     name = "read_noise"
     stage = "readout"
     description = "Gaussian read noise"
-    schema = (Param("sigma", "float", 8.5, "e-", "standard deviation (galsim.roman: 8.5)", lo=0.0),)
+    schema = (Param("sigma", "float", ROMAN_READ_NOISE, "e-", "standard deviation (galsim.roman: 8.5)", lo=0.0),)
 
     def sample(self, image, ctx):
         image += self.rng(ctx).normal(0.0, self.p["sigma"], size=image.shape)
@@ -602,7 +604,7 @@ class Gain(DetectorEffect):
     stage = "readout"
     unit_out = "DN"
     description = "conversion of electrons to DN"
-    schema = (Param("gain", "float", 1.0, "e-/DN", "electrons per DN (galsim.roman: 1.0)", lo=0.0, lo_open=True),)
+    schema = (Param("gain", "float", ROMAN_GAIN, "e-/DN", "electrons per DN (galsim.roman: 1.0)", lo=0.0, lo_open=True),)
 
     def sample(self, image, ctx):
         image /= self.p["gain"]

@@ -188,7 +188,9 @@ def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence
     ----------
     spec : str
         'typical' or 'pessimistic' (the paper's Table 1), 'galsim-linear'
-        (GalSim's 8 coefficients), or the path of a YAML file.  The YAML file
+        (GalSim's 8 coefficients), the path of a YAML file, or a frame
+        perscli rendered (the persistence step of the detector model in its
+        MODEL table, as ``perscli render --model FRAME.fits`` reads it).  The YAML file
         holds either the parameters at top level or under a ``persistence:``
         key (so a detector-model file can be given), optionally with
         ``base: typical|pessimistic`` to start from a preset, ``kind:
@@ -205,6 +207,11 @@ def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence
         model = PersistenceModel(name=spec, **PRESETS[spec])
     elif spec == "galsim-linear":
         model = PersistenceModel(name=spec, kind="linear")
+    elif _is_fits_name(spec):
+        # a frame perscli rendered: the persistence step of the detector model in its MODEL table
+        from .effects import load_detector_model
+
+        model = load_detector_model(spec).persistence_model()
     elif spec.endswith((".yaml", ".yml")) or os.path.exists(spec):
         model = _model_from_yaml(spec)
     else:
@@ -235,6 +242,17 @@ def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence
         changes[key] = _number(key, value, "--param")
     desc = ",".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in changes.items())
     return dataclasses.replace(model, name=f"{model.name}+{desc}", **changes)
+
+
+def _is_fits_name(spec: str) -> bool:
+    base = spec.split("[", 1)[0]
+    if base.lower().endswith((".fits", ".fits.gz", ".fit", ".fz")):
+        return True
+    try:
+        with open(base, "rb") as fh:
+            return fh.read(10) == b"SIMPLE  = "
+    except OSError:
+        return False
 
 
 def _setting(key, value, source):
@@ -347,7 +365,7 @@ def ones_complement_add(a: int, b: int) -> int:
 
 
 def accumulate(fluence, acc, time_factors, model: PersistenceModel, *, scale: float = 1.0,
-               combine: str = "sum", pool=None, workers: int = 1):
+               combine: str = "sum", span=None):
     """Add ``T_k * F(scale * fluence)`` into ``acc[k]`` for every time factor, in one pass.
 
     Parameters
@@ -366,10 +384,9 @@ def accumulate(fluence, acc, time_factors, model: PersistenceModel, *, scale: fl
         Converts fluence values to electrons (gain, exposure time).
     combine : {'sum', 'max'}
         Add the contributions or keep the per-pixel maximum.
-    pool : concurrent.futures.Executor, optional
-        Threads to split the pixels across (the compiled loop releases the GIL).
-    workers : int
-        Number of pieces to split into when ``pool`` is given.
+    span : (int, int), optional
+        Only the flat pixel range ``[start, stop)`` (the compiled loop releases
+        the GIL: threads may work on disjoint spans).
 
     Returns
     -------
@@ -395,17 +412,7 @@ def accumulate(fluence, acc, time_factors, model: PersistenceModel, *, scale: fl
     args = (tf, float(scale), combine == "max", int(linear), model.A, model.x0, model.dx,
             model.alpha, model.half_well, 0.0 if linear else model.slope)
     n = fluence.size
-    if pool is None or workers <= 1 or n < 1 << 16:
-        return _kernels.accumulate(fluence, acc, *args, (0, n))
-    edges = np.linspace(0, n, workers + 1).astype(np.int64)
-    futures = [pool.submit(_kernels.accumulate, fluence, acc, *args, (int(a), int(b)))
-               for a, b in zip(edges[:-1], edges[1:])]
-    nonfinite, datasum = 0, 0
-    for future in futures:
-        bad, part = future.result()
-        nonfinite += bad
-        datasum = ones_complement_add(datasum, part)
-    return nonfinite, datasum
+    return _kernels.accumulate(fluence, acc, *args, tuple(span) if span is not None else (0, n))
 
 
 # -- persistence on arrays ------------------------------------------------------------------------
