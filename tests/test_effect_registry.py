@@ -106,7 +106,10 @@ def test_registry_order_and_schemas():
     from perscli.detector import effects
 
     assert effects.ORDER == ("sky", "poisson", "reciprocity", "dark", "persistence", "saturation", "nonlinearity",
-                             "ipc", "read_noise", "gain", "quantize")
+                             "ipc", "read_noise", "offset", "gain", "quantize")
+    # the Roman model has every effect but the offset (a bias level: a candidate for diagnose)
+    assert effects.ROMAN_ORDER == tuple(n for n in effects.ORDER if n != "offset")
+    assert [e.name for e in effects.default_model().effects] == list(effects.ROMAN_ORDER)
     for name, cls in effects.REGISTRY.items():
         assert cls.name == name and cls.description and cls.stage in ("scene", "charge", "readout")
         for p in cls.schema:

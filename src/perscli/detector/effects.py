@@ -300,6 +300,7 @@ class DetectorEffect:
     name: ClassVar[str] = ""
     stage: ClassVar[str] = "charge"          # 'scene', 'charge' or 'readout'
     unit_out: ClassVar[str | None] = None    # the units after this effect, if it changes them
+    default_enabled: ClassVar[bool] = True   # on in the default (Roman) model
     description: ClassVar[str] = ""
     schema: ClassVar[tuple] = ()
 
@@ -599,6 +600,23 @@ class ReadNoise(DetectorEffect):
 
 
 @register
+class Offset(DetectorEffect):
+    name = "offset"
+    stage = "readout"
+    default_enabled = False
+    description = ("a noiseless level added to every exposure (a bias or pedestal), independent of the "
+                   "exposure time; off in the Roman model")
+    schema = (Param("level", "float", 0.0, "e-", "electrons per pixel added to every read"),)
+
+    def sample(self, image, ctx):
+        image += self.p["level"]
+        return image
+
+    def expectation(self, mean, ctx):
+        return mean + self.p["level"]
+
+
+@register
 class Gain(DetectorEffect):
     name = "gain"
     stage = "readout"
@@ -633,6 +651,9 @@ class Quantize(DetectorEffect):
 
 #: effect names in physical order
 ORDER = tuple(REGISTRY)
+
+#: the effects of the default (Roman) model, in physical order
+ROMAN_ORDER = tuple(name for name, cls in REGISTRY.items() if cls.default_enabled)
 
 #: default parameters of each effect (None: derived, e.g. from the persistence base)
 DEFAULTS = {name: cls.defaults() for name, cls in REGISTRY.items()}
@@ -698,8 +719,32 @@ class DetectorModel:
 
 
 def default_model() -> DetectorModel:
-    """GalSim's Roman chain with saturation at :data:`FULL_WELL`, every effect on."""
-    return DetectorModel([Effect(name, copy.deepcopy(DEFAULTS[name])) for name in ORDER], source="roman")
+    """GalSim's Roman chain with saturation at :data:`FULL_WELL`: every registered effect on, except those
+    not in the Roman model (``offset``), which are left out."""
+    return DetectorModel([Effect(name, copy.deepcopy(DEFAULTS[name])) for name in ORDER
+                          if REGISTRY[name].default_enabled], source="roman")
+
+
+def model_to_yaml(model: DetectorModel, header: str = "") -> str:
+    """The model as the YAML that :func:`load_detector_model` reads back (every parameter resolved).
+
+    Parameters
+    ----------
+    model : DetectorModel
+    header : str
+        Comment lines to put first (without '#').
+    """
+    import yaml
+
+    effects = []
+    for name, enabled, params in model.describe():
+        entry = {k: (list(map(list, v)) if isinstance(v, np.ndarray) else v) for k, v in params.items()}
+        if not enabled:
+            entry["enabled"] = False
+        effects.append({name: entry})
+    text = yaml.safe_dump({"effects": effects}, sort_keys=False, default_flow_style=None, width=100)
+    lines = "".join(f"# {line}\n" for line in header.splitlines()) if header else ""
+    return lines + text
 
 
 def load_detector_model(spec: str | None = None, overrides=()) -> DetectorModel:
