@@ -1,0 +1,207 @@
+"""The effects diagnose can add to a model or re-tune: one reported parameter of a registered effect each.
+
+A candidate names the detector effect (from the registry render uses), the
+parameter it reports, the range it is fitted in, how a value is put into a
+model, and the residual probe that separates it from the others.  A new
+candidate is one more :class:`Candidate` in :data:`CANDIDATES` (its effect
+registered in :mod:`perscli.detector.effects` with ``@register``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..detector.effects import DetectorModel, roman_ipc_kernel
+from .likelihood import with_effect
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One effect's strength, fitted by likelihood.
+
+    Attributes
+    ----------
+    name : str
+        The effect's name in the report (and in the registry).
+    param : str
+        The parameter reported.
+    unit : str
+    bounds : (float, float)
+        The range searched.
+    scale : float
+        A typical size of the parameter (sets the fit's tolerance).
+    probe : str
+        The residual probe that shows this effect.
+    meaning : str
+    get : callable
+        ``get(model, exposures) -> float``: the value the model has (its 'off' value when absent).
+    put : callable
+        ``put(model, value) -> DetectorModel``: a copy with the effect on at ``value``.
+    applies : callable
+        ``applies(exposures) -> bool``: whether the data can constrain it.
+    fit : callable, optional
+        ``fit(problem, model) -> (value, error, model, nparams)`` for a
+        candidate fitted its own way (instead of a one-parameter search).
+    """
+
+    name: str
+    param: str
+    unit: str
+    bounds: tuple
+    scale: float
+    probe: str
+    meaning: str
+    get: Callable
+    put: Callable
+    applies: Callable = lambda exposures: True
+    fit: Callable | None = None
+
+
+def _value(effect, key, off=0.0):
+    def get(model, exposures):
+        return float(model.value(effect, key, off=off))
+    return get
+
+
+def _set(effect, key):
+    def put(model, value):
+        return with_effect(model, effect, {key: float(value)})
+    return put
+
+
+# -- persistence: A of the Fermi law, the other parameters held at the model's ---------------------
+
+def _get_persistence(model, exposures):
+    return float(model.persistence_model().A) if model.enabled("persistence") else 0.0
+
+
+def _put_persistence(model, value):
+    eff = model.get("persistence")
+    params = dict(eff.params) if eff is not None else {}
+    params = {k: v for k, v in params.items() if v is not None}
+    params["A"] = float(value)
+    if params.get("kind", "fermi") != "fermi":
+        params = {"A": float(value)}
+    return with_effect(model, "persistence", params)
+
+
+# -- IPC: the mean coupling to the 4 nearest neighbours; the kernel's shape kept ------------------
+
+_CROSS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+
+
+def _kernel(model) -> np.ndarray | None:
+    if not model.enabled("ipc"):
+        return None
+    k = model.value("ipc", "kernel")
+    return roman_ipc_kernel() if k == "roman" else np.asarray(k, dtype=float)
+
+
+def _get_ipc(model, exposures):
+    k = _kernel(model)
+    return 0.0 if k is None else float((k[0, 1] + k[1, 0] + k[1, 2] + k[2, 1]) / 4.0)
+
+
+def _put_ipc(model, value):
+    k = _kernel(model)
+    shape = _CROSS if k is None or _get_ipc(model, None) <= 0 else k.copy()
+    shape = shape.copy()
+    shape[1, 1] = 0.0
+    nn = (shape[0, 1] + shape[1, 0] + shape[1, 2] + shape[2, 1]) / 4.0
+    off = shape * (float(value) / nn)
+    kernel = off.copy()
+    kernel[1, 1] = 1.0 - off.sum()      # charge is conserved, as in the Roman kernel
+    return with_effect(model, "ipc", {"kernel": kernel.tolist()})
+
+
+_OFFSETS = [(j, i) for j in range(3) for i in range(3) if (j, i) != (1, 1)]
+_NN = [k for k, (j, i) in enumerate(_OFFSETS) if abs(j - 1) + abs(i - 1) == 1]
+
+
+def _fit_ipc(problem, model):
+    """The 8 couplings of a 3x3 kernel by weighted linear least squares (charge conserved), alpha their
+    4 nearest neighbours' mean.
+
+    IPC is linear in the kernel, so the expectation is that without IPC plus one
+    column per coupling (a neighbour's signal minus the pixel's own); the
+    shape of the kernel is free (the Roman kernel is asymmetric and has
+    diagonal terms), so a kernel of another shape is still recovered.
+    """
+    base = with_effect(model, "ipc", enabled=False)
+    ev0 = problem.evaluate(base)
+    current = _put_ipc(model, max(_get_ipc(model, None), 1e-3))
+    variances = problem.evaluate(current).variance
+    columns = []
+    for j, i in _OFFSETS:
+        kernel = np.zeros((3, 3))
+        kernel[1, 1] = 0.0
+        kernel[j, i] = 1.0
+        # the kernel e_j - e_centre + delta = e_j: what one unit of coupling to neighbour j adds
+        columns.append([m - m0 for m, m0 in zip(problem.evaluate(with_effect(model, "ipc", {"kernel": kernel.tolist()})).mean,
+                                                 ev0.mean)])
+    ata = np.zeros((8, 8))
+    atb = np.zeros(8)
+    for piece in range(len(ev0.mean)):
+        mask = ev0.mask[piece]
+        w = 1.0 / variances[piece][mask]
+        r = ev0.data[piece][mask] - ev0.mean[piece][mask]
+        cols = np.stack([c[piece][mask] for c in columns])
+        ata += (cols * w) @ cols.T
+        atb += cols @ (w * r)
+    cov = np.linalg.pinv(ata)
+    k = cov @ atb
+    kernel = np.zeros((3, 3))
+    for (j, i), v in zip(_OFFSETS, k):
+        kernel[j, i] = v
+    kernel[1, 1] = 1.0 - k.sum()
+    alpha = float(np.mean(k[_NN]))
+    error = float(np.sqrt(max(np.sum(cov[np.ix_(_NN, _NN)]) / 16.0, 0.0)))
+    return alpha, error, with_effect(model, "ipc", {"kernel": kernel.tolist()}), 8
+
+
+# -- gain: only when the measured frames are in DN ---------------------------------------------------
+
+def _get_gain(model, exposures):
+    if model.enabled("gain"):
+        return float(model.value("gain", "gain"))
+    gains = [e.gain for e in exposures if e.counts == "DN" and e.gain]
+    return float(gains[0]) if gains else 1.0
+
+
+def _dn(exposures):
+    return any(e.counts == "DN" for e in exposures)
+
+
+CANDIDATES = (
+    Candidate("persistence", "A", "e-/s", (0.0, 2.0), 0.02, "history",
+              "the paper's Fermi model (x0, dx, alpha, gamma held), exact time integral",
+              _get_persistence, _put_persistence, lambda exposures: len(exposures) > 1),
+    Candidate("ipc", "alpha", "", (0.0, 0.1), 0.01, "neighbours",
+              "mean coupling to the 4 nearest neighbours of a 3x3 kernel (its shape fitted too)", _get_ipc, _put_ipc,
+              fit=_fit_ipc),
+    Candidate("nonlinearity", "beta", "1/e-", (-1e-5, 1e-5), 5e-7, "signal",
+              "x -> x + beta x^2, per electron", _value("nonlinearity", "beta"), _set("nonlinearity", "beta")),
+    Candidate("reciprocity", "alpha", "", (0.0, 0.1), 0.005, "signal",
+              "reciprocity failure per decade of flux, as in render", _value("reciprocity", "alpha"),
+              _set("reciprocity", "alpha")),
+    Candidate("dark", "current", "e-/pixel/s", (0.0, 50.0), 0.05, "exposure_time",
+              "dark current, scales with exposure time", _value("dark", "current"), _set("dark", "current")),
+    Candidate("offset", "level", "e-", (-5000.0, 5000.0), 5.0, "offset",
+              "noiseless level added to every exposure, independent of exposure time",
+              _value("offset", "level"), _set("offset", "level")),
+    Candidate("read_noise", "sigma", "e-", (0.0, 200.0), 1.0, "excess_variance",
+              "Gaussian read noise per pixel", _value("read_noise", "sigma"), _set("read_noise", "sigma")),
+    Candidate("gain", "gain", "e-/DN", (0.05, 50.0), 0.05, "signal",
+              "the true e-/DN, when the header's GAIN is wrong", _get_gain, _set("gain", "gain"), _dn),
+)
+
+def by_name(name: str) -> Candidate:
+    return next(c for c in CANDIDATES if c.name == name)
+
+
+def current_values(model: DetectorModel, exposures) -> dict:
+    """Each applicable candidate's value in ``model``."""
+    return {c.name: c.get(model, exposures) for c in CANDIDATES if c.applies(exposures)}

@@ -1,0 +1,197 @@
+"""Measured and simulated exposures for diagnose: read, put in time order, paired, in common units."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import PerscliError
+from ..io.frames import SECONDS_PER_DAY, UNITS, open_frame, require_timing
+
+log = logging.getLogger(__name__)
+
+#: simulated and measured exposures pair when their starts agree to this many seconds
+PAIR_TOLERANCE = 1.0
+
+
+@dataclass
+class Exposure:
+    """One measured exposure and what the forward model needs of it.
+
+    Attributes
+    ----------
+    label : str
+        The measured file.
+    start, end : float
+        MJD.
+    exptime : float
+        Seconds.
+    data : ndarray
+        The measured image in its own counts (DN or electrons; rates times
+        the exposure time), float64.  For a ramp: reads minus the first read,
+        shape ``(nreads - 1, ny, nx)``.
+    counts : {'DN', 'electron'}
+        What ``data`` counts.
+    gain : float or None
+        The header's e-/DN.
+    read_times : ndarray or None
+        Ramps: seconds from the first read to each read of ``data``.
+    ideal : ndarray or None
+        Noise-free electrons of sources and sky over the exposure (the
+        simulation's IDEAL).
+    fluence : ndarray
+        Electrons collected: the history this exposure leaves for later
+        ones (the simulation's FLUENCE, else the measured signal).
+    sim : str or None
+        The simulated file paired with it.
+    offsets : tuple
+        (LTV1, LTV2) of the measured frame, when present.
+    """
+
+    label: str
+    start: float
+    end: float
+    exptime: float
+    data: np.ndarray
+    counts: str
+    gain: float | None
+    read_times: np.ndarray | None = None
+    ideal: np.ndarray | None = None
+    fluence: np.ndarray | None = None
+    sim: str | None = None
+    offsets: tuple = (None, None)
+    datasum: int = 0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def is_ramp(self) -> bool:
+        return self.read_times is not None
+
+
+def _counts(frame) -> tuple:
+    """(stack of planes in DN or electrons, 'DN' or 'electron'), rates times the exposure (or read) time."""
+    is_dn, is_rate = UNITS[frame.unit]
+    planes = [np.asarray(p, dtype=np.float64) for p in frame.planes()]
+    if is_rate:
+        if frame.is_ramp:
+            planes = [p * t for p, t in zip(planes, frame.read_times)]
+        else:
+            if not frame.exptime:
+                raise PerscliError(f"{frame.label}: a rate image without EXPTIME; give --exptime")
+            planes = [p * frame.exptime for p in planes]
+    return np.stack(planes), ("DN" if is_dn else "electron")
+
+
+def read_measured(names, *, gain=None, exptime=None) -> list:
+    """The measured exposures, in time order.
+
+    Raises
+    ------
+    PerscliError
+        Unreadable files, missing timing, exposures of different shapes or
+        overlapping in time.
+    """
+    out = []
+    for name in names:
+        with open_frame(name, gain=gain, exptime=exptime) as frame:
+            require_timing(frame)
+            data, counts = _counts(frame)
+            if counts == "DN" and frame.gain is None:
+                raise PerscliError(f"{frame.label}: BUNIT is DN but the header has no GAIN or CCDGAIN; give --gain")
+            read_times = None
+            if frame.is_ramp:
+                # reads minus the first: the bias and the charge before the first read drop out
+                read_times = np.asarray(frame.read_times[1:] - frame.read_times[0], dtype=np.float64)
+                data = data[1:] - data[0]
+            bad = ~np.isfinite(data)
+            if bad.all():
+                raise PerscliError(f"{frame.label}: no finite pixel")
+            exposure = Exposure(label=frame.label, start=frame.start, end=frame.end,
+                                exptime=float(frame.exptime or (frame.end - frame.start) * SECONDS_PER_DAY),
+                                data=data, counts=counts, gain=frame.gain, read_times=read_times,
+                                offsets=(frame.keyword("LTV1"), frame.keyword("LTV2")),
+                                datasum=frame.datasum(frame.sci[-1]))
+            out.append(exposure)
+    out.sort(key=lambda e: e.start)
+    shapes = {e.data.shape[-2:] for e in out}
+    if len(shapes) > 1:
+        raise PerscliError(f"measured frames differ in shape ({sorted(shapes)}): diagnose one detector area at a time")
+    for a, b in zip(out, out[1:]):
+        if b.start < a.end:
+            raise PerscliError(f"{b.label} starts before {a.label} ends: exposures of one detector cannot overlap; "
+                               "check their timestamps")
+    return out
+
+
+def attach_simulations(exposures, sims) -> list:
+    """Pair simulated frames (``perscli render`` outputs) with the measured exposures.
+
+    Pairs by exposure start within :data:`PAIR_TOLERANCE` seconds when every
+    frame has a start time, else by order (then the counts must match).
+
+    Returns
+    -------
+    list of DetectorModel or None
+        The model stored in each simulated frame (None where it has none).
+    """
+    from ..detector.effects import model_of_frame
+
+    opened = []
+    for name in sims:
+        frame = open_frame(name)
+        opened.append(frame)
+    try:
+        for frame in opened:
+            names = {h.name for h in frame.hdus}
+            if "IDEAL" not in names:
+                raise PerscliError(f"{frame.label}: no IDEAL extension: --simulated takes frames that perscli render "
+                                   "wrote (SCI, IDEAL, FLUENCE)")
+        timed = all(f.start is not None for f in opened)
+        pairs = []
+        if timed:
+            for exp in exposures:
+                match = [f for f in opened if abs(f.start - exp.start) * SECONDS_PER_DAY <= PAIR_TOLERANCE]
+                if len(match) > 1:
+                    raise PerscliError(f"{exp.label}: {len(match)} simulated frames start within "
+                                       f"{PAIR_TOLERANCE:g} s of it; give one per exposure")
+                pairs.append(match[0] if match else None)
+            unused = [f.label for f in opened if all(f is not p for p in pairs)]
+            if unused:
+                raise PerscliError(f"{unused[0]}: no measured exposure starts within {PAIR_TOLERANCE:g} s of this "
+                                   "simulated frame; check that both describe the same exposures")
+        else:
+            if len(opened) != len(exposures):
+                raise PerscliError(f"{len(opened)} simulated frames for {len(exposures)} measured exposures: without "
+                                   "start times they pair in order and their numbers must match")
+            pairs = list(opened)
+        models = []
+        for exp, frame in zip(exposures, pairs):
+            if frame is None:
+                models.append(None)
+                continue
+            ideal_hdu = next(h for h in frame.hdus if h.name == "IDEAL")
+            ideal = np.asarray(ideal_hdu.read(), dtype=np.float64)
+            if ideal.shape != exp.data.shape[-2:]:
+                raise PerscliError(f"{frame.label}: IDEAL is {ideal.shape}, the measured {exp.label} is "
+                                   f"{exp.data.shape[-2:]}: pair frames of the same detector area")
+            exp.ideal = ideal
+            exp.sim = frame.label
+            flu = [h for h in frame.hdus if h.name == "FLUENCE"]
+            if flu:
+                exp.fluence = np.asarray(flu[0].read(), dtype=np.float64)
+            exp.extra["sky_rate"] = frame.keyword("SKYRATE")
+            models.append(model_of_frame(frame))
+        return models
+    finally:
+        for frame in opened:
+            frame.close()
+
+
+def measured_fluence(exp: Exposure) -> np.ndarray:
+    """The electrons an exposure collected, from its measured counts (the history without a simulation)."""
+    last = exp.data[-1]
+    if exp.counts == "DN":
+        return np.where(np.isfinite(last), last * exp.gain, 0.0)
+    return np.where(np.isfinite(last), last, 0.0)

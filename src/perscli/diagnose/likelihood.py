@@ -1,0 +1,173 @@
+"""Expectation, variance and Gaussian likelihood of measured frames under a detector model.
+
+The expectation of a measured frame is the model's noise-free forward model
+(:func:`perscli.detector.effects.forward`, the same effects render samples)
+of the simulation's IDEAL (sources and sky, so the model's sky effect is not
+applied again), with the persistence the earlier exposures' fluence leaves
+in it; its variance is the model's noise carried through the effects that
+follow each source of noise (Poisson, dark, read noise, quantisation; IPC
+spreads it with the kernel squared, gain scales it).  Measured and simulated
+noise are independent: the simulation's SCI is never used.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import PerscliError
+from ..detector.effects import DetectorModel, Effect, forward
+from ..io.frames import SECONDS_PER_DAY
+
+
+def with_effect(model: DetectorModel, name: str, params: dict | None = None, enabled: bool = True) -> DetectorModel:
+    """A copy of ``model`` with effect ``name`` present, switched as given, its parameters updated."""
+    from ..detector.effects import DEFAULTS, ORDER, REGISTRY
+
+    out = DetectorModel([copy.deepcopy(e) for e in model.effects], source=model.source)
+    eff = out.get(name)
+    if eff is None:
+        eff = Effect(name, copy.deepcopy(DEFAULTS[name]), enabled=False)
+        out.effects.append(eff)
+        out.effects.sort(key=lambda e: ORDER.index(e.name))
+    if params:
+        merged = dict(eff.params)
+        merged.update(REGISTRY[name].validate(dict(params), f"diagnose: {name}"))
+        eff.params = merged
+    eff.enabled = enabled
+    return out
+
+
+@dataclass
+class Evaluation:
+    """Expectation, variance and data of the pixels used, for every exposure."""
+
+    mean: list
+    variance: list
+    data: list
+    mask: list
+
+    def chi2(self) -> tuple:
+        """(chi^2, number of pixels) over the usable pixels."""
+        total, n = 0.0, 0
+        for e, v, d, m in zip(self.mean, self.variance, self.data, self.mask):
+            r = (d[m] - e[m])
+            total += float(np.sum(r * r / v[m]))
+            n += int(m.sum())
+        return total, n
+
+    def m2lnl(self) -> float:
+        """-2 ln L of the data, Gaussian with the model's variance (constants dropped)."""
+        total = 0.0
+        for e, v, d, m in zip(self.mean, self.variance, self.data, self.mask):
+            r = d[m] - e[m]
+            total += float(np.sum(r * r / v[m] + np.log(v[m])))
+        return total
+
+    def residuals(self) -> list:
+        """(data - mean) / sqrt(variance), NaN where unusable."""
+        out = []
+        for e, v, d, m in zip(self.mean, self.variance, self.data, self.mask):
+            r = np.full(d.shape, np.nan)
+            r[m] = (d[m] - e[m]) / np.sqrt(v[m])
+            out.append(r)
+        return out
+
+
+class Problem:
+    """Measured exposures, their simulations and history: evaluates any detector model on them.
+
+    Parameters
+    ----------
+    exposures : list of perscli.diagnose.data.Exposure
+        In time order, each with ``ideal`` (the simulation's noise-free electrons).
+    fit_pixels : int
+        At most about this many pixels per exposure enter the fits (rows in
+        evenly spaced stripes, each with a row of margin for IPC); the gaps
+        before and after are computed on every pixel.
+    """
+
+    def __init__(self, exposures, *, fit_pixels: int = 1_000_000):
+        self.exposures = exposures
+        for exp in exposures:
+            if exp.ideal is None:
+                raise PerscliError(f"{exp.label}: no simulated frame pairs with it; give --simulated frames for "
+                                   "every measured exposure (or diagnose a lone ramp, self-predicted)")
+        ny, nx = exposures[0].data.shape[-2:]
+        self.shape = (ny, nx)
+        self.stripes = _stripes(ny, nx, fit_pixels)
+        self._charges = {}
+
+    # -- persistence history ----------------------------------------------------------------------
+    def charge(self, index: int, pmodel) -> np.ndarray | None:
+        """Electrons of persistence that the earlier exposures leave in exposure ``index`` (None: none)."""
+        from ..detector.persistence import persistence_charge
+
+        if index == 0:
+            return None
+        key = (index, pmodel.kind, pmodel.x0, pmodel.dx, pmodel.alpha, pmodel.gamma, pmodel.half_well,
+               pmodel.coefficients, pmodel.time_model, pmodel.combine, pmodel.max_previous)
+        if key not in self._charges:
+            import dataclasses
+
+            # the law is proportional to A: computed once for A = 1 and scaled
+            unit = dataclasses.replace(pmodel, A=1.0) if pmodel.kind == "fermi" else pmodel
+            cur = self.exposures[index]
+            earlier = self.exposures[:index]
+            ends = [(e.end - cur.start) * SECONDS_PER_DAY for e in earlier]
+            window = (cur.end - cur.start) * SECONDS_PER_DAY
+            from .data import measured_fluence
+
+            fluences = [e.fluence if e.fluence is not None else measured_fluence(e) for e in earlier]
+            self._charges[key] = persistence_charge(fluences, ends, 0.0, window, unit)[0]
+        scale = pmodel.A if pmodel.kind == "fermi" else 1.0
+        return self._charges[key] * scale
+
+    # -- the forward model ---------------------------------------------------------------------------
+    def _model_for(self, model: DetectorModel, exp) -> DetectorModel:
+        """The model as it applies to IDEAL (no sky: IDEAL has it) and to the measured counts."""
+        out = with_effect(model, "sky", enabled=False)
+        if exp.counts == "electron":
+            out = with_effect(out, "gain", enabled=False)
+        elif not model.enabled("gain"):
+            out = with_effect(out, "gain", {"gain": float(exp.gain)})
+        return out
+
+    def evaluate(self, model: DetectorModel, *, full: bool = False) -> Evaluation:
+        """Expectation and variance of every exposure's pixels (the fit stripes unless ``full``)."""
+        means, variances, datas, masks = [], [], [], []
+        pmodel = model.persistence_model() if model.enabled("persistence") else None
+        for i, exp in enumerate(self.exposures):
+            m = self._model_for(model, exp)
+            charge = self.charge(i, pmodel) if pmodel is not None else None
+            pieces = [(slice(0, self.shape[0]), 0, self.shape[0])] if full else self.stripes
+            for rows, keep0, keep1 in pieces:
+                ideal = exp.ideal[rows]
+                fw = forward(ideal, m, exptime=exp.exptime,
+                             persistence=None if charge is None else charge[rows])
+                sl = slice(keep0, keep1)
+                mean, var = fw.mean[sl], fw.variance[sl]
+                data = exp.data[-1][rows][sl]
+                mask = np.isfinite(data) & (var > 0) & np.isfinite(mean)
+                means.append(mean)
+                variances.append(np.where(mask, var, 1.0))
+                datas.append(data)
+                masks.append(mask)
+        return Evaluation(means, variances, datas, masks)
+
+
+def _stripes(ny: int, nx: int, fit_pixels: int) -> list:
+    """Row stripes covering about ``fit_pixels`` pixels: (rows to compute, first and last row kept)."""
+    if ny * nx <= fit_pixels or ny < 64:
+        return [(slice(0, ny), 0, ny)]
+    nstripes = 8
+    height = max(8, int(math.ceil(fit_pixels / nx / nstripes)))
+    out = []
+    for k in range(nstripes):
+        r0 = int((ny - height) * k / (nstripes - 1)) if nstripes > 1 else 0
+        a, b = max(0, r0 - 1), min(ny, r0 + height + 1)
+        out.append((slice(a, b), r0 - a, r0 - a + min(height, ny - r0)))
+    return out

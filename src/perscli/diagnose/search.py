@@ -1,0 +1,160 @@
+"""Fit every candidate by likelihood, rank by delta chi^2 and delta BIC, add the significant ones in turn.
+
+Each round fits every candidate's parameter (a bounded one-dimensional
+minimisation of -2 ln L, the Gaussian likelihood with the model's own
+variance, so that effects on the noise such as read noise count as much as
+effects on the mean) with the effects found so far in the model.  The best
+candidate is named when it improves -2 ln L by more than
+:data:`MIN_DELTA_CHI2` and its BIC (``-2 ln L + k ln n``) by more than
+:data:`MIN_DELTA_BIC` (strong evidence on Kass & Raftery's scale); it is then
+added to the model and the next round starts.  Candidates whose improvement
+is within :data:`MIN_DELTA_BIC` of the best one's are what the data cannot
+tell apart: they are reported with it as one degenerate group.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .candidates import CANDIDATES, Candidate
+
+log = logging.getLogger(__name__)
+
+#: a named effect improves -2 ln L by at least this much (5 sigma for one parameter) ...
+MIN_DELTA_CHI2 = 25.0
+#: ... and its BIC by at least this much
+MIN_DELTA_BIC = 10.0
+
+
+@dataclass
+class Fit:
+    """One candidate fitted with the model of its round."""
+
+    candidate: Candidate
+    value: float
+    error: float
+    start: float
+    m2lnl: float
+    delta_chi2: float = 0.0
+    delta_bic: float = 0.0
+    model: object = field(default=None, repr=False)
+
+    @property
+    def significant(self) -> bool:
+        return self.delta_chi2 > MIN_DELTA_CHI2 and self.delta_bic > MIN_DELTA_BIC
+
+    def as_dict(self) -> dict:
+        return {"effect": self.candidate.name, "params": {self.candidate.param: self.value},
+                "errors": {self.candidate.param: self.error}, "model_value": self.start,
+                "unit": self.candidate.unit, "delta_chi2": self.delta_chi2, "delta_bic": self.delta_bic,
+                "significant": self.significant}
+
+
+def fit_candidate(problem, model, candidate: Candidate, m2lnl_base: float, npix: int) -> Fit:
+    """The candidate's parameter that minimises -2 ln L with everything else in ``model`` held."""
+    from scipy.optimize import minimize_scalar
+
+    start = candidate.get(model, problem.exposures)
+    if candidate.fit is not None:
+        value, error, fitted, nparams = candidate.fit(problem, model)
+        m2 = problem.evaluate(fitted).m2lnl()
+        fit = Fit(candidate, float(value), float(error), start, m2)
+        fit.delta_chi2 = m2lnl_base - m2
+        fit.delta_bic = fit.delta_chi2 - nparams * math.log(max(npix, 2))
+        fit.model = fitted
+        return fit
+    lo, hi = candidate.bounds
+    cache = {}
+
+    def cost(value):
+        value = float(value)
+        if value not in cache:
+            try:
+                cache[value] = problem.evaluate(candidate.put(model, value)).m2lnl()
+            except (ValueError, FloatingPointError, ZeroDivisionError):
+                cache[value] = math.inf
+        return cache[value]
+
+    # a coarse scan first (the cost need not be unimodal over the whole range: gain and offset are
+    # wide), then Brent's method in the best bracket
+    grid = np.unique(np.concatenate([np.linspace(lo, hi, 9), [min(max(start, lo), hi)],
+                                     np.clip(start + candidate.scale * np.array([-2.0, 2.0]), lo, hi)]))
+    values = [cost(g) for g in grid]
+    k = int(np.argmin(values))
+    a, b = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    tol = candidate.scale * 1e-4
+    if b > a:
+        res = minimize_scalar(cost, bounds=(a, b), method="bounded", options={"xatol": tol, "maxiter": 60})
+        best = float(res.x) if res.fun <= values[k] else float(grid[k])
+    else:
+        best = float(grid[k])
+    m2 = cost(best)
+    error = _curvature_error(cost, best, max(abs(best) * 0.01, candidate.scale * 0.01), lo, hi)
+    fit = Fit(candidate, best, error, start, m2)
+    fit.delta_chi2 = m2lnl_base - m2
+    fit.delta_bic = fit.delta_chi2 - math.log(max(npix, 2))
+    fit.model = candidate.put(model, best)
+    return fit
+
+
+def _curvature_error(cost, x, h, lo, hi) -> float:
+    """1 sigma from the curvature of -2 ln L (which rises by 1 at 1 sigma)."""
+    a, b = max(lo, x - h), min(hi, x + h)
+    if not b > a:
+        return float("nan")
+    fa, fx, fb = cost(a), cost(x), cost(b)
+    # second derivative on a possibly uneven stencil
+    d2 = 2.0 * ((fb - fx) / (b - x) - (fx - fa) / (x - a)) / (b - a) if x > a and b > x else float("nan")
+    return float(math.sqrt(2.0 / d2)) if d2 > 0 else float("nan")
+
+
+@dataclass
+class Result:
+    """What the search found."""
+
+    found: list                  # dicts: effect, params, errors, delta_chi2, delta_bic, degenerate_with
+    candidates: list             # every candidate's fit in the first round (and later ones)
+    model: object                # the model with the found effects
+    rounds: list
+
+
+def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: int = 8) -> Result:
+    """Add significant effects to ``model`` one at a time until no candidate improves it significantly."""
+    exposures = problem.exposures
+    usable = [c for c in candidates if c.applies(exposures)]
+    found, rounds, first = [], [], None
+    current = model
+    remaining = list(usable)
+    for round_no in range(max_rounds):
+        evaluation = problem.evaluate(current)
+        base = evaluation.m2lnl()
+        _, npix = evaluation.chi2()
+        fits = []
+        for k, cand in enumerate(remaining, 1):
+            fits.append(fit_candidate(problem, current, cand, base, npix))
+            if progress is not None:
+                progress(f"round {round_no + 1}: {cand.name} {cand.param}={fits[-1].value:.6g} "
+                         f"delta chi2 {fits[-1].delta_chi2:.1f}")
+        fits.sort(key=lambda f: -f.delta_chi2)
+        rounds.append([f.as_dict() for f in fits])
+        if first is None:
+            first = fits
+        significant = [f for f in fits if f.significant]
+        if not significant:
+            break
+        best = significant[0]
+        group = [f for f in significant[1:] if best.delta_chi2 - f.delta_chi2 < MIN_DELTA_BIC]
+        entry = best.as_dict()
+        entry["degenerate_with"] = [f.candidate.name for f in group]
+        entry["round"] = round_no + 1
+        found.append(entry)
+        current = best.model
+        taken = {best.candidate.name, *entry["degenerate_with"]}
+        remaining = [c for c in remaining if c.name not in taken]
+        if not remaining:
+            break
+    return Result(found=found, candidates=[f.as_dict() for f in (first or [])], model=current, rounds=rounds)
