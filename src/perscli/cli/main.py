@@ -12,6 +12,7 @@ from .budget import budget
 from .correlate import correlate
 from .catalog import catalog
 from .pointings import pointings
+from .diagnose import diagnose
 from .helpers import configure_logging  # noqa: F401  (re-exported: perscli.cli.main.configure_logging)
 from .options import no_checksum_opt
 
@@ -40,6 +41,7 @@ cli.add_command(budget)
 cli.add_command(correlate)
 cli.add_command(catalog)
 cli.add_command(pointings)
+cli.add_command(diagnose)
 
 
 def main():

@@ -725,6 +725,17 @@ def default_model() -> DetectorModel:
                           if REGISTRY[name].default_enabled], source="roman")
 
 
+def _plain(value):
+    """A parameter value as plain Python (YAML cannot write numpy scalars and arrays)."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
 def model_to_yaml(model: DetectorModel, header: str = "") -> str:
     """The model as the YAML that :func:`load_detector_model` reads back (every parameter resolved).
 
@@ -738,7 +749,7 @@ def model_to_yaml(model: DetectorModel, header: str = "") -> str:
 
     effects = []
     for name, enabled, params in model.describe():
-        entry = {k: (list(map(list, v)) if isinstance(v, np.ndarray) else v) for k, v in params.items()}
+        entry = {k: _plain(v) for k, v in params.items()}
         if not enabled:
             entry["enabled"] = False
         effects.append({name: entry})

@@ -126,6 +126,12 @@ class Problem:
         scale = pmodel.A if pmodel.kind == "fermi" else 1.0
         return self._charges[key] * scale
 
+    def covariates(self, evaluation) -> list:
+        return covariates_2d(self, evaluation)
+
+    def allows(self, name: str) -> bool:
+        return True
+
     # -- the forward model ---------------------------------------------------------------------------
     def _model_for(self, model: DetectorModel, exp) -> DetectorModel:
         """The model as it applies to IDEAL (no sky: IDEAL has it) and to the measured counts."""
@@ -157,6 +163,31 @@ class Problem:
                 datas.append(data)
                 masks.append(mask)
         return Evaluation(means, variances, datas, masks)
+
+
+def covariates_2d(problem, evaluation) -> list:
+    """Per exposure: the probes' covariates on the full frame (see :mod:`perscli.diagnose.probes`)."""
+    from .data import measured_fluence
+
+    out = []
+    ny, nx = problem.shape
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    block = (yy * 8 // ny) * 8 + (xx * 8 // nx)
+    for i, (exp, mean) in enumerate(zip(problem.exposures, evaluation.mean)):
+        cov = {"signal": mean, "exposure_time": np.full(mean.shape, exp.exptime), "position": block}
+        from .probes import _neighbours
+
+        cov["neighbours"] = _neighbours(mean)
+        if i > 0:
+            earlier = problem.exposures[:i]
+            flu = [e.fluence if e.fluence is not None else measured_fluence(e) for e in earlier]
+            cov["history"] = np.max(np.stack(flu), axis=0)
+            cov["time_since"] = np.full(mean.shape, (exp.start - earlier[-1].end) * SECONDS_PER_DAY)
+        else:
+            cov["history"] = np.zeros(mean.shape)
+            cov["time_since"] = np.full(mean.shape, np.nan)
+        out.append(cov)
+    return out
 
 
 def _stripes(ny: int, nx: int, fit_pixels: int) -> list:

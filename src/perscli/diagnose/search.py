@@ -28,6 +28,14 @@ log = logging.getLogger(__name__)
 MIN_DELTA_CHI2 = 25.0
 #: ... and its BIC by at least this much
 MIN_DELTA_BIC = 10.0
+#: ... and it brings the gap at least this fraction of the way to 1
+MIN_GAP_CLOSED = 0.01
+
+
+def _gap(problem, model) -> float:
+    """chi^2 per pixel over every pixel (1 for pure noise)."""
+    chi2, n = problem.evaluate(model, full=True).chi2()
+    return chi2 / max(n, 1)
 
 
 @dataclass
@@ -42,6 +50,7 @@ class Fit:
     delta_chi2: float = 0.0
     delta_bic: float = 0.0
     model: object = field(default=None, repr=False)
+    note: str = ""
 
     @property
     def significant(self) -> bool:
@@ -51,7 +60,7 @@ class Fit:
         return {"effect": self.candidate.name, "params": {self.candidate.param: self.value},
                 "errors": {self.candidate.param: self.error}, "model_value": self.start,
                 "unit": self.candidate.unit, "delta_chi2": self.delta_chi2, "delta_bic": self.delta_bic,
-                "significant": self.significant}
+                "significant": self.significant, "note": self.note}
 
 
 def fit_candidate(problem, model, candidate: Candidate, m2lnl_base: float, npix: int) -> Fit:
@@ -125,7 +134,7 @@ class Result:
 def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: int = 8) -> Result:
     """Add significant effects to ``model`` one at a time until no candidate improves it significantly."""
     exposures = problem.exposures
-    usable = [c for c in candidates if c.applies(exposures)]
+    usable = [c for c in candidates if c.applies(exposures) and problem.allows(c.name)]
     found, rounds, first = [], [], None
     current = model
     remaining = list(usable)
@@ -144,10 +153,24 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
         if first is None:
             first = fits
         significant = [f for f in fits if f.significant]
-        if not significant:
+        best = None
+        gap_now = _gap(problem, current)
+        for f in significant:
+            # a value pinned at the edge of its range measures nothing, and an effect that does not bring
+            # the gap (chi^2 per pixel) closer to 1 explains nothing: neither is named
+            lo, hi = f.candidate.bounds
+            at_bound = f.candidate.fit is None and min(f.value - lo, hi - f.value) <= 1e-3 * (hi - lo)
+            gap_with = _gap(problem, f.model)
+            closes = abs(gap_now - 1.0) - abs(gap_with - 1.0) >= MIN_GAP_CLOSED * abs(gap_now - 1.0)
+            f.note = "at the edge of its range" if at_bound else ("does not close the gap" if not closes else "")
+            if not at_bound and closes:
+                best = f
+                break
+        rounds[-1] = [f.as_dict() for f in fits]
+        if best is None:
             break
-        best = significant[0]
-        group = [f for f in significant[1:] if best.delta_chi2 - f.delta_chi2 < MIN_DELTA_BIC]
+        group = [f for f in significant if f is not best and not f.note
+                 and best.delta_chi2 - f.delta_chi2 < MIN_DELTA_BIC]
         entry = best.as_dict()
         entry["degenerate_with"] = [f.candidate.name for f in group]
         entry["round"] = round_no + 1
@@ -157,4 +180,4 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
         remaining = [c for c in remaining if c.name not in taken]
         if not remaining:
             break
-    return Result(found=found, candidates=[f.as_dict() for f in (first or [])], model=current, rounds=rounds)
+    return Result(found=found, candidates=rounds[0] if rounds else [], model=current, rounds=rounds)

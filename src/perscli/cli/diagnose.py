@@ -1,0 +1,85 @@
+"""``perscli diagnose``: where simulated and measured frames disagree, and which effect is missing."""
+
+from __future__ import annotations
+
+import logging
+
+import click
+
+from .helpers import report_errors
+from .options import model_opt, no_checksum_opt, overwrite_opt, verbosity_opts
+
+log = logging.getLogger("perscli")
+
+
+@click.command("diagnose", short_help="Find the detector effect a simulation lacks, fit it, show the gap shrink.")
+@click.argument("measured", nargs=-1, required=True, metavar="MEASURED...")
+@click.option("--simulated", "simulated", multiple=True, metavar="SIM.fits",
+              help="The same exposures rendered by perscli render (SCI, IDEAL, FLUENCE, MODEL); repeatable. "
+                   "Paired with MEASURED by start time (within 1 s), else in order. Without them, a lone "
+                   "ramp is predicted from its own earliest reads.")
+@model_opt(None, "MODEL.yaml|FRAME.fits",
+           "the detector model to test [default: the one stored in the simulated frames]")
+@click.option("-o", "--output", "outdir", required=True, metavar="OUTDIR",
+              help="Folder to write: model.yaml, report.json, report.md and PNG figures.")
+@click.option("--fit-pixels", type=click.IntRange(min=1000), default=1_000_000, show_default=True, metavar="N",
+              help="Pixels per exposure used in the fits (evenly spaced stripes); the gaps use every pixel.")
+@click.option("--gain", type=click.FloatRange(min=0, min_open=True), default=None, metavar="E_PER_DN",
+              help="Gain of measured DN frames whose header has no GAIN or CCDGAIN.")
+@click.option("--exptime", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
+              help="Exposure time of measured frames whose header has none.")
+@no_checksum_opt
+@overwrite_opt
+@verbosity_opts
+@report_errors
+def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime, overwrite):
+    """Find where MEASURED frames and their simulation disagree, and which detector effect is missing.
+
+    The expectation and variance of every measured pixel come from the
+    detector model's forward model (the same effects render samples) of the
+    simulation's IDEAL, with the persistence of the earlier exposures; the
+    residuals are examined against the pixel's signal, its neighbours', the
+    fluence of earlier exposures, exposure and read times and position.  Each
+    candidate (persistence A, ipc alpha, nonlinearity beta, reciprocity
+    alpha, dark current, offset level, read_noise sigma, gain) is fitted by
+    likelihood; the best is named when it improves -2 ln L by more than 25
+    and BIC by more than 10, added, and the search repeats.  Candidates the
+    data cannot tell apart are reported as one degenerate group.
+
+    OUTDIR gets model.yaml (the simulation's model with the effects found at
+    their fitted values: perscli render --model OUTDIR/model.yaml), report.json,
+    report.md and PNG figures; it appears whole or not at all.
+
+    \b
+    Examples:
+      perscli diagnose meas1.fits meas2.fits --simulated sim1.fits --simulated sim2.fits -o diag
+      perscli diagnose meas*.fits --simulated sim1.fits --simulated sim2.fits --model roman.yaml -o diag2
+      perscli diagnose ibh7a7lsq_raw.fits -o wfc3_diag
+    """
+    import os
+
+    from ..diagnose.report import diagnose as run, write_report
+
+    from .. import PerscliError
+
+    inputs = list(measured) + list(simulated) + ([model_spec] if model_spec and os.path.exists(model_spec) else [])
+    target = os.path.abspath(outdir)
+    if os.path.exists(target) and not os.path.isdir(target):
+        raise PerscliError(f"{outdir}: is a file; -o names the folder diagnose writes")
+    if os.path.exists(target) and not overwrite:
+        raise PerscliError(f"{outdir}: already exists; use --overwrite to replace it")
+    for name in inputs:
+        path = os.path.abspath(name.split("[", 1)[0])
+        if name != "-" and (path == target or path.startswith(target + os.sep)):
+            raise PerscliError(f"{outdir}: holds the input {name}; diagnose replaces the whole folder: "
+                               "choose another output folder")
+
+    def progress(text):
+        log.info("diagnose: %s", text)
+
+    outcome = run(measured, simulated=simulated, model_spec=model_spec, fit_pixels=fit_pixels, gain=gain,
+                  exptime=exptime, progress=progress)
+    write_report(outcome, outdir, overwrite=overwrite)
+    report = outcome["report"]
+    click.echo(f"{report['verdict']}; gap {report['gap_before']:.4g} -> {report['gap_after']:.4g} "
+               f"(report in {outdir}/report.md)", err=True)

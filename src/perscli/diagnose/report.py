@@ -1,0 +1,292 @@
+"""``perscli diagnose`` as a function: read, search, re-simulate, and write model.yaml, report.json,
+report.md and the figures into an output folder that appears whole or not at all."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import tempfile
+
+import numpy as np
+
+from .. import PerscliError, __version__
+from .candidates import by_name
+from .probes import PROBES, run_probes
+
+log = logging.getLogger(__name__)
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000_000, gain=None, exptime=None,
+             progress=None) -> dict:
+    """Find the missing or mis-set detector effects of ``simulated`` against ``measured``.
+
+    Parameters
+    ----------
+    measured : sequence of str
+        Measured frames (any order; put in time order from their headers).
+    simulated : sequence of str
+        The same exposures rendered by ``perscli render`` (IDEAL, FLUENCE, MODEL);
+        empty for a lone ramp, whose expectation is then predicted from its
+        own earliest reads.
+    model_spec : str, optional
+        A detector model overriding the one stored in the simulated frames.
+    fit_pixels : int
+        Pixels per exposure used in the fits (the gaps use every pixel).
+    gain, exptime : float, optional
+        For measured frames whose headers lack GAIN or EXPTIME.
+    progress : callable, optional
+        ``progress(text)`` for messages on the way.
+
+    Returns
+    -------
+    dict
+        The report (see :func:`write_report`), plus the objects the figures need.
+    """
+    from ..detector.effects import load_detector_model
+    from .data import attach_simulations, read_measured
+    from .likelihood import Problem
+    from .ramp import RampProblem, ramp_model
+    from .search import search
+
+    say = progress or (lambda text: None)
+    exposures = read_measured(measured, gain=gain, exptime=exptime)
+    say(f"{len(exposures)} measured exposure(s), {exposures[0].data.shape[-2]} x {exposures[0].data.shape[-1]} px")
+    if simulated:
+        models = attach_simulations(exposures, simulated)
+        if model_spec is not None:
+            model = load_detector_model(model_spec)
+        else:
+            stored = [m for m in models if m is not None]
+            if not stored:
+                raise PerscliError("the simulated frames carry no detector model (MODEL table); give --model")
+            model = stored[-1]
+        problem = Problem(exposures, fit_pixels=fit_pixels)
+        mode = "simulated"
+    else:
+        ramps = [e for e in exposures if e.is_ramp]
+        if not ramps:
+            raise PerscliError("without --simulated frames diagnose needs ramps (MULTIACCUM or cubes) to predict "
+                               "from themselves; give the simulated frames of these exposures")
+        model = load_detector_model(model_spec) if model_spec is not None else ramp_model(exposures)
+        problem = RampProblem(exposures, fit_pixels=fit_pixels)
+        mode = "self-predicted"
+    before_eval = problem.evaluate(model, full=True)
+    chi2, n = before_eval.chi2()
+    gap_before = chi2 / max(n, 1)
+    say(f"gap before: chi2/dof = {gap_before:.4g} over {n} pixels")
+    probes_before = run_probes(problem, before_eval)
+    result = search(problem, model, progress=say)
+    after_eval = problem.evaluate(result.model, full=True)
+    chi2_after, n_after = after_eval.chi2()
+    nfit = sum(len(f["params"]) for f in result.found)
+    gap_after = chi2_after / max(n_after - nfit, 1)
+    probes_after = run_probes(problem, after_eval)
+    say(f"gap after: chi2/dof = {gap_after:.4g}")
+    # what each found effect closes on its own probe, and of the whole gap (cumulatively, in order)
+    current = model
+    gap_prev = gap_before
+    for entry in result.found:
+        cand = by_name(entry["effect"])
+        # one exposure time: a dark current shows as an offset
+        entry["probe"] = cand.probe if cand.probe in probes_before else "offset"
+        current = cand.put(current, entry["params"][cand.param]) if cand.fit is None else _refit(problem, current, cand)
+        ev = problem.evaluate(current, full=True)
+        c2, nn = ev.chi2()
+        gap_now = c2 / max(nn, 1)
+        entry["gap_after_adding"] = gap_now
+        entry["fraction_of_gap_closed"] = ((gap_prev - gap_now) / (gap_before - 1.0)) if gap_before > 1 else 0.0
+        gap_prev = gap_now
+        pb, pa = probes_before.get(entry["probe"]), probes_after.get(entry["probe"])
+        entry["probe_gap_before"] = pb.gap if pb is not None else None
+        entry["probe_gap_after"] = pa.gap if pa is not None else None
+    if result.found:
+        names = [e["effect"] + (" (or " + ", ".join(e["degenerate_with"]) + ": the data cannot tell them apart)"
+                                if e["degenerate_with"] else "") for e in result.found]
+        verdict = "missing or mis-set: " + "; ".join(names)
+    else:
+        verdict = "no missing effect"
+    report = {
+        "perscli": __version__, "mode": mode, "verdict": verdict,
+        "measured": [e.label for e in exposures], "simulated": [e.sim for e in exposures],
+        "model_source": model.source,
+        "found": result.found, "gap_before": gap_before, "gap_after": gap_after,
+        "pixels": n, "candidates": result.candidates, "rounds": result.rounds,
+        "probes_before": {k: p.as_dict() for k, p in probes_before.items()},
+        "probes_after": {k: p.as_dict() for k, p in probes_after.items()},
+    }
+    if mode == "self-predicted":
+        report["jumps_masked"] = int(problem.jumps)
+    return {"report": report, "model": result.model, "probes_before": probes_before, "probes_after": probes_after}
+
+
+def _refit(problem, model, cand):
+    return cand.fit(problem, model)[2]
+
+
+def write_report(outcome: dict, outdir: str, *, overwrite: bool = False) -> None:
+    """Write OUTDIR (model.yaml, report.json, report.md, PNG figures) atomically: a temporary folder
+    beside it renamed into place, so that a failure leaves no half-written OUTDIR."""
+    from ..detector.effects import model_to_yaml
+
+    outdir = os.path.abspath(outdir)
+    if os.path.exists(outdir) and not overwrite:
+        raise PerscliError(f"{outdir}: already exists; use --overwrite to replace it")
+    parent = os.path.dirname(outdir)
+    if not os.path.isdir(parent):
+        raise PerscliError(f"{parent}: folder does not exist; create it or choose another output")
+    tmp = tempfile.mkdtemp(prefix=".perscli-diagnose-", dir=parent)
+    try:
+        report = outcome["report"]
+        with open(os.path.join(tmp, "model.yaml"), "w") as fh:
+            fh.write(model_to_yaml(outcome["model"], header=f"perscli {__version__} diagnose: {report['verdict']}\n"
+                                   "the simulation's model with the effects found set to their fitted values;\n"
+                                   "use it with: perscli render --model model.yaml"))
+        figures = _figures(outcome, tmp)
+        report["figures"] = figures
+        with open(os.path.join(tmp, "report.json"), "w") as fh:
+            json.dump(_jsonable(report), fh, indent=1)
+        with open(os.path.join(tmp, "report.md"), "w") as fh:
+            fh.write(_markdown(report))
+        mode = 0o777 & ~_umask()
+        os.chmod(tmp, mode)
+        for name in os.listdir(tmp):
+            os.chmod(os.path.join(tmp, name), 0o666 & ~_umask())
+        if os.path.exists(outdir):
+            old = tempfile.mkdtemp(prefix=".perscli-old-", dir=parent)
+            os.rmdir(old)
+            os.replace(outdir, old)
+            os.replace(tmp, outdir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, outdir)
+    finally:
+        if os.path.exists(tmp):
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _figures(outcome, folder) -> list:
+    """A PNG per flagged probe (before and after) and an overview of the gaps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    before, after = outcome["probes_before"], outcome["probes_after"]
+    report = outcome["report"]
+    names = []
+    found_probes = {e.get("probe") for e in report["found"]}
+    for key, pb in before.items():
+        if key in ("offset", "excess_variance") or not (pb.flagged or key in found_probes) or pb.dof < 2:
+            continue
+        pa = after.get(key)
+        fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
+        ax.axhline(0.0, color="0.6", lw=0.8)
+        ax.errorbar(pb.centres, pb.means, yerr=pb.errors, fmt="o-", ms=4, color="C3",
+                    label=f"before (gap {pb.gap:.3g})")
+        if pa is not None and pa.dof:
+            ax.errorbar(pa.centres, pa.means, yerr=pa.errors, fmt="s-", ms=4, color="C0",
+                        label=f"after (gap {pa.gap:.3g})")
+        if pb.log_x and np.all(pb.centres > 0):
+            ax.set_xscale("log")
+        ax.set_xlabel(pb.xlabel or PROBES[key])
+        ax.set_ylabel("mean residual (data - model) / sigma")
+        ax.set_title(f"probe: {PROBES[key]}", fontsize=10)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        name = f"probe_{key}.png"
+        fig.savefig(os.path.join(folder, name))
+        plt.close(fig)
+        names.append(name)
+    # overview: the gap overall and per probe, before and after
+    keys = [k for k in before if before[k].gap == before[k].gap]
+    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=110)
+    xs = np.arange(len(keys) + 1)
+    gb = [report["gap_before"]] + [before[k].gap for k in keys]
+    ga = [report["gap_after"]] + [after[k].gap if k in after else np.nan for k in keys]
+    ax.bar(xs - 0.2, gb, 0.4, color="C3", label="before")
+    ax.bar(xs + 0.2, ga, 0.4, color="C0", label="after")
+    ax.axhline(1.0, color="k", lw=0.8, ls="--")
+    ax.set_xticks(xs)
+    ax.set_xticklabels(["all"] + keys, rotation=30, ha="right", fontsize=8)
+    ax.set_yscale("log")
+    ax.set_ylabel("chi2 per pixel (1: pure noise)")
+    ax.set_title(report["verdict"][:80], fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(folder, "gap.png"))
+    plt.close(fig)
+    return ["gap.png"] + names
+
+
+def _fmt(v):
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def _markdown(report) -> str:
+    lines = [f"# perscli diagnose: {report['verdict']}", "",
+             f"- mode: {report['mode']}; measured: {', '.join(report['measured'])}",
+             f"- model: {report['model_source']}",
+             f"- gap (chi^2 per pixel; 1 for pure noise): **{_fmt(report['gap_before'])}** before, "
+             f"**{_fmt(report['gap_after'])}** after, over {report['pixels']} pixels", ""]
+    if "jumps_masked" in report:
+        lines += [f"- pixels masked as jumps (cosmic rays, changes of illumination): {report['jumps_masked']}", ""]
+    lines += ["![gaps before and after](gap.png)", "", "## Found", ""]
+    if not report["found"]:
+        lines += ["No candidate improves the likelihood significantly: no missing effect.", ""]
+    else:
+        lines += ["| effect | parameter | fitted | error | model had | delta chi2 | delta BIC | share of gap closed | "
+                  "probe gap before -> after | degenerate with |", "|" + "---|" * 10]
+        for e in report["found"]:
+            (param, value), = e["params"].items()
+            lines.append(f"| {e['effect']} | {param} | {_fmt(value)} | {_fmt(e['errors'][param])} | "
+                         f"{_fmt(e['model_value'])} | {_fmt(e['delta_chi2'])} | {_fmt(e['delta_bic'])} | "
+                         f"{_fmt(100 * e.get('fraction_of_gap_closed', 0.0))} % | "
+                         f"{e.get('probe')}: {_fmt(e.get('probe_gap_before'))} -> {_fmt(e.get('probe_gap_after'))} | "
+                         f"{', '.join(e['degenerate_with']) or '-'} |")
+        lines.append("")
+    lines += ["## Every candidate (first round)", "",
+              "| effect | parameter | fitted | error | model had | delta chi2 | delta BIC | significant |",
+              "|" + "---|" * 8]
+    for c in report["candidates"]:
+        (param, value), = c["params"].items()
+        lines.append(f"| {c['effect']} | {param} | {_fmt(value)} | {_fmt(c['errors'][param])} | "
+                     f"{_fmt(c['model_value'])} | {_fmt(c['delta_chi2'])} | {_fmt(c['delta_bic'])} | "
+                     f"{'yes' if c['significant'] else 'no'} |")
+    lines += ["", "## Probes", "", "| probe | covariate | chi2 / bins before | flagged | gap before | gap after |",
+              "|" + "---|" * 6]
+    for key, p in report["probes_before"].items():
+        pa = report["probes_after"].get(key, {})
+        lines.append(f"| {key} | {p['covariate']} | {_fmt(p['chi2'])} / {p['dof']} | {'yes' if p['flagged'] else 'no'} | "
+                     f"{_fmt(p['gap'])} | {_fmt(pa.get('gap'))} |")
+    lines.append("")
+    for name in report.get("figures", [])[1:]:
+        lines += [f"![{name}]({name})", ""]
+    lines += ["`model.yaml` is the simulation's model with the effects found set to their fitted values: "
+              "`perscli render --model model.yaml` renders what was fitted.", ""]
+    return "\n".join(lines)
