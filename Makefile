@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.perscli-installed
 
-.PHONY: demo demo-field test bench bench-render bench-measure bench-correlate man samples clean
+.PHONY: demo demo-diagnose demo-field test bench bench-render bench-measure bench-correlate man samples clean
 
 $(STAMP): pyproject.toml setup.py src/perscli/_kernels.c
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -20,7 +20,29 @@ demo: $(STAMP)
 	    sample_data/exp2.fits sample_data/exp3.fits -o demo_output/exp4_persist.fits --overwrite
 	$(BIN)/perscli -v apply-persistence sample_data/exp4.fits sample_data/exp1.fits \
 	    sample_data/exp2.fits sample_data/exp3.fits --mode predict -o demo_output/exp4_predicted.fits --overwrite
+	@$(MAKE) --no-print-directory demo-diagnose
 	@echo "demo outputs in demo_output/"
+
+# diagnose on a small field: three exposures "measured" with a dark current of 0.3 e-/s (the hidden
+# effect) and simulated with the Roman model (0.015 e-/s); diagnose names it, fits it and writes
+# demo_output/diagnose/report.md with the model that closes the gap.
+DIAG := demo_output/diagnose_inputs
+POINT := --ra 10 --dec -44 --pa 30 --filter J129 --sca 7 --bounds 1001 1128 2001 2128
+demo-diagnose: $(STAMP)
+	mkdir -p $(DIAG)
+	$(BIN)/perscli catalog --ra 9.5386 --dec -44.0435 --size 1 --star-density 10 --seed 1 -o $(DIAG)/truth.fits --overwrite
+	$(BIN)/perscli render $(DIAG)/truth.fits $(POINT) --mjd 61541.97 --seed 11 -o $(DIAG)/sim0.fits --overwrite
+	$(BIN)/perscli render $(DIAG)/truth.fits $(POINT) --mjd 61541.97196528 --seed 12 --previous $(DIAG)/sim0.fits \
+	    -o $(DIAG)/sim1.fits --overwrite
+	$(BIN)/perscli render $(DIAG)/truth.fits $(POINT) --mjd 61541.97393056 --seed 13 --previous $(DIAG)/sim0.fits \
+	    --previous $(DIAG)/sim1.fits -o $(DIAG)/sim2.fits --overwrite
+	$(BIN)/perscli render $(DIAG)/truth.fits $(POINT) --mjd 61541.97 --seed 21 --set dark.current=0.3 -o $(DIAG)/meas0.fits --overwrite
+	$(BIN)/perscli render $(DIAG)/truth.fits $(POINT) --mjd 61541.97196528 --seed 22 --set dark.current=0.3 \
+	    --previous $(DIAG)/meas0.fits -o $(DIAG)/meas1.fits --overwrite
+	$(BIN)/perscli render $(DIAG)/truth.fits $(POINT) --mjd 61541.97393056 --seed 23 --set dark.current=0.3 \
+	    --previous $(DIAG)/meas0.fits --previous $(DIAG)/meas1.fits -o $(DIAG)/meas2.fits --overwrite
+	$(BIN)/perscli -v diagnose $(DIAG)/meas0.fits $(DIAG)/meas1.fits $(DIAG)/meas2.fits --simulated $(DIAG)/sim0.fits \
+	    --simulated $(DIAG)/sim1.fits --simulated $(DIAG)/sim2.fits -o demo_output/diagnose --overwrite
 
 # A small real field: Gaia DR2 stars plus simulated galaxies, observed by three
 # consecutive J129 exposures of the public Roman WAS schedule (rows 4182-4184,
