@@ -548,6 +548,17 @@ def tile_compressed(seed: bytes) -> bytes:
                 h.delete(key)
             except KeyError:
                 pass
+    # each tile is a gzip stream whose header holds the time of compression (MTIME): zero it
+    comp = hdus[1]
+    width, rows = comp.int_value("NAXIS1"), comp.int_value("NAXIS2")
+    heap = comp.int_value("THEAP", width * rows)
+    data = bytearray(comp.data)
+    for row in range(rows):
+        _count, offset = struct.unpack(">ii", bytes(data[row * width:row * width + 8]))
+        at = heap + offset
+        if data[at:at + 2] == b"\x1f\x8b":
+            data[at + 4:at + 8] = bytes(4)
+    comp.data = bytes(data)
     return join(resign(hdus))
 
 
@@ -712,7 +723,7 @@ def _child(req: dict, out_fd: int, err_fd: int, closing: list) -> None:
         import resource
 
         resource.setrlimit(resource.RLIMIT_AS, (req["memory"], req["memory"]))
-        resource.setrlimit(resource.RLIMIT_FSIZE, (req["fsize"], req["fsize"]))
+        resource.setrlimit(resource.RLIMIT_FSIZE, (req["fsize"], req["fsize"]))   # also caps a memfd
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         signal.signal(signal.SIGPIPE, signal.SIG_IGN)        # as the Python interpreter sets it
         sys.stdin = io.TextIOWrapper(io.BufferedReader(io.FileIO(0, "rb", closefd=False)), encoding="utf-8")
@@ -760,22 +771,15 @@ def _child(req: dict, out_fd: int, err_fd: int, closing: list) -> None:
 
 
 def _wait(pid: int, deadline: float):
-    """(status, rusage, timed_out) of child ``pid``, killing its process group at ``deadline``."""
+    """(status, rusage, timed_out) of child ``pid``.  At ``deadline`` its process group is killed; after a
+    normal exit too (anything it left running), while the unreaped child still reserves the group's id."""
     pidfd = os.pidfd_open(pid) if hasattr(os, "pidfd_open") else None
     timed_out = False
     try:
-        while True:
-            done, status, usage = os.wait4(pid, os.WNOHANG)
-            if done:
-                break
+        while os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is None:
             left = deadline - time.monotonic()
             if left <= 0:
                 timed_out = True
-                try:
-                    os.killpg(pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                _, status, usage = os.wait4(pid, 0)
                 break
             if pidfd is not None:
                 select.select([pidfd], [], [], min(left, 1.0))
@@ -784,10 +788,11 @@ def _wait(pid: int, deadline: float):
     finally:
         if pidfd is not None:
             os.close(pidfd)
-    try:                       # anything the command left running in its group
+    try:
         os.killpg(pid, signal.SIGKILL)
     except (ProcessLookupError, PermissionError):
         pass
+    _, status, usage = os.wait4(pid, 0)
     return status, usage, timed_out
 
 
@@ -874,16 +879,19 @@ class ForkServer:
         except Exception:
             self.proc.kill()
             self.proc.wait()
+        self.proc.stdout.close()
         self.proc = None
 
 
-def limit_memory(nbytes: int = 3 * GiB):
-    """A preexec_fn for subprocess: RLIMIT_AS and RLIMIT_FSIZE."""
+def limit_memory(nbytes: int = 3 * GiB, fsize: int = 256 << 20):
+    """A preexec_fn for subprocess: RLIMIT_AS, and RLIMIT_FSIZE with SIGXFSZ ignored (a write past it fails
+    with EFBIG; the limit also caps an in-memory file such as a memfd that an endless input would grow)."""
 
     def apply():
         import resource
 
         resource.setrlimit(resource.RLIMIT_AS, (nbytes, nbytes))
-        resource.setrlimit(resource.RLIMIT_FSIZE, (256 << 20, 256 << 20))
+        resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 
     return apply

@@ -272,11 +272,74 @@ def _check_start(label: str, head: bytes) -> None:
                            "check that it is complete and really FITS")
 
 
+class _StreamGuard:
+    """Follows the HDU structure of a FITS stream as it arrives, so that reading stops one block after
+    the end of the last HDU: a valid file followed by an endless stream (``cat f.fits /dev/zero``)
+    is an error at once instead of filling the memory."""
+
+    def __init__(self, label: str):
+        self.label = label
+        self.buf = bytearray()     # bytes from ``self.at`` on that are not yet understood
+        self.at = 0                # offset of ``self.buf[0]`` in the stream
+        self.next_hdu = 0          # where the next header starts
+        self.in_header = True
+        self.cards = {}
+
+    def feed(self, chunk) -> None:
+        self.buf += chunk
+        while True:
+            if self.in_header:
+                if len(self.buf) < BLOCK:
+                    return
+                block = bytes(self.buf[:BLOCK])
+                if not self.cards and self.at > 0 and block[:9] != b"XTENSION=":
+                    if block.strip(b"\0 "):
+                        raise PerscliError(f"{self.label}: data after the end of the last HDU (byte {self.at}) that "
+                                           "are not a FITS extension: trailing garbage or a second file; re-send "
+                                           "one FITS file")
+                    raise PerscliError(f"{self.label}: the stream goes on after the end of the last HDU "
+                                       f"(byte {self.at}) with blank bytes; send exactly one FITS file")
+                done = False
+                for i in range(0, BLOCK, CARD):
+                    key = block[i:i + 8].rstrip()
+                    if key == b"END":
+                        done = True
+                        break
+                    if block[i + 8:i + 10] == b"= " and key in (b"BITPIX", b"NAXIS", b"PCOUNT", b"GCOUNT") or \
+                            (key.startswith(b"NAXIS") and key[5:].isdigit()):
+                        value, _ = _parse_value(block[i + 10:i + CARD].decode("ascii", "replace"))
+                        self.cards.setdefault(key.decode(), value)
+                del self.buf[:BLOCK]
+                self.at += BLOCK
+                if done:
+                    self.in_header = False
+                    self.next_hdu = self.at + padded(self._size())
+                    self.cards = {}
+            else:
+                skip = min(len(self.buf), self.next_hdu - self.at)
+                del self.buf[:skip]
+                self.at += skip
+                if self.at < self.next_hdu:
+                    return
+                self.in_header = True
+
+    def _size(self) -> int:
+        try:
+            naxis = int(self.cards.get("NAXIS", 0))
+            dims = [int(self.cards.get(f"NAXIS{k}", 0)) for k in range(1, naxis + 1)]
+            n = math.prod(dims) if dims else 0
+            return abs(int(self.cards.get("BITPIX", 8))) // 8 * int(self.cards.get("GCOUNT", 1)) * (
+                int(self.cards.get("PCOUNT", 0)) + n)
+        except (TypeError, ValueError):
+            return 0   # CFITSIO will say what is wrong with this header
+
+
 def _read_stream(label: str, read) -> Source:
     """Read a stream to its end into an anonymous file (checking its first bytes early)."""
     fd = _anonymous_file(label)
     try:
         head = b""
+        guard = None
         while True:
             chunk = read(_CHUNK)
             if not chunk:
@@ -285,6 +348,10 @@ def _read_stream(label: str, read) -> Source:
                 head += bytes(chunk[:BLOCK - len(head)])
                 if len(head) >= 10:
                     _check_start(label, head)  # fail fast on /dev/zero and other non-FITS streams
+                    if guard is None and head[:2] != _GZIP_MAGIC:
+                        guard = _StreamGuard(label)
+            if guard is not None:
+                guard.feed(chunk)
             _write_all(fd, chunk)
         if not head:
             raise PerscliError(f"{label}: the input is empty; pipe or write a FITS file into it")
@@ -313,7 +380,9 @@ def _maybe_gunzip(source: Source) -> Source:
                     break
                 if first:
                     _check_start(source.label + " (decompressed)", chunk[:BLOCK])
+                    guard = _StreamGuard(source.label)
                     first = False
+                guard.feed(chunk)
                 _write_all(out, chunk)
         if first:
             raise PerscliError(f"{source.label}: the gzip file holds nothing")
@@ -567,6 +636,17 @@ class HDU:
             return self._datasum
         if datasum is None:
             datasum = self.datasum()
+        else:
+            # the caller summed the data as it used them; the block padding after them counts too
+            size = self.data_end - self.data_offset
+            pad = padded(size) - size
+            if pad:
+                from .. import _kernels
+
+                tail = bytes(self.source.pread(self.data_end, pad))
+                if size % 4:
+                    tail = bytes(size % 4) + tail  # keep the 32-bit words aligned to the data's start
+                datasum = ones_complement_add(datasum, _kernels.datasum(tail))
         self._datasum = datasum
         if not checksums_enabled():
             self.verified = True
@@ -634,12 +714,19 @@ class HDU:
         self.verify()
         if self.compressed:
             fits_hdu = self.file.fitsio[self.index]
-            arr = fits_hdu[r0:r1, :] if len(self.shape) == 2 else fits_hdu[plane:plane + 1, r0:r1, :][0]
+            try:
+                arr = fits_hdu[r0:r1, :] if len(self.shape) == 2 else fits_hdu[plane:plane + 1, r0:r1, :][0]
+            except Exception as exc:  # CFITSIO: tiles that do not decompress
+                raise self._unreadable(exc) from None
             return self._finish(np.asarray(arr), from_cfitsio=True)
         arr = self.stream_rows(r0, r1, plane)
         if self.dtype.kind != "f" or self.scaling != (1.0, 0.0):
             return self._scaled(arr)
         return arr.astype(arr.dtype.newbyteorder("=")) if native else arr
+
+    def _unreadable(self, exc) -> PerscliError:
+        return PerscliError(f"{self.file.label}: {self.label}: the data cannot be read ({_cfitsio_reason(exc)}); "
+                            "the file is corrupt: re-copy it")
 
     def _finish(self, arr, *, from_cfitsio: bool):
         """CFITSIO applies BSCALE/BZERO itself; BLANK of integer data becomes NaN here."""
@@ -667,7 +754,10 @@ class HDU:
             return None
         self.verify()
         if self.compressed:
-            return self._finish(np.asarray(self.file.fitsio[self.index].read()), from_cfitsio=True)
+            try:
+                return self._finish(np.asarray(self.file.fitsio[self.index].read()), from_cfitsio=True)
+            except Exception as exc:  # CFITSIO: tiles that do not decompress
+                raise self._unreadable(exc) from None
         buf = self.source.pread(self.data_offset, self.data_end - self.data_offset)
         arr = np.frombuffer(buf, dtype=self.dtype).reshape(shape)
         if self.dtype.kind != "f" or self.scaling != (1.0, 0.0):
@@ -692,9 +782,8 @@ class HDU:
             return None, None
         try:
             data = self.file.fitsio[self.index].read()
-        except (OSError, ValueError, TypeError) as exc:
-            raise PerscliError(f"{self.file.label}: {self.label} cannot be read ({_cfitsio_reason(exc)}); "
-                               "the file is corrupt") from None
+        except Exception as exc:  # CFITSIO on corrupt data
+            raise self._unreadable(exc) from None
         if data is None:
             return None, None
         data = np.asarray(data)
@@ -717,7 +806,7 @@ class HDU:
         self.verify()
         try:
             values = self.file.fitsio[self.index].read_column(name)
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+        except Exception as exc:  # CFITSIO on a corrupt table
             raise PerscliError(f"{self.file.label}: {self.label}: column {name!r} cannot be read "
                                f"({_cfitsio_reason(exc)}); the table is corrupt") from None
         values = np.asarray(values)
@@ -743,11 +832,16 @@ _STATUS = re.compile(r"status\s*=\s*(\d+)")
 
 
 def _describe_cfitsio(label: str, exc: Exception) -> PerscliError:
+    if isinstance(exc, UnicodeDecodeError):
+        return PerscliError(f"{label}: a header holds bytes that are not ASCII text: the file is corrupt; re-copy it")
     reason = _cfitsio_reason(exc)
     m = _STATUS.search(str(exc))
     code = int(m.group(1)) if m else None
     if code in (107, 108):
         return PerscliError(f"{label}: the file is truncated ({reason}); re-copy or regenerate it")
+    if code == 225:
+        return PerscliError(f"{label}: an extension header does not start with XTENSION: a corrupt header, or a "
+                            "second FITS file appended after the first; re-copy the file (one file per input)")
     return PerscliError(f"{label}: not a valid FITS file ({reason}); the file is corrupt: re-copy it "
                         "or check that it really is FITS")
 
@@ -778,10 +872,19 @@ def _stored_size(label: str, index: int, header: Header, fallback: int) -> int:
         return fallback
 
 
+_EXTENSIONS = ("IMAGE", "BINTABLE", "TABLE", "A3DTABLE", "IUEIMAGE")
+
+
 def _check_structure(label: str, hdu: HDU) -> None:
-    """Scaling and size keywords that CFITSIO lets through but make the data meaningless."""
+    """Structural and scaling keywords that CFITSIO lets through but make the file or its data meaningless."""
     hdr = hdu.header
     where = f"{label}: {hdu.label}"
+    if hdu.index == 0 and hdr.get("SIMPLE") is not True:
+        raise PerscliError(f"{where}: SIMPLE = {hdr.get('SIMPLE')!r}: the file says it does not conform to FITS; "
+                           "it is corrupt or not FITS")
+    if hdu.index > 0 and not hdu.compressed and str(hdr.get("XTENSION", "")).strip().upper() not in _EXTENSIONS:
+        raise PerscliError(f"{where}: XTENSION = {hdr.get('XTENSION')!r} is not a FITS extension type "
+                           f"({', '.join(_EXTENSIONS)}); the file is corrupt")
     for key in ("BSCALE", "BZERO"):
         if key in hdr:
             value = hdr[key]
@@ -834,7 +937,9 @@ class FitsFile:
                 for i, h in enumerate(self.fitsio):
                     cards = [rec.get("card_string", "") for rec in self.fitsio._FITS.read_header(i + 1)]
                     infos.append((h.get_offsets(), h.get_exttype(), getattr(h, "is_compressed", lambda: False)(), cards))
-            except (OSError, ValueError, RuntimeError, TypeError, KeyError, IndexError) as exc:
+            except PerscliError:
+                raise
+            except Exception as exc:  # CFITSIO's errors (fitsio raises several types) on a corrupt file
                 raise _describe_cfitsio(self.label, exc) from None
             self.hdus = []
             for i, (offsets, exttype, compressed, cards) in enumerate(infos):
