@@ -117,12 +117,18 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         pb, pa = probes_before.get(entry["probe"]), probes_after.get(entry["probe"])
         entry["probe_gap_before"] = pb.gap if pb is not None else None
         entry["probe_gap_after"] = pa.gap if pa is not None else None
+        # an effect explains its probe when the binned residuals there are noise once it is added
+        entry["probe_explained"] = bool(pa is None or not pa.flagged)
     if result.found:
         names = [e["effect"] + (" (or " + ", ".join(e["degenerate_with"]) + ": the data cannot tell them apart)"
                                 if e["degenerate_with"] else "") for e in result.found]
         verdict = "missing or mis-set: " + "; ".join(names)
     else:
         verdict = "no missing effect"
+    unexplained = [e["probe"] for e in result.found if not e["probe_explained"]]
+    if abs(gap_after - 1.0) > 0.05 or unexplained:
+        where = f" (residual trends remain in: {', '.join(sorted(set(unexplained)))})" if unexplained else ""
+        verdict += (f"; a disagreement no candidate describes remains: gap {gap_after:.3g} after{where}")
     report = {
         "perscli": __version__, "mode": mode, "verdict": verdict,
         "measured": [e.label for e in exposures], "simulated": [e.sim for e in exposures],
@@ -261,13 +267,14 @@ def _markdown(report) -> str:
         lines += ["No candidate improves the likelihood significantly: no missing effect.", ""]
     else:
         lines += ["| effect | parameter | fitted | error | model had | delta chi2 | delta BIC | share of gap closed | "
-                  "probe gap before -> after | degenerate with |", "|" + "---|" * 10]
+                  "probe gap before -> after | probe explained | degenerate with |", "|" + "---|" * 11]
         for e in report["found"]:
             (param, value), = e["params"].items()
             lines.append(f"| {e['effect']} | {param} | {_fmt(value)} | {_fmt(e['errors'][param])} | "
                          f"{_fmt(e['model_value'])} | {_fmt(e['delta_chi2'])} | {_fmt(e['delta_bic'])} | "
                          f"{_fmt(100 * e.get('fraction_of_gap_closed', 0.0))} % | "
                          f"{e.get('probe')}: {_fmt(e.get('probe_gap_before'))} -> {_fmt(e.get('probe_gap_after'))} | "
+                         f"{'yes' if e.get('probe_explained') else 'no: a trend remains'} | "
                          f"{', '.join(e['degenerate_with']) or '-'} |")
         lines.append("")
     lines += ["## Every candidate (first round)", "",
