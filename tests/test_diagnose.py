@@ -147,6 +147,29 @@ def test_two_hidden_effects_are_both_found(scene, simulated):
     assert abs(report["gap_after"] - 1.0) <= 0.05
 
 
+def test_dark_and_offset_on_one_exposure_time_are_one_degenerate_group(scene, simulated):
+    """A small dark current on exposures of one length adds what an offset adds (its noise is too small
+    to tell): both are reported, as one group, never a guess."""
+    measured = sequence(scene, "small_dark", "dark.current=0.03")
+    report, _ = diagnose(scene, measured, simulated, "small_dark")
+    assert len(report["found"]) == 1
+    group = {report["found"][0]["effect"], *report["found"][0]["degenerate_with"]}
+    assert group == {"dark", "offset"}, report["verdict"]
+    assert "cannot tell them apart" in report["verdict"]
+
+
+def test_exposure_times_separate_dark_from_offset(scene):
+    """With exposures of different lengths the same dark current is named alone."""
+    times = [60.0, 139.8, 300.0]
+    simulated = sequence(scene, "sim_times", seed=210, exptimes=times)
+    measured = sequence(scene, "dark_times", "dark.current=0.04", exptimes=times)
+    report, _ = diagnose(scene, measured, simulated, "dark_times")
+    assert [e["effect"] for e in report["found"]] == ["dark"], report["verdict"]
+    assert report["found"][0]["degenerate_with"] == []
+    assert report["found"][0]["params"]["current"] == pytest.approx(0.04, rel=0.1, abs=3 * report["found"][0]
+                                                                    ["errors"]["current"])
+
+
 def test_the_same_data_in_any_order_give_the_same_report(scene, simulated):
     measured = sequence(scene, "dark", "dark.current=0.4")
     a, _ = diagnose(scene, measured, simulated, "order1")

@@ -159,7 +159,8 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
             # a value pinned at the edge of its range measures nothing, and an effect that does not bring
             # the gap (chi^2 per pixel) closer to 1 explains nothing: neither is named
             lo, hi = f.candidate.bounds
-            at_bound = f.candidate.fit is None and min(f.value - lo, hi - f.value) <= 1e-3 * (hi - lo)
+            edge = f.candidate.scale * 1e-3      # well inside the fit's own tolerance of the bound
+            at_bound = f.candidate.fit is None and min(f.value - lo, hi - f.value) <= edge
             gap_with = _gap(problem, f.model)
             closes = abs(gap_now - 1.0) - abs(gap_with - 1.0) >= MIN_GAP_CLOSED * abs(gap_now - 1.0)
             f.note = "at the edge of its range" if at_bound else ("does not close the gap" if not closes else "")
