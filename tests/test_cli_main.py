@@ -54,7 +54,8 @@ def test_help_lists_the_registered_commands(flag):
     commands = text.split("Commands:", 1)[1]
     # one command per line indented by two spaces; wrapped help lines are indented further
     names = re.findall(r"^  (\S+)", commands, re.M)
-    assert names == sorted(cli.commands) == ["apply-persistence", "budget", "catalog", "correlate", "measure", "pointings", "render"]
+    assert names == sorted(cli.commands) == ["apply-persistence", "budget", "catalog", "correlate", "diagnose",
+                                             "measure", "pointings", "render"]
 
 
 def test_no_command_shows_usage():
