@@ -49,6 +49,8 @@ class Evaluation:
     variance: list
     data: list
     mask: list
+    #: per piece: (exposure index, rows of the frame it covers)
+    pieces: list = None
 
     def chi2(self) -> tuple:
         """(chi^2, number of pixels) over the usable pixels."""
@@ -85,9 +87,10 @@ class Problem:
     exposures : list of perscli.diagnose.data.Exposure
         In time order, each with ``ideal`` (the simulation's noise-free electrons).
     fit_pixels : int
-        At most about this many pixels per exposure enter the fits (rows in
-        evenly spaced stripes, each with a row of margin for IPC); the gaps
-        before and after are computed on every pixel.
+        About this many pixels, over all exposures, enter the fits and the
+        probes (rows in evenly spaced stripes, each with a row of margin for
+        IPC); the gaps before and after are computed on every pixel, a block
+        of rows at a time (:meth:`chi2_full`), so memory stays a few frames.
     """
 
     def __init__(self, exposures, *, fit_pixels: int = 1_000_000):
@@ -98,7 +101,7 @@ class Problem:
                                    "every measured exposure (or diagnose a lone ramp, self-predicted)")
         ny, nx = exposures[0].data.shape[-2:]
         self.shape = (ny, nx)
-        self.stripes = _stripes(ny, nx, fit_pixels)
+        self.stripes = _stripes(ny, nx, max(fit_pixels // len(exposures), 16 * nx))
         self._charges = {}
 
     # -- persistence history ----------------------------------------------------------------------
@@ -142,50 +145,74 @@ class Problem:
             out = with_effect(out, "gain", {"gain": float(exp.gain)})
         return out
 
-    def evaluate(self, model: DetectorModel, *, full: bool = False) -> Evaluation:
-        """Expectation and variance of every exposure's pixels (the fit stripes unless ``full``)."""
-        means, variances, datas, masks = [], [], [], []
+    def _pieces(self, i, model, pieces):
+        """(rows kept, mean, variance, data, mask) of exposure ``i`` for each (rows, keep0, keep1)."""
+        exp = self.exposures[i]
         pmodel = model.persistence_model() if model.enabled("persistence") else None
-        for i, exp in enumerate(self.exposures):
-            m = self._model_for(model, exp)
-            charge = self.charge(i, pmodel) if pmodel is not None else None
-            pieces = [(slice(0, self.shape[0]), 0, self.shape[0])] if full else self.stripes
-            for rows, keep0, keep1 in pieces:
-                ideal = exp.ideal[rows]
-                fw = forward(ideal, m, exptime=exp.exptime,
-                             persistence=None if charge is None else charge[rows])
-                sl = slice(keep0, keep1)
-                mean, var = fw.mean[sl], fw.variance[sl]
-                data = exp.data[-1][rows][sl]
-                mask = np.isfinite(data) & (var > 0) & np.isfinite(mean)
-                means.append(mean)
-                variances.append(np.where(mask, var, 1.0))
-                datas.append(data)
-                masks.append(mask)
-        return Evaluation(means, variances, datas, masks)
+        m = self._model_for(model, exp)
+        charge = self.charge(i, pmodel) if pmodel is not None else None
+        for rows, keep0, keep1 in pieces:
+            fw = forward(exp.ideal[rows], m, exptime=exp.exptime,
+                         persistence=None if charge is None else charge[rows])
+            sl = slice(keep0, keep1)
+            mean, var = fw.mean[sl], fw.variance[sl]
+            data = exp.data[-1][rows][sl]
+            mask = np.isfinite(data) & (var > 0) & np.isfinite(mean)
+            start = (rows.start or 0) + keep0
+            yield slice(start, start + (keep1 - keep0)), mean, np.where(mask, var, 1.0), data, mask
+
+    def evaluate(self, model: DetectorModel, *, full: bool = False) -> Evaluation:
+        """Expectation and variance of the fit stripes of every exposure (every pixel with ``full``:
+        small frames only; :meth:`chi2_full` streams large ones)."""
+        out = Evaluation([], [], [], [], [])
+        out.pieces = []
+        pieces = [(slice(0, self.shape[0]), 0, self.shape[0])] if full else self.stripes
+        for i in range(len(self.exposures)):
+            for rows, mean, var, data, mask in self._pieces(i, model, pieces):
+                out.mean.append(mean)
+                out.variance.append(var)
+                out.data.append(data)
+                out.mask.append(mask)
+                out.pieces.append((i, rows))
+        return out
+
+    def chi2_full(self, model: DetectorModel, *, block_rows: int = 512) -> tuple:
+        """(chi^2, pixels) over every pixel of every exposure, a block of rows at a time."""
+        ny = self.shape[0]
+        blocks = []
+        for r0 in range(0, ny, block_rows):
+            r1 = min(ny, r0 + block_rows)
+            a, b = max(0, r0 - 1), min(ny, r1 + 1)     # a row of margin each side for IPC
+            blocks.append((slice(a, b), r0 - a, r0 - a + (r1 - r0)))
+        total, n = 0.0, 0
+        for i in range(len(self.exposures)):
+            for _, mean, var, data, mask in self._pieces(i, model, blocks):
+                r = data[mask] - mean[mask]
+                total += float(np.sum(r * r / var[mask]))
+                n += int(mask.sum())
+        return total, n
 
 
 def covariates_2d(problem, evaluation) -> list:
-    """Per exposure: the probes' covariates on the full frame (see :mod:`perscli.diagnose.probes`)."""
+    """Per piece of ``evaluation``: the probes' covariates (see :mod:`perscli.diagnose.probes`)."""
     from .data import measured_fluence
+    from .probes import _neighbours
 
     out = []
     ny, nx = problem.shape
-    yy, xx = np.mgrid[0:ny, 0:nx]
-    block = (yy * 8 // ny) * 8 + (xx * 8 // nx)
-    for i, (exp, mean) in enumerate(zip(problem.exposures, evaluation.mean)):
-        cov = {"signal": mean, "exposure_time": np.full(mean.shape, exp.exptime), "position": block}
-        from .probes import _neighbours
-
-        cov["neighbours"] = _neighbours(mean)
-        if i > 0:
-            earlier = problem.exposures[:i]
-            flu = [e.fluence if e.fluence is not None else measured_fluence(e) for e in earlier]
-            cov["history"] = np.max(np.stack(flu), axis=0)
-            cov["time_since"] = np.full(mean.shape, (exp.start - earlier[-1].end) * SECONDS_PER_DAY)
-        else:
-            cov["history"] = np.zeros(mean.shape)
-            cov["time_since"] = np.full(mean.shape, np.nan)
+    for (i, rows), mean in zip(evaluation.pieces, evaluation.mean):
+        exp = problem.exposures[i]
+        yy = np.arange(rows.start, rows.stop)[:, None] * np.ones((1, nx), dtype=int)
+        xx = np.ones((rows.stop - rows.start, 1), dtype=int) * np.arange(nx)[None, :]
+        cov = {"signal": mean, "exposure_time": np.full(mean.shape, exp.exptime),
+               "position": (yy * 8 // ny) * 8 + (xx * 8 // nx), "neighbours": _neighbours(mean)}
+        history = np.zeros(mean.shape)
+        for e in problem.exposures[:i]:
+            flu = e.fluence if e.fluence is not None else measured_fluence(e)
+            np.maximum(history, flu[rows], out=history)
+        cov["history"] = history
+        cov["time_since"] = np.full(mean.shape, (exp.start - problem.exposures[i - 1].end) * SECONDS_PER_DAY
+                                    if i > 0 else np.nan)
         out.append(cov)
     return out
 

@@ -111,14 +111,14 @@ def _gap(r, select=None):
 
 
 def run_probes(problem, evaluation, history=None) -> dict:
-    """Every probe that the data allow, on the full frames of ``evaluation``.
+    """Every probe that the data allow, on the pixels of ``evaluation``.
 
     Parameters
     ----------
     problem : Problem or RampProblem
         Its ``covariates(evaluation)`` gives per-plane covariate arrays.
     evaluation : perscli.diagnose.likelihood.Evaluation
-        With ``full=True``.
+        On the fit stripes (a few per exposure): the probes bin those pixels.
     """
     res = evaluation.residuals()
     cov = problem.covariates(evaluation)

@@ -118,6 +118,10 @@ class RampProblem:
                 masks.append(mask)
         return Evaluation(means, variances, datas, masks)
 
+    def chi2_full(self, model: DetectorModel) -> tuple:
+        """(chi^2, pixels) over every predicted read of every pixel."""
+        return self.evaluate(model, full=True).chi2()
+
     def covariates(self, evaluation) -> list:
         out = []
         ny, nx = self.shape

@@ -88,14 +88,14 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         model = load_detector_model(model_spec) if model_spec is not None else ramp_model(exposures)
         problem = RampProblem(exposures, fit_pixels=fit_pixels)
         mode = "self-predicted"
-    before_eval = problem.evaluate(model, full=True)
-    chi2, n = before_eval.chi2()
+    chi2, n = problem.chi2_full(model)
     gap_before = chi2 / max(n, 1)
+    before_eval = problem.evaluate(model)
     say(f"gap before: chi2/dof = {gap_before:.4g} over {n} pixels")
     probes_before = run_probes(problem, before_eval)
     result = search(problem, model, progress=say)
-    after_eval = problem.evaluate(result.model, full=True)
-    chi2_after, n_after = after_eval.chi2()
+    after_eval = problem.evaluate(result.model)
+    chi2_after, n_after = problem.chi2_full(result.model)
     nfit = sum(len(f["params"]) for f in result.found)
     gap_after = chi2_after / max(n_after - nfit, 1)
     probes_after = run_probes(problem, after_eval)
@@ -108,8 +108,7 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         # one exposure time: a dark current shows as an offset
         entry["probe"] = cand.probe if cand.probe in probes_before else "offset"
         current = cand.put(current, entry["params"][cand.param]) if cand.fit is None else _refit(problem, current, cand)
-        ev = problem.evaluate(current, full=True)
-        c2, nn = ev.chi2()
+        c2, nn = (chi2_after, n_after) if entry is result.found[-1] else problem.chi2_full(current)
         gap_now = c2 / max(nn, 1)
         entry["gap_after_adding"] = gap_now
         entry["fraction_of_gap_closed"] = ((gap_prev - gap_now) / (gap_before - 1.0)) if gap_before > 1 else 0.0

@@ -33,8 +33,8 @@ MIN_GAP_CLOSED = 0.01
 
 
 def _gap(problem, model) -> float:
-    """chi^2 per pixel over every pixel (1 for pure noise)."""
-    chi2, n = problem.evaluate(model, full=True).chi2()
+    """chi^2 per pixel over the fit's pixels (1 for pure noise)."""
+    chi2, n = problem.evaluate(model).chi2()
     return chi2 / max(n, 1)
 
 
