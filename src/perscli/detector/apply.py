@@ -220,7 +220,8 @@ def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, b
         acc.fill(0.0)
         sums = []
         for rec in the_plan.used:
-            fluence, scale = rec.frame.fluence_rows(r0, r1)
+            # the thread's scratch buffer: the rows are used at once, before the next read
+            fluence, scale = rec.frame.fluence_rows(r0, r1, scratch=True)
             sums.append(accumulate(fluence, acc, rec.factors, model, scale=scale, combine=model.combine))
         return sums, consume(r0, r1, acc)
 
@@ -317,7 +318,7 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
             else:
                 np.divide(electrons[k], factors[k], out=work)
             if mode != "predict":
-                rows = current.raw_rows(r0, r1) if fold_current else current.rows(k, r0, r1)
+                rows = current.raw_rows(r0, r1, scratch=True) if fold_current else current.rows(k, r0, r1)
                 if fold_current:
                     part = ones_complement_add(part, _kernels.datasum(rows))
                 if mode == "add":

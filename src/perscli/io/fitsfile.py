@@ -41,6 +41,7 @@ import re
 import select
 import stat
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -204,6 +205,10 @@ def _anonymous_file(label: str) -> int:
     return os.dup(fh.fileno())
 
 
+#: per-thread read buffers of Source.pread(scratch=True)
+_SCRATCH = threading.local()
+
+
 def _write_all(fd: int, data) -> None:
     view = memoryview(data)
     while len(view):
@@ -242,11 +247,24 @@ class Source:
         _write_all(fd, data)
         return cls(label, fd)
 
-    def pread(self, offset: int, length: int):
+    def pread(self, offset: int, length: int, *, scratch: bool = False):
+        """``length`` bytes from ``offset``.
+
+        With ``scratch`` the bytes land in a buffer of the calling thread that
+        the next scratch read overwrites (no new, zero-filled buffer per call
+        on the hot path): use them before reading again.
+        """
         if length <= 0:
             return bytearray(0)
-        buf = bytearray(length)
-        view = memoryview(buf)
+        if scratch:
+            local = _SCRATCH.__dict__
+            buf = local.get("buf")
+            if buf is None or len(buf) < length:
+                buf = local["buf"] = bytearray(length)
+            view = memoryview(buf)[:length]
+        else:
+            buf = bytearray(length)
+            view = memoryview(buf)
         got = 0
         while got < length:
             n = os.preadv(self.fd, [view[got:]], offset + got)
@@ -254,7 +272,7 @@ class Source:
                 raise PerscliError(f"{self.label}: the file is truncated (ends at byte {offset + got}); "
                                    "re-copy or regenerate it")
             got += n
-        return buf
+        return view if scratch else buf
 
     def close(self):
         if self.fd is not None:
@@ -692,17 +710,18 @@ class HDU:
                                f"corrupt or stale; {CHECKSUM_HINT}")
 
     # -- reading images ----------------------------------------------------------------------------
-    def stream_rows(self, r0: int, r1: int, plane: int = 0) -> np.ndarray:
+    def stream_rows(self, r0: int, r1: int, plane: int = 0, *, scratch: bool = False) -> np.ndarray:
         """Rows of a plain image as stored (big-endian, unscaled), WITHOUT verifying checksums.
 
         The fast path: the caller folds the DATASUM of what it reads and calls
-        :meth:`verify` with it at the end.
+        :meth:`verify` with it at the end.  With ``scratch`` the rows live in
+        the thread's read buffer until its next scratch read.
         """
         shape = self.shape
         ny, nx = shape[-2], shape[-1]
         item = self.dtype.itemsize
         start = (plane * ny + r0) * nx * item
-        buf = self.source.pread(self.data_offset + start, (r1 - r0) * nx * item)
+        buf = self.source.pread(self.data_offset + start, (r1 - r0) * nx * item, scratch=scratch)
         return np.frombuffer(buf, dtype=self.dtype).reshape(r1 - r0, nx)
 
     def read_rows(self, r0: int, r1: int, plane: int = 0, *, native: bool = False) -> np.ndarray:

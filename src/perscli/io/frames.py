@@ -194,7 +194,8 @@ class Frame:
             return self.hdus[self.sci[0]], k
         return self.hdus[self.sci[k]], 0
 
-    def _rows_of(self, hdu: HDU, plane: int, r0: int, r1: int, *, stream: bool = False) -> np.ndarray:
+    def _rows_of(self, hdu: HDU, plane: int, r0: int, r1: int, *, stream: bool = False,
+                 scratch: bool = False) -> np.ndarray:
         """Rows of a plane through the image section, if any (``stream``: the unverified fast path)."""
         if self.section is not None:
             rows, cols = self.section
@@ -202,7 +203,7 @@ class Frame:
             arr = hdu.read_rows(start + r0, start + r1, plane)
             return arr[:, cols]
         if stream:
-            return hdu.stream_rows(r0, r1, plane)
+            return hdu.stream_rows(r0, r1, plane, scratch=scratch)
         return hdu.read_rows(r0, r1, plane)
 
     def rows(self, k: int, r0: int, r1: int) -> np.ndarray:
@@ -219,12 +220,13 @@ class Frame:
         """True when the science image of an image frame can be streamed as stored (see :meth:`raw_rows`)."""
         return self.layout == "image" and self.section is None and self.hdus[self.sci[0]].is_plain_float
 
-    def raw_rows(self, r0: int, r1: int) -> np.ndarray:
+    def raw_rows(self, r0: int, r1: int, *, scratch: bool = False) -> np.ndarray:
         """The fast path: rows of the science image as stored, NOT verified.
 
         The caller folds their DATASUM and hands it to :meth:`verify` at the end.
+        With ``scratch`` they live in the thread's read buffer until its next read.
         """
-        return self.hdus[self.sci[0]].stream_rows(r0, r1)
+        return self.hdus[self.sci[0]].stream_rows(r0, r1, scratch=scratch)
 
     def planes(self) -> list:
         """The science arrays in time order, in the file's units (native byte order)."""
@@ -257,7 +259,7 @@ class Frame:
             factor *= seconds
         return factor
 
-    def fluence_rows(self, r0: int, r1: int):
+    def fluence_rows(self, r0: int, r1: int, *, scratch: bool = False):
         """The accumulated charge of rows ``r0:r1``, as ``(array, scale)``.
 
         ``array * scale`` is the fluence in electrons.  For a float image the
@@ -268,10 +270,10 @@ class Frame:
         if self.fluence_hdu is not None:
             # a frame perscli rendered: its FLUENCE extension holds the collected charge in electrons
             hdu = self.hdus[self.fluence_hdu]
-            return self._rows_of(hdu, 0, r0, r1, stream=self.fluence_is_raw), 1.0
+            return self._rows_of(hdu, 0, r0, r1, stream=self.fluence_is_raw, scratch=scratch), 1.0
         if not self.is_ramp:
             hdu = self.hdus[self.sci[0]]
-            return self._rows_of(hdu, 0, r0, r1, stream=self.fluence_is_raw), self.electrons_per_unit()
+            return self._rows_of(hdu, 0, r0, r1, stream=self.fluence_is_raw, scratch=scratch), self.electrons_per_unit()
         last = np.asarray(self.rows(self.nreads - 1, r0, r1), dtype=np.float64)
         first = np.asarray(self.rows(0, r0, r1), dtype=np.float64)
         if UNITS[self.unit][1]:
