@@ -5,7 +5,7 @@ Run with ``make bench`` (that is, ``.venv/bin/python benchmarks/bench_apply_pers
 
 The issue's requirement: a 4088x4088 current frame with 10 earlier float32
 frames on disk; the *whole* ``perscli apply-persistence`` process (interpreter
-start, imports, reading, persistence, writing with checksums) at least 5x
+start, imports, reading, persistence, writing with checksums) at least 8x
 faster than ``galsim.roman.applyPersistence(img, prev, method='fermi')`` on
 the same arrays already in memory, measured side by side in one run; peak
 memory of the perscli process no more than a few frames.
@@ -450,11 +450,11 @@ def main(argv=None):
         extra = f"{rss / mb:8.0f} MB {rss / frame_bytes:7.2f}" if rss else ""
         print(f"{label:74s} {t:8.3f} {extra}")
     print(f"speed ratio galsim / perscli: {ratio_w1:.1f}x (--workers 1), {ratio_w2:.1f}x (--workers 2); "
-          f"required >= 5x")
+          f"required >= 8x (the better of the two: this is a 2-core machine)")
     print(f"agreement (--time-model galsim --mode predict vs GalSim float64): max relative difference "
           f"{max_rel:.2e} over {npix_cmp} pixels with persistence > 1e-3 e- (max abs {max_abs:.2e} e-, "
           f"max persistence {pers_max:.3g} e-); required < 1e-6")
-    ok = ratio_w1 >= 5 and max_rel < 1e-6
+    ok = max(ratio_w1, ratio_w2) >= 8 and max_rel < 1e-6
     print("PASS" if ok else "FAIL")
     profile_md = ""
     if profile is not None:
@@ -500,7 +500,7 @@ Reproduce with `make bench` (runs `.venv/bin/python benchmarks/bench_apply_persi
 | same with `--workers 2` | {w2_best:.3f} s | {fmt_rss(w2_rss)} |
 | baseline: python importing perscli's modules, no data | {base_wall:.3f} s | {fmt_rss(base_rss)} |
 
-- **speed ratio** galsim / perscli: **{ratio_w1:.1f}x** (`--workers 1`), **{ratio_w2:.1f}x** (`--workers 2`); required >= 5x.
+- **speed ratio** galsim / perscli: **{ratio_w1:.1f}x** (`--workers 1`), **{ratio_w2:.1f}x** (`--workers 2`); required >= 8x (issue 8), the better of the two on this 2-core machine.
 - **peak memory** of the perscli process: {fmt_rss(w1_rss)} (`--workers 1`); {(w1_rss - base_rss) / frame_bytes:.2f} frames above
   the no-data baseline.  Peak RSS is `ru_maxrss` of that child alone (`os.wait4`); it counts the
   file pages of memory-mapped inputs that were touched.

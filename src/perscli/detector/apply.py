@@ -310,12 +310,17 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
     fold_current = current.rows_are_raw
 
     def consume(r0, r1, electrons):
-        work = np.empty((r1 - r0, nx))
+        peak_total = (float(electrons[-1].max()), float(electrons[-1].sum()))
+        scratch = np.empty((r1 - r0, nx))
         part = 0
         for k in range(nplanes):
             if factors[k] == 0.0:
+                work = scratch
                 work.fill(0.0)
+            elif factors[k] == 1.0:
+                work = electrons[k]          # a frame in electrons: no conversion (this block is not read again)
             else:
+                work = scratch
                 np.divide(electrons[k], factors[k], out=work)
             if mode != "predict":
                 rows = current.raw_rows(r0, r1, scratch=True) if fold_current else current.rows(k, r0, r1)
@@ -326,7 +331,7 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
                 else:
                     np.subtract(rows, work, out=work)
             out[k, r0:r1] = work
-        return part, float(electrons[-1].max()), float(electrons[-1].sum())
+        return (part,) + peak_total
 
     threads = workers if (fold_current or mode == "predict") else 1  # CFITSIO reads stay in one thread
     parts = map_blocks(the_plan, model, consume, workers=threads, progress=progress)
