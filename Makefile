@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.perscli-installed
 
-.PHONY: demo demo-diagnose demo-field test bench bench-render bench-measure bench-correlate man samples clean
+.PHONY: demo demo-diagnose demo-field test bench bench-render bench-measure bench-correlate bench-diagnose man samples clean
 
 $(STAMP): pyproject.toml setup.py src/perscli/_kernels.c
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -80,6 +80,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_render.py
 	$(BIN)/python benchmarks/bench_measure.py
 	$(BIN)/python benchmarks/bench_correlate.py
+	$(BIN)/python benchmarks/bench_diagnose.py
 
 bench-render: $(STAMP)
 	$(BIN)/python benchmarks/bench_render.py
@@ -89,6 +90,9 @@ bench-measure: $(STAMP)
 
 bench-correlate: $(STAMP)
 	$(BIN)/python benchmarks/bench_correlate.py
+
+bench-diagnose: $(STAMP)
+	$(BIN)/python benchmarks/bench_diagnose.py
 
 man: $(STAMP)
 	$(BIN)/python -m perscli.cli.manpages man

@@ -176,6 +176,26 @@ def galsim_loop(cols, exposure, keep: bool = False, subset=None, maxk_threshold=
     return seconds, image.array, stamps, (optics, todo, x, y, flux, sizes)
 
 
+def compression_md(truth: Path, workdir: Path, bounds) -> str:
+    """The same render written plain, tile-compressed (--compress gzip) and as .fits.gz: sizes and times."""
+    rows, sizes = [], {}
+    for label, name, extra in (("plain", "size_plain.fits", []), ("--compress gzip", "size_tiles.fits", ["--compress", "gzip"]),
+                               ("-o x.fits.gz", "size_whole.fits.gz", [])):
+        dest = workdir / name
+        wall, rss, _ = run_child(render_command(truth, dest, 1, bounds) + extra)
+        sizes[label] = dest.stat().st_size
+        rows.append(f"| {label} | {sizes[label] / 1e6:.1f} MB | {sizes[label] / sizes['plain']:.2f} | {wall:.2f} s |")
+    ok = sizes["--compress gzip"] <= 0.5 * sizes["plain"]
+    print(f"sizes: {sizes}")
+    return "\n".join([
+        "", "### Output size (issue 8: a full SCA with --compress at most half the plain size)", "",
+        "The same render (SCI, IDEAL, FLUENCE, MODEL) written three ways; compression is lossless (GZIP_2 tiles "
+        "of one row, no quantisation).", "",
+        "| output | size | / plain | whole process |", "|---|---:|---:|---:|", *rows, "",
+        f"- result: **{'PASS' if ok else 'FAIL'}** (tile-compressed / plain = "
+        f"{sizes['--compress gzip'] / sizes['plain']:.2f}, required <= 0.5)", ""])
+
+
 def render_command(truth: Path, dest: Path, workers: int, bounds) -> list:
     cmd = perscli_command() + ["render", str(truth), "--ra", str(RA), "--dec", str(DEC), "--pa", str(PA),
                                "--mjd", str(MJD), "--filter", FILTER, "--sca", str(SCA),
@@ -706,7 +726,8 @@ stamp drawn on n, 2n or GalSim's FFT size N and cropped to the central n x n, ag
 Per-repeat times (s): GalSim loop {fmt(g_times)}; draw_sources {fmt(s1)}; workers=2 {fmt(s2)};
 perscli render {fmt([t for t, _ in p1])}; --workers 2 {fmt([t for t, _ in p2])}.  Building the optics alone:
 {optics_s:.2f} s (first time in this process).
-{profile_md}"""
+{profile_md}
+{compression_md(truth, workdir, args.bounds)}"""
     write_section(dest, SECTION, text)
     print(f"wrote the {SECTION} section of {dest}")
     return 0 if ok else 1

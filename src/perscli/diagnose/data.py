@@ -73,7 +73,10 @@ class Exposure:
 def _counts(frame) -> tuple:
     """(stack of planes in DN or electrons, 'DN' or 'electron'), rates times the exposure (or read) time."""
     is_dn, is_rate = UNITS[frame.unit]
-    planes = [np.asarray(p, dtype=np.float64) for p in frame.planes()]
+    # a 2-D frame is kept in float32 (its counts are float32 or 16-bit integers in the file): eleven full
+    # SCAs with their IDEAL and FLUENCE are then 2.2 GB instead of 4.4
+    dtype = np.float64 if frame.is_ramp else np.float32
+    planes = [np.asarray(p, dtype=dtype) for p in frame.planes()]
     if is_rate:
         if frame.is_ramp:
             planes = [p * t for p, t in zip(planes, frame.read_times)]
@@ -172,7 +175,7 @@ def attach_simulations(exposures, sims) -> list:
                 models.append(None)
                 continue
             ideal_hdu = next(h for h in frame.hdus if h.name == "IDEAL")
-            ideal = np.asarray(ideal_hdu.read(), dtype=np.float64)
+            ideal = np.asarray(ideal_hdu.read(), dtype=np.float32)
             if ideal.shape != exp.data.shape[-2:]:
                 raise PerscliError(f"{frame.label}: IDEAL is {ideal.shape}, the measured {exp.label} is "
                                    f"{exp.data.shape[-2:]}: pair frames of the same detector area")
@@ -180,7 +183,7 @@ def attach_simulations(exposures, sims) -> list:
             exp.sim = frame.label
             flu = [h for h in frame.hdus if h.name == "FLUENCE"]
             if flu:
-                exp.fluence = np.asarray(flu[0].read(), dtype=np.float64)
+                exp.fluence = np.asarray(flu[0].read(), dtype=np.float32)
             exp.extra["sky_rate"] = frame.keyword("SKYRATE")
             models.append(model_of_frame(frame))
         return models
@@ -193,5 +196,5 @@ def measured_fluence(exp: Exposure) -> np.ndarray:
     """The electrons an exposure collected, from its measured counts (the history without a simulation)."""
     last = exp.data[-1]
     if exp.counts == "DN":
-        return np.where(np.isfinite(last), last * exp.gain, 0.0)
-    return np.where(np.isfinite(last), last, 0.0)
+        return np.where(np.isfinite(last), last * np.float32(exp.gain), np.float32(0.0))
+    return np.where(np.isfinite(last), last, np.float32(0.0))

@@ -105,8 +105,9 @@ class Problem:
         self._charges = {}
 
     # -- persistence history ----------------------------------------------------------------------
-    def charge(self, index: int, pmodel) -> np.ndarray | None:
-        """Electrons of persistence that the earlier exposures leave in exposure ``index`` (None: none)."""
+    def charge(self, index: int, pmodel):
+        """The persistence that the earlier exposures leave in exposure ``index``: ``(unit, A)``, electrons
+        ``unit * A`` (the law is proportional to A, so ``unit`` is computed once); None for the first."""
         from ..detector.persistence import persistence_charge
 
         if index == 0:
@@ -125,9 +126,9 @@ class Problem:
             from .data import measured_fluence
 
             fluences = [e.fluence if e.fluence is not None else measured_fluence(e) for e in earlier]
-            self._charges[key] = persistence_charge(fluences, ends, 0.0, window, unit)[0]
+            self._charges[key] = persistence_charge(fluences, ends, 0.0, window, unit)[0].astype(np.float32)
         scale = pmodel.A if pmodel.kind == "fermi" else 1.0
-        return self._charges[key] * scale
+        return self._charges[key], scale
 
     def covariates(self, evaluation) -> list:
         return covariates_2d(self, evaluation)
@@ -153,7 +154,7 @@ class Problem:
         charge = self.charge(i, pmodel) if pmodel is not None else None
         for rows, keep0, keep1 in pieces:
             fw = forward(exp.ideal[rows], m, exptime=exp.exptime,
-                         persistence=None if charge is None else charge[rows])
+                         persistence=None if charge is None else charge[0][rows] * charge[1])
             sl = slice(keep0, keep1)
             mean, var = fw.mean[sl], fw.variance[sl]
             data = exp.data[-1][rows][sl]
