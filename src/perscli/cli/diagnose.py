@@ -74,8 +74,18 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
             raise PerscliError(f"{outdir}: holds the input {name}; diagnose replaces the whole folder: "
                                "choose another output folder")
 
+    import sys
+
+    ctx = click.get_current_context(silent=True)
+    verbosity = (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
+    # progress lines on a terminal (not in logs or pipes unless -v), none with -q
+    show = verbosity >= 0 and sys.stderr.isatty()
+
     def progress(text):
-        log.info("diagnose: %s", text)
+        if show and verbosity == 0:
+            click.echo(f"diagnose: {text}", err=True)
+        else:
+            log.info("diagnose: %s", text)
 
     outcome = run(measured, simulated=simulated, model_spec=model_spec, fit_pixels=fit_pixels, gain=gain,
                   exptime=exptime, progress=progress)
