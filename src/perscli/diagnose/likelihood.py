@@ -152,8 +152,13 @@ class Problem:
         pmodel = model.persistence_model() if model.enabled("persistence") else None
         m = self._model_for(model, exp)
         charge = self.charge(i, pmodel) if pmodel is not None else None
+        # a measured ramp is compared by its last read minus its first: the part of the exposure
+        # between them (IDEAL spreads evenly over the exposure; the dark current accrues as long)
+        exptime = float(exp.read_times[-1]) if exp.is_ramp else exp.exptime
+        share = exptime / exp.exptime if exp.exptime else 1.0
         for rows, keep0, keep1 in pieces:
-            fw = forward(exp.ideal[rows], m, exptime=exp.exptime,
+            ideal = exp.ideal[rows] if share == 1.0 else exp.ideal[rows] * share
+            fw = forward(ideal, m, exptime=exptime,
                          persistence=None if charge is None else charge[0][rows] * charge[1])
             sl = slice(keep0, keep1)
             mean, var = fw.mean[sl], fw.variance[sl]
