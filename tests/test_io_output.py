@@ -14,15 +14,17 @@ from astropy.io import fits
 
 import perscli
 from perscli import PerscliError
-from perscli.io.output import CREATOR, add_provenance, check_output, write_fits
+from perscli.io.output import CREATOR, add_provenance, check_output
+from perscli.io.output import write_hdus
 
 from fits_factory import (DAY, SHAPE, T0, cards_except, cube_file, frame_file, image_file, invoke, listing,
                           raw_cards_masked, timing, wfc3_ramp_file)
 
 
 def small_hdul(value=1.0):
-    return fits.HDUList([fits.PrimaryHDU(header=fits.Header({"OBJECT": "test"})),
-                         fits.ImageHDU(np.full(SHAPE, value, dtype=np.float32), name="SCI")])
+    from perscli.io.fitsfile import OutHDU, format_card
+
+    return [OutHDU([format_card("OBJECT", "test")]), OutHDU([], np.full(SHAPE, value, dtype=np.float32), extname="SCI")]
 
 
 def open_verified(path):
@@ -107,11 +109,11 @@ def test_check_output_accepts_a_pipe_for_stdout(monkeypatch):
     check_output("-")
 
 
-# -- write_fits --------------------------------------------------------------------------------
+# -- write_hdus --------------------------------------------------------------------------------
 
-def test_write_fits_writes_verified_checksums_and_leaves_no_temporary_file(tmp_path):
+def test_write_hdus_writes_verified_checksums_and_leaves_no_temporary_file(tmp_path):
     dest = tmp_path / "out.fits"
-    write_fits(small_hdul(3.0), str(dest))
+    write_hdus(small_hdul(3.0), str(dest))
     assert listing(tmp_path) == ["out.fits"]
     with open_verified(dest) as hdul:
         for hdu in hdul:
@@ -120,45 +122,45 @@ def test_write_fits_writes_verified_checksums_and_leaves_no_temporary_file(tmp_p
         np.testing.assert_array_equal(hdul["SCI"].data, 3.0)
 
 
-def test_write_fits_gives_the_file_ordinary_permissions(tmp_path):
+def test_write_hdus_gives_the_file_ordinary_permissions(tmp_path):
     dest = tmp_path / "out.fits"
     old = os.umask(0o022)
     try:
-        write_fits(small_hdul(), str(dest))
+        write_hdus(small_hdul(), str(dest))
     finally:
         os.umask(old)
     assert stat.S_IMODE(os.stat(dest).st_mode) == 0o644
 
 
-def test_write_fits_refuses_an_existing_file_without_overwrite(tmp_path):
+def test_write_hdus_refuses_an_existing_file_without_overwrite(tmp_path):
     dest = tmp_path / "out.fits"
     dest.write_bytes(b"old")
     with pytest.raises(PerscliError, match="--overwrite"):
-        write_fits(small_hdul(), str(dest))
+        write_hdus(small_hdul(), str(dest))
     assert dest.read_bytes() == b"old"
     assert listing(tmp_path) == ["out.fits"]
 
 
-def test_write_fits_overwrite_replaces_the_file(tmp_path):
+def test_write_hdus_overwrite_replaces_the_file(tmp_path):
     dest = tmp_path / "out.fits"
     dest.write_bytes(b"old")
-    write_fits(small_hdul(7.0), str(dest), overwrite=True)
+    write_hdus(small_hdul(7.0), str(dest), overwrite=True)
     with open_verified(dest) as hdul:
         np.testing.assert_array_equal(hdul["SCI"].data, 7.0)
     assert listing(tmp_path) == ["out.fits"]
 
 
 @pytest.mark.parametrize("exc", [OSError, ValueError, KeyboardInterrupt])
-def test_write_fits_failure_leaves_nothing_behind(tmp_path, exc, failing_writer):
+def test_write_hdus_failure_leaves_nothing_behind(tmp_path, exc, failing_writer):
     failing_writer["exc"] = exc
     with pytest.raises(exc, match="simulated"):
-        write_fits(small_hdul(), str(tmp_path / "out.fits"))
+        write_hdus(small_hdul(), str(tmp_path / "out.fits"))
     assert listing(tmp_path) == []
 
 
-def test_write_fits_failure_keeps_the_old_file(tmp_path, monkeypatch):
+def test_write_hdus_failure_keeps_the_old_file(tmp_path, monkeypatch):
     dest = tmp_path / "out.fits"
-    write_fits(small_hdul(1.0), str(dest))
+    write_hdus(small_hdul(1.0), str(dest))
     before = dest.read_bytes()
     import perscli.io.fitsfile as fitsfile
 
@@ -167,12 +169,12 @@ def test_write_fits_failure_keeps_the_old_file(tmp_path, monkeypatch):
 
     monkeypatch.setattr(fitsfile, "_header_cards", broken)
     with pytest.raises(OSError, match="simulated"):
-        write_fits(small_hdul(2.0), str(dest), overwrite=True)
+        write_hdus(small_hdul(2.0), str(dest), overwrite=True)
     assert dest.read_bytes() == before
     assert listing(tmp_path) == ["out.fits"]
 
 
-def test_write_fits_failure_inside_the_checksum_pass_leaves_nothing_behind(tmp_path, monkeypatch):
+def test_write_hdus_failure_inside_the_checksum_pass_leaves_nothing_behind(tmp_path, monkeypatch):
     import perscli.io.fitsfile as fitsfile
 
     def broken(value):
@@ -180,13 +182,13 @@ def test_write_fits_failure_inside_the_checksum_pass_leaves_nothing_behind(tmp_p
 
     monkeypatch.setattr(fitsfile, "_ascii_checksum", broken)
     with pytest.raises(RuntimeError, match="disk full"):
-        write_fits(small_hdul(), str(tmp_path / "out.fits"))
+        write_hdus(small_hdul(), str(tmp_path / "out.fits"))
     assert listing(tmp_path) == []
 
 
-def test_write_fits_to_stdout(tmp_path):
+def test_write_hdus_to_stdout(tmp_path):
     stream = io.BytesIO()
-    write_fits(small_hdul(5.0), "-", stdout=stream)
+    write_hdus(small_hdul(5.0), "-", stdout=stream)
     path = tmp_path / "piped.fits"
     path.write_bytes(stream.getvalue())
     assert len(stream.getvalue()) % 2880 == 0

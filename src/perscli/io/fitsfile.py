@@ -1229,6 +1229,14 @@ class OutHDU:
     def add_history(self, text: str):
         self.cards.extend(history_cards(text))
 
+    def add_comment(self, text: str):
+        self.cards.append(format_card("COMMENT", text))
+
+    @property
+    def header(self) -> "OutHDU":
+        """The HDU itself: ``hdu.header[key] = value`` reads as with astropy."""
+        return self
+
     def remove(self, *keys, matching=None):
         """Drop the cards of ``keys`` (and of keywords for which ``matching(key)`` is true)."""
         keys = {k.upper() for k in keys}
@@ -1241,6 +1249,43 @@ class OutHDU:
             if not dropping:
                 kept.append(card)
         self.cards = kept
+
+
+def table_hdu(columns: dict, extname: str, *, units: dict | None = None, descriptions: dict | None = None,
+              cards=()) -> OutHDU:
+    """A binary-table HDU from named columns (1-D, or 2-D for a vector per row).
+
+    Parameters
+    ----------
+    columns : dict of str -> array_like
+        In order; text becomes fixed-width ASCII, booleans FITS logicals.
+    extname : str
+    units : dict, optional
+        TUNITn by column name.
+    descriptions : dict, optional
+        Written as the comments of the TTYPEn cards.
+    cards : sequence of str
+        More header cards.
+    """
+    arrays = {}
+    for name, values in columns.items():
+        values = np.asarray(values)
+        if values.dtype.kind == "U":
+            values = np.char.encode(values, "ascii", errors="replace")
+        if values.dtype.kind == "S" and values.dtype.itemsize == 0:
+            values = values.astype("S1")
+        arrays[name] = values
+    n = len(next(iter(arrays.values()))) if arrays else 0
+    dtype = [(name, v.dtype.newbyteorder("=") if v.dtype.kind not in "SUb" else v.dtype, v.shape[1:])
+             for name, v in arrays.items()]
+    table = np.empty(n, dtype=dtype)
+    for name, v in arrays.items():
+        table[name] = v
+    out = list(cards)
+    for k, name in enumerate(arrays, 1):
+        if descriptions and name in descriptions:
+            out.append(format_card(f"TTYPE{k}", name, descriptions[name]))
+    return OutHDU(out, table, extname=extname, units=[str((units or {}).get(name) or "") for name in arrays])
 
 
 def image_cards(data, cards, *, primary: bool = False, extname: str | None = None) -> list:

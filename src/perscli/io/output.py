@@ -6,9 +6,9 @@ DATASUM, and CHECKSUM/DATASUM on every HDU.  Files are written to a temporary
 file in the destination folder and renamed into place, so a Makefile never
 sees a half-written target and an error leaves nothing behind.
 
-Everything is written by fitsio (:func:`perscli.io.fitsfile.write_fits_path`):
-a list of :class:`perscli.io.fitsfile.OutHDU`, or an ``astropy.io.fits.HDUList``
-of tables built with astropy (converted by :func:`hdus_from_astropy`).
+Everything is written by fitsio (:func:`perscli.io.fitsfile.write_fits_path`)
+from a list of :class:`perscli.io.fitsfile.OutHDU` (images, and tables built
+with :func:`perscli.io.fitsfile.table_hdu`).
 ``-o NAME.fits.gz`` writes gzip; ``compress=`` tile-compresses images
 losslessly.
 """
@@ -68,7 +68,7 @@ def add_provenance(header, *, step: str, params: dict | None = None, inputs=(), 
 
     Parameters
     ----------
-    header : astropy.io.fits.Header or perscli.io.fitsfile.OutHDU
+    header : perscli.io.fitsfile.OutHDU
         Updated in place (and returned): anything with item assignment of
         ``(value, comment)`` and ``add_history``.
     step : str
@@ -203,37 +203,6 @@ def write_hdus(hdus, dest: str, *, overwrite: bool = False, stdout=None, compres
                     os.close(fd)
                 if os.path.exists(ztmp):
                     os.unlink(ztmp)
-
-
-def hdus_from_astropy(hdul) -> list:
-    """:class:`~perscli.io.fitsfile.OutHDU` s of an ``astropy.io.fits.HDUList`` (tables built with astropy)."""
-    import numpy as np
-
-    from .fitsfile import OutHDU
-
-    out = []
-    for hdu in hdul:
-        cards = [card.image for card in hdu.header.cards]
-        data = hdu.data
-        units = None
-        if data is not None and getattr(data, "dtype", None) is not None and data.dtype.names:
-            units = [str(c.unit or "") for c in hdu.columns]
-            # column by column: astropy's FITS_rec stores logicals as 'T'/'F' bytes underneath
-            cols = {n: np.asarray(data[n]) for n in hdu.columns.names}
-            table = np.empty(len(data), dtype=[(n, c.dtype.newbyteorder("="), c.shape[1:]) for n, c in cols.items()])
-            for n, c in cols.items():
-                table[n] = c
-            data = table
-        elif data is not None:
-            data = np.asarray(data)
-        out.append(OutHDU(cards, data, extname=hdu.name if hdu.name and hdu.name != "PRIMARY" else None,
-                          units=units))
-    return out
-
-
-def write_fits(hdul, dest: str, *, overwrite: bool = False, stdout=None) -> None:
-    """Write an ``astropy.io.fits.HDUList`` (a table built with astropy) through fitsio, with checksums."""
-    write_hdus(hdus_from_astropy(hdul), dest, overwrite=overwrite, stdout=stdout)
 
 
 def _umask() -> int:

@@ -475,11 +475,9 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
     dict
         Summary: rows, unflagged rows, frames.
     """
-    from astropy.io import fits
-    from astropy.table import Table, vstack
-
+    from ..io.fitsfile import OutHDU, table_hdu
     from ..io.frames import open_frame
-    from ..io.output import add_provenance, check_output, write_fits
+    from ..io.output import add_provenance, check_output, write_hdus
 
     if method not in ("exp", "hsm"):
         raise PerscliError(f"--method must be exp or hsm, not {method!r}")
@@ -498,18 +496,15 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
         finally:
             frame.close()
         noise_sources.append(cols.pop("_noise"))
-        table = Table({key: cols[key] for key in ("id", "x", "y", "ra", "dec", "g1", "g2", "T", "flux",
-                                                   "x_err", "y_err", "g1_err", "g2_err", "T_err", "flux_err",
-                                                   "s2n", "chi2", "nfev", "flags")})
-        table.add_column(np.full(len(table), k, dtype=np.int16), name="frame", index=1)
+        table = {"id": cols["id"], "frame": np.full(len(cols["id"]), k, dtype=np.int16)}
+        table.update({key: cols[key] for key in ("x", "y", "ra", "dec", "g1", "g2", "T", "flux", "x_err", "y_err",
+                                                  "g1_err", "g2_err", "T_err", "flux_err", "s2n", "chi2", "nfev",
+                                                  "flags")})
         tables.append(table)
-    shapes = vstack(tables)
+    shapes = {key: np.concatenate([np.asarray(t[key]) for t in tables]) for key in tables[0]}
     units = {"x": "pix", "y": "pix", "ra": "deg", "dec": "deg", "T": "pix2", "x_err": "pix", "y_err": "pix",
              "T_err": "pix2"}
-    for key, unit in units.items():
-        shapes[key].unit = unit
-    hdus = [fits.PrimaryHDU(), fits.table_to_hdu(shapes)]
-    hdus[1].name = "SHAPES"
+    hdus = [OutHDU([]), table_hdu(shapes, "SHAPES", units=units)]
     if len(frames) > 1:
         hdus.append(_combined(shapes))
     params = {"METHOD": (method, "exp (mixture fit) or hsm (REGAUSS)"),
@@ -522,16 +517,15 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
         params[f"FLAG{int(math.log2(bit)):02d}"] = (bit, text[:47])
     for k, noise in enumerate(noise_sources, 1):
         params[f"BKG{k:02d}"] = (float(noise.background), f"background of frame {k} ({noise.source})")
-    add_provenance(hdus[0].header, step=f"measure method={method} psf={params['PSF'][0]} frames={len(frames)}",
+    add_provenance(hdus[0], step=f"measure method={method} psf={params['PSF'][0]} frames={len(frames)}",
                    params=params, inputs=inputs)
-    write_fits(fits.HDUList(hdus), dest, overwrite=overwrite)
-    return {"rows": len(shapes), "good": int(np.sum(shapes["flags"] == 0)), "frames": len(frames)}
+    write_hdus(hdus, dest, overwrite=overwrite)
+    return {"rows": len(shapes["id"]), "good": int(np.sum(shapes["flags"] == 0)), "frames": len(frames)}
 
 
 def _combined(shapes):
     """Per object: inverse-variance weighted mean g over frames whose fit has no flag."""
-    from astropy.io import fits
-    from astropy.table import Table
+    from ..io.fitsfile import table_hdu
 
     ids = np.unique(np.asarray(shapes["id"]))
     good = (np.asarray(shapes["flags"]) == 0) & np.isfinite(np.asarray(shapes["g1_err"]))
@@ -548,6 +542,4 @@ def _combined(shapes):
         out[key][ok] = vsum[ok] / wsum[ok]
         out[f"{key}_err"][ok] = 1.0 / np.sqrt(wsum[ok])
     out["nframes"] = np.bincount(index, weights=good.astype(float), minlength=len(ids)).astype(np.int16)
-    hdu = fits.table_to_hdu(Table(out))
-    hdu.name = "COMBINED"
-    return hdu
+    return table_hdu({key: out[key] for key in ("id", "nframes", "g1", "g1_err", "g2", "g2_err")}, "COMBINED")

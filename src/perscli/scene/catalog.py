@@ -561,17 +561,19 @@ def catalog_step(table) -> str:
 
 
 def truth_hdulist(table):
-    """The FITS file of a truth catalog: an empty primary HDU and the 'TRUTH' table with provenance."""
-    from astropy.io import fits
+    """The FITS file of a truth catalog: an empty primary HDU and the 'TRUTH' table with provenance.
 
+    Returns
+    -------
+    list of perscli.io.fitsfile.OutHDU
+    """
+    from ..io.fitsfile import OutHDU, format_card, table_hdu
     from ..io.output import add_provenance
 
-    bare = table.copy(copy_data=False)
-    bare.meta.clear()
-    hdu = fits.table_to_hdu(bare)
-    hdu.name = "TRUTH"
-    for k, name in enumerate(table.colnames, 1):
-        hdu.header[f"TCOMM{k}"] = _COLUMN_INFO[name][1]
+    columns = {name: np.asarray(table[name]) for name in table.colnames}
+    units = {name: str(table[name].unit) for name in table.colnames if table[name].unit is not None}
+    cards = [format_card(f"TCOMM{k}", _COLUMN_INFO[name][1]) for k, name in enumerate(table.colnames, 1)]
+    hdu = table_hdu(columns, "TRUTH", units=units, cards=cards)
     meta = dict(table.meta)
     seed = meta.pop("SEED", None)
     stems = [k for k in meta if _INPUT_STEM.match(k)]
@@ -582,15 +584,15 @@ def truth_hdulist(table):
         if key.startswith("LEFF"):
             comment = f"[um] effective wavelength of {key[4:]}"
         params[key] = (value, comment) if comment else value
-    add_provenance(hdu.header, step=catalog_step(table), params=params, inputs=inputs, seed=seed)
-    return fits.HDUList([fits.PrimaryHDU(), hdu])
+    add_provenance(hdu, step=catalog_step(table), params=params, inputs=inputs, seed=seed)
+    return [OutHDU([]), hdu]
 
 
 def write_truth_catalog(table, dest: str, *, overwrite: bool = False, stdout=None) -> None:
     """Write a catalog from :func:`make_truth_catalog` atomically (or to standard output for '-')."""
-    from ..io.output import write_fits
+    from ..io.output import write_hdus
 
-    write_fits(truth_hdulist(table), dest, overwrite=overwrite, stdout=stdout)
+    write_hdus(truth_hdulist(table), dest, overwrite=overwrite, stdout=stdout)
 
 
 def make_truth_catalog_file(dest: str, ra: float, dec: float, size: float = 10.0, *, overwrite: bool = False,

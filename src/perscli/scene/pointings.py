@@ -247,8 +247,7 @@ def pointings_hdulist(pointings, *, step: str, params: dict | None = None, input
     ``step``, ``params``, ``inputs`` and ``seed`` are those of
     :func:`perscli.io.output.add_provenance`.
     """
-    from astropy.io import fits
-
+    from ..io.fitsfile import OutHDU, format_card, table_hdu
     from ..io.output import add_provenance
 
     values = {
@@ -261,21 +260,20 @@ def pointings_hdulist(pointings, *, step: str, params: dict | None = None, input
         "filter": np.array([p.filter for p in pointings], dtype="S4"),
         "sca": np.array([p.sca for p in pointings], dtype=np.int32),
     }
-    cols = [fits.Column(name=name, format=fmt, unit=unit, array=values[name])
-            for name, (fmt, unit, _) in POINTING_COLUMNS.items()]
-    hdu = fits.BinTableHDU.from_columns(cols, name="POINTINGS")
-    for k, (_, _, desc) in enumerate(POINTING_COLUMNS.values(), 1):
-        hdu.header[f"TCOMM{k}"] = desc
-    hdu.header["NEXP"] = (len(pointings), "exposures in this table")
-    add_provenance(hdu.header, step=step, params=params, inputs=inputs, seed=seed)
-    return fits.HDUList([fits.PrimaryHDU(), hdu])
+    names = list(POINTING_COLUMNS)
+    cards = [format_card(f"TCOMM{k}", desc) for k, (_, _, desc) in enumerate(POINTING_COLUMNS.values(), 1)]
+    cards.append(format_card("NEXP", len(pointings), "exposures in this table"))
+    hdu = table_hdu({name: values[name] for name in names}, "POINTINGS",
+                    units={name: unit for name, (_, unit, _) in POINTING_COLUMNS.items()}, cards=cards)
+    add_provenance(hdu, step=step, params=params, inputs=inputs, seed=seed)
+    return [OutHDU([]), hdu]
 
 
 def write_pointings(pointings, dest: str, *, overwrite: bool = False, stdout=None, **provenance) -> None:
     """Write ``pointings`` atomically (or to standard output for '-'); ``provenance`` as :func:`pointings_hdulist`."""
-    from ..io.output import write_fits
+    from ..io.output import write_hdus
 
-    write_fits(pointings_hdulist(pointings, **provenance), dest, overwrite=overwrite, stdout=stdout)
+    write_hdus(pointings_hdulist(pointings, **provenance), dest, overwrite=overwrite, stdout=stdout)
 
 
 def read_pointings(path: str, *, stdin=None) -> list:

@@ -448,26 +448,19 @@ def budget_hdulist(result: Comparison, *, inputs=()):
     Columns: theta (unit), xip_budget; with a measurement also xip, sigma_xip,
     ratio, sigma_ratio and exceeds (logical).
     """
-    from astropy.io import fits
-
+    from ..io.fitsfile import OutHDU, table_hdu
     from ..io.output import add_provenance
 
-    cols = [fits.Column(name="theta", format="D", unit=result.unit, array=result.theta),
-            fits.Column(name="xip_budget", format="D", array=result.budget)]
+    cols = {"theta": result.theta, "xip_budget": result.budget}
     if result.xip is not None:
-        cols += [fits.Column(name="xip", format="D", array=result.xip),
-                 fits.Column(name="sigma_xip", format="D", array=result.sigma_xip),
-                 fits.Column(name="ratio", format="D", array=result.ratio),
-                 fits.Column(name="sigma_ratio", format="D", array=result.sigma_ratio),
-                 fits.Column(name="exceeds", format="L", array=result.exceeds)]
-    hdu = fits.BinTableHDU.from_columns(cols, name="BUDGET")
+        cols.update({"xip": result.xip, "sigma_xip": result.sigma_xip, "ratio": result.ratio,
+                     "sigma_ratio": result.sigma_ratio, "exceeds": np.asarray(result.exceeds, dtype=bool)})
     descriptions = {"theta": "separation (meanr of the XI table, else r_nom)",
                     "xip_budget": "xi+ of the additive shear budget",
                     "xip": "measured xi+ (XI table)", "sigma_xip": "error of xip (XI table)",
                     "ratio": "xip / xip_budget (NaN: empty bin)", "sigma_ratio": "sigma_xip / |xip_budget|",
                     "exceeds": "|xip| - BUDSIGMA sigma_xip > |xip_budget|"}
-    for k, col in enumerate(cols, start=1):
-        hdu.header[f"TTYPE{k}"] = (col.name, descriptions[col.name])
+    hdu = table_hdu(cols, "BUDGET", units={"theta": result.unit}, descriptions=descriptions)
     params = {
         "BUDBANDS": (result.bands, "additive budget: HLIS requirement bands"),
         "BUDMODES": (result.modes, "E: budget for E modes; EB: E and B (xi+ x 2)"),
@@ -484,8 +477,8 @@ def budget_hdulist(result: Comparison, *, inputs=()):
             params["BUDWORST"] = (round(result.orders, 4), "min log10(|budget|/|xip|) over bins")
         params["VERDICT"] = result.verdict
         step += f" sigma={result.n_sigma:g}: {result.verdict}"
-    add_provenance(hdu.header, step=step, params=params, inputs=inputs)
-    return fits.HDUList([fits.PrimaryHDU(), hdu])
+    add_provenance(hdu, step=step, params=params, inputs=inputs)
+    return [OutHDU([]), hdu]
 
 
 def budget_figure(result: Comparison, *, linthresh: float | None = None) -> bytes:
@@ -578,7 +571,7 @@ def budget_file(dest: str, xi_path: str | None = None, *, bands: str = "dore2018
     Comparison
         What was written.  Nothing is written when an error is raised.
     """
-    from ..io.output import atomic_output, check_output, write_fits
+    from ..io.output import atomic_output, check_output, write_hdus
 
     inputs = [xi_path] if xi_path else []
     check_output(dest, overwrite=overwrite, inputs=inputs)
@@ -600,7 +593,7 @@ def budget_file(dest: str, xi_path: str | None = None, *, bands: str = "dore2018
         provenance = []
     # drawn before anything is written, so that a failing figure leaves no table behind
     png = budget_figure(result) if plot is not None else None
-    write_fits(budget_hdulist(result, inputs=provenance), dest, overwrite=overwrite, stdout=stdout)
+    write_hdus(budget_hdulist(result, inputs=provenance), dest, overwrite=overwrite, stdout=stdout)
     if png is not None:
         with atomic_output(plot, overwrite=overwrite) as stream:
             stream.write(png)

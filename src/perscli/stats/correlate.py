@@ -669,30 +669,21 @@ def xi_table(gg) -> dict:
 
 
 def _table_hdu(columns: dict, name: str, units: dict | None = None):
-    from astropy.io import fits
+    from ..io.fitsfile import table_hdu
 
-    cols = []
-    for key, values in columns.items():
-        values = np.asarray(values)
-        if values.ndim == 2:
-            fmt = f"{values.shape[1]}{'K' if values.dtype.kind in 'iu' else 'D'}"
-        else:
-            fmt = "K" if values.dtype.kind in "iu" else ("L" if values.dtype.kind == "b" else "D")
-        cols.append(fits.Column(name=key, format=fmt, array=values, unit=(units or {}).get(key)))
-    hdu = fits.BinTableHDU.from_columns(cols, name=name)
-    return hdu
+    return table_hdu(columns, name, units=units)
 
 
 def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, *, settings: dict, seed: int,
                patch_source: str):
     """The output file: provenance, XI, COV, STATS, HIST_DE, THETA_DE and PATCHES."""
     import treecorr
-    from astropy.io import fits
 
+    from ..io.fitsfile import OutHDU
     from ..io.output import add_provenance
 
     sep = settings["sep_units"]
-    primary = fits.PrimaryHDU()
+    primary = OutHDU([])
     params = {"NOBJ": (len(sc), "objects correlated")}
     params.update(sc.params)
     params.update({
@@ -726,7 +717,7 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     xh["NPATCH"] = int(cat.npatch)
     xh["NOBJ"] = len(sc)
 
-    cov = fits.ImageHDU(np.asarray(gg.cov, dtype=np.float64), name="COV")
+    cov = OutHDU([], np.asarray(gg.cov, dtype=np.float64), extname="COV")
     cov.header["ORDER"] = ("xip,xim", "rows/columns: xi+ of every bin, then xi-")
     cov.header["NBINS"] = settings["nbins"]
     cov.header["VAR_METH"] = "jackknife"
@@ -767,7 +758,7 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     pcols["nobj"] = np.bincount(cat.patch, minlength=len(centers)).astype(np.int64)
     patches = _table_hdu(pcols, "PATCHES", units={"ra": "deg", "dec": "deg"})
     patches.header["COMMENT"] = "TreeCorr's patch centres (x, y[, z]); reuse with --patch-centers THIS_FILE"
-    return fits.HDUList([primary, xi, cov, stats_hdu, hist_hdu, theta_hdu, patches])
+    return [primary, xi, cov, stats_hdu, hist_hdu, theta_hdu, patches]
 
 
 def _png_targets(plot, plots_dir, overwrite):
@@ -813,7 +804,7 @@ def correlate_files(catalogs, dest: str, *, frames=None, de_columns=None, common
     dict
         n (objects), counts, stats, the xi table and the output paths.
     """
-    from ..io.output import check_output, write_fits
+    from ..io.output import check_output, write_hdus
 
     thresholds = tuple(float(t) for t in thresholds)
     if not thresholds or any(not (t > 0 and math.isfinite(t)) for t in thresholds):
@@ -869,7 +860,7 @@ def correlate_files(catalogs, dest: str, *, frames=None, de_columns=None, common
                 os.close(fd)
                 temps[tmp] = path
                 figures[key.removeprefix("dir:")](tmp)
-        write_fits(hdul, dest, overwrite=overwrite)
+        write_hdus(hdul, dest, overwrite=overwrite)
         for tmp, path in temps.items():
             os.replace(tmp, path)
         temps.clear()
