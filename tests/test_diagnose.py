@@ -147,6 +147,18 @@ def test_two_hidden_effects_are_both_found(scene, simulated):
     assert abs(report["gap_after"] - 1.0) <= 0.05
 
 
+def test_persistence_with_another_decay_frees_gamma(scene, simulated):
+    """The measured persistence decays with gamma = 1.4 (the model holds 1.0): A alone cannot describe it, and
+    the BIC supports freeing gamma; both are reported and the gap closes."""
+    measured = sequence(scene, "gamma", "persistence.A=0.5", "persistence.gamma=1.4")
+    report, _ = diagnose(scene, measured, simulated, "gamma")
+    assert [e["effect"] for e in report["found"]] == ["persistence"], report["verdict"]
+    params, errors = report["found"][0]["params"], report["found"][0]["errors"]
+    assert "gamma" in params, params
+    assert abs(params["gamma"] - 1.4) <= max(0.1 * 1.4, 3 * errors["gamma"]), (params, errors)
+    assert abs(report["gap_after"] - 1.0) <= 0.05
+
+
 def test_dark_and_offset_on_one_exposure_time_are_one_degenerate_group(scene, simulated):
     """A small dark current on exposures of one length adds what an offset adds (its noise is too small
     to tell): both are reported, as one group, never a guess."""

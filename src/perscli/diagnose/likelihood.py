@@ -117,6 +117,10 @@ class Problem:
         if key not in self._charges:
             import dataclasses
 
+            # one set of Fermi shape parameters at a time (a full frame per exposure each): when a fit
+            # frees gamma or x0, the charges of other values are dropped, not kept
+            self._charges = {k: v for k, v in self._charges.items() if k[1:] == key[1:]}
+
             # the law is proportional to A: computed once for A = 1 and scaled
             unit = dataclasses.replace(pmodel, A=1.0) if pmodel.kind == "fermi" else pmodel
             cur = self.exposures[index]

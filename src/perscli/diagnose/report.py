@@ -107,7 +107,15 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         cand = by_name(entry["effect"])
         # one exposure time: a dark current shows as an offset
         entry["probe"] = cand.probe if cand.probe in probes_before else "offset"
-        current = cand.put(current, entry["params"][cand.param]) if cand.fit is None else _refit(problem, current, cand)
+        if cand.fit is not None:
+            current = _refit(problem, current, cand)
+        elif len(entry["params"]) > 1:      # persistence with freed shape parameters
+            from .likelihood import with_effect
+
+            current = with_effect(cand.put(current, entry["params"][cand.param]), cand.name,
+                                  {k: v for k, v in entry["params"].items() if k != cand.param})
+        else:
+            current = cand.put(current, entry["params"][cand.param])
         c2, nn = (chi2_after, n_after) if entry is result.found[-1] else problem.chi2_full(current)
         gap_now = c2 / max(nn, 1)
         entry["gap_after_adding"] = gap_now
@@ -268,7 +276,12 @@ def _markdown(report) -> str:
         lines += ["| effect | parameter | fitted | error | model had | delta chi2 | delta BIC | share of gap closed | "
                   "probe gap before -> after | probe explained | degenerate with |", "|" + "---|" * 11]
         for e in report["found"]:
-            (param, value), = e["params"].items()
+            param = next(iter(e["params"]))
+            value = e["params"][param]
+            if len(e["params"]) > 1:
+                param = ", ".join(e["params"])
+                value = ", ".join(_fmt(v) for v in e["params"].values())
+                e = dict(e, errors={param: ", ".join(_fmt(v) for v in e["errors"].values())})
             lines.append(f"| {e['effect']} | {param} | {_fmt(value)} | {_fmt(e['errors'][param])} | "
                          f"{_fmt(e['model_value'])} | {_fmt(e['delta_chi2'])} | {_fmt(e['delta_bic'])} | "
                          f"{_fmt(100 * e.get('fraction_of_gap_closed', 0.0))} % | "
@@ -280,7 +293,8 @@ def _markdown(report) -> str:
               "| effect | parameter | fitted | error | model had | delta chi2 | delta BIC | significant |",
               "|" + "---|" * 8]
     for c in report["candidates"]:
-        (param, value), = c["params"].items()
+        param = next(iter(c["params"]))
+        value = c["params"][param]
         lines.append(f"| {c['effect']} | {param} | {_fmt(value)} | {_fmt(c['errors'][param])} | "
                      f"{_fmt(c['model_value'])} | {_fmt(c['delta_chi2'])} | {_fmt(c['delta_bic'])} | "
                      f"{'yes' if c['significant'] else 'no'} |")

@@ -57,8 +57,9 @@ class Fit:
         return self.delta_chi2 > MIN_DELTA_CHI2 and self.delta_bic > MIN_DELTA_BIC
 
     def as_dict(self) -> dict:
-        return {"effect": self.candidate.name, "params": {self.candidate.param: self.value},
-                "errors": {self.candidate.param: self.error}, "model_value": self.start,
+        params = {self.candidate.param: self.value, **getattr(self, "extra", {})}
+        errors = {self.candidate.param: self.error, **getattr(self, "extra_errors", {})}
+        return {"effect": self.candidate.name, "params": params, "errors": errors, "model_value": self.start,
                 "unit": self.candidate.unit, "delta_chi2": self.delta_chi2, "delta_bic": self.delta_bic,
                 "significant": self.significant, "note": self.note}
 
@@ -121,6 +122,47 @@ def _curvature_error(cost, x, h, lo, hi) -> float:
     return float(math.sqrt(2.0 / d2)) if d2 > 0 else float("nan")
 
 
+#: shape parameters of the Fermi law that a persistence fit may free: (name, bounds, typical size)
+PERSISTENCE_SHAPE = (("gamma", (0.3, 3.0), 0.05), ("x0", (1.0e4, 3.0e5), 2.0e3), ("dx", (5.0e3, 2.0e5), 2.0e3),
+                     ("alpha", (-0.5, 1.0), 0.01))
+
+
+def _free_persistence_shape(problem, best: Fit, npix: int, progress=None) -> Fit:
+    """Free gamma, x0, dx and alpha of a named persistence one at a time (A re-fitted with each), keeping
+    each only when the BIC supports it (its -2 ln L improves by more than ln n + MIN_DELTA_BIC)."""
+    from .candidates import Candidate, _get_persistence, _put_persistence
+    from .likelihood import with_effect
+
+    model, m2 = best.model, best.m2lnl
+    start_m2 = m2
+    extra, errors = {}, {}
+    amp = Candidate("persistence", "A", "e-/s", (0.0, 2.0), 0.02, "history", "", _get_persistence,
+                    _put_persistence)
+    for name, bounds, scale in PERSISTENCE_SHAPE:
+        def get(m, exposures, name=name):
+            return float(getattr(m.persistence_model(), name))
+
+        def put(m, value, name=name):
+            # the profile likelihood: A (strongly correlated with the shape) re-fitted at every value
+            return fit_candidate(problem, with_effect(m, "persistence", {name: float(value)}), amp, 0.0, npix).model
+
+        free = Candidate(f"persistence.{name}", name, "", bounds, scale, "history", "", get, put)
+        trial = fit_candidate(problem, model, free, m2, npix)
+        refit = fit_candidate(problem, trial.model, amp, m2, npix)
+        if m2 - refit.m2lnl > math.log(max(npix, 2)) + MIN_DELTA_BIC:
+            if progress is not None:
+                progress(f"persistence: {name} freed ({trial.value:.4g}), -2 ln L down by {m2 - refit.m2lnl:.1f}")
+            model, m2 = refit.model, refit.m2lnl
+            extra[name], errors[name] = trial.value, trial.error
+            best.value, best.error = refit.value, refit.error
+    if extra:
+        best.model, best.m2lnl = model, m2
+        best.delta_chi2 += start_m2 - m2
+        best.delta_bic += start_m2 - m2 - len(extra) * math.log(max(npix, 2))
+        best.extra, best.extra_errors = extra, errors
+    return best
+
+
 @dataclass
 class Result:
     """What the search found."""
@@ -172,6 +214,8 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
             break
         group = [f for f in significant if f is not best and not f.note
                  and best.delta_chi2 - f.delta_chi2 < MIN_DELTA_BIC]
+        if best.candidate.name == "persistence":
+            best = _free_persistence_shape(problem, best, npix, progress)
         entry = best.as_dict()
         entry["degenerate_with"] = [f.candidate.name for f in group]
         entry["round"] = round_no + 1
