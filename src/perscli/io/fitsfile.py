@@ -737,7 +737,7 @@ class HDU:
                 arr = fits_hdu[r0:r1, :] if len(self.shape) == 2 else fits_hdu[plane:plane + 1, r0:r1, :][0]
             except Exception as exc:  # CFITSIO: tiles that do not decompress
                 raise self._unreadable(exc) from None
-            return self._finish(np.asarray(arr), from_cfitsio=True)
+            return self._finish(np.asarray(arr))
         arr = self.stream_rows(r0, r1, plane)
         if self.dtype.kind != "f" or self.scaling != (1.0, 0.0):
             return self._scaled(arr)
@@ -747,8 +747,8 @@ class HDU:
         return PerscliError(f"{self.file.label}: {self.label}: the data cannot be read ({_cfitsio_reason(exc)}); "
                             "the file is corrupt: re-copy it")
 
-    def _finish(self, arr, *, from_cfitsio: bool):
-        """CFITSIO applies BSCALE/BZERO itself; BLANK of integer data becomes NaN here."""
+    def _finish(self, arr):
+        """Data read through CFITSIO (which applies BSCALE/BZERO itself) as floats."""
         if arr.dtype.kind != "f":
             arr = arr.astype(np.float64)
         return arr
@@ -774,7 +774,7 @@ class HDU:
         self.verify()
         if self.compressed:
             try:
-                return self._finish(np.asarray(self.file.fitsio[self.index].read()), from_cfitsio=True)
+                return self._finish(np.asarray(self.file.fitsio[self.index].read()))
             except Exception as exc:  # CFITSIO: tiles that do not decompress
                 raise self._unreadable(exc) from None
         buf = self.source.pread(self.data_offset, self.data_end - self.data_offset)
@@ -1286,11 +1286,6 @@ def table_hdu(columns: dict, extname: str, *, units: dict | None = None, descrip
         if descriptions and name in descriptions:
             out.append(format_card(f"TTYPE{k}", name, descriptions[name]))
     return OutHDU(out, table, extname=extname, units=[str((units or {}).get(name) or "") for name in arrays])
-
-
-def image_cards(data, cards, *, primary: bool = False, extname: str | None = None) -> list:
-    """The non-structural cards of ``cards`` (kept for source compatibility: structure is fitsio's)."""
-    return [c for c in cards if not _is_structural(c[:8].rstrip())]
 
 
 #: lossless tile compression of images: GZIP_2 (byte-shuffled gzip) keeps every float bit
