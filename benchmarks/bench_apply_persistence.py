@@ -59,6 +59,9 @@ NSTARS = 150
 NNAN = 16
 SEED = 20240611
 GENERATOR_VERSION = 1    # bump when the frame recipe changes
+#: the figures recorded before issue 8 (FITS through fitsio, effect registry, one executor) on the same
+#: machine, RESULTS.md at commit 132d716: the reference of "not slower"
+BEFORE = dict(date="2026-11-22 19:21", commit="132d716", galsim=3.997, w1=0.518, w2=0.505, rss_w1=106e6)
 
 
 # --------------------------------------------------------------------------------------------
@@ -283,6 +286,18 @@ def versions() -> dict:
     return out
 
 
+def git_commit() -> str:
+    """The commit of the code benchmarked, and whether src/ had uncommitted changes."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], cwd=HERE.parent, capture_output=True,
+                               text=True, check=True).stdout.strip()
+        return head + (" + uncommitted changes in src/" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "?"
+
+
 def machine() -> dict:
     cpu = "?"
     try:
@@ -455,6 +470,8 @@ def main(argv=None):
           f"{max_rel:.2e} over {npix_cmp} pixels with persistence > 1e-3 e- (max abs {max_abs:.2e} e-, "
           f"max persistence {pers_max:.3g} e-); required < 1e-6")
     ok = max(ratio_w1, ratio_w2) >= 8 and max_rel < 1e-6
+    print(f"before issue 8 ({BEFORE['date']}, {BEFORE['commit']}): GalSim {BEFORE['galsim']:.3f} s, perscli "
+          f"{BEFORE['w1']:.3f} s / {BEFORE['w2']:.3f} s (--workers 1 / 2); now {w1_best:.3f} s / {w2_best:.3f} s")
     print("PASS" if ok else "FAIL")
     profile_md = ""
     if profile is not None:
@@ -485,7 +502,7 @@ Reproduce with `make bench` (runs `.venv/bin/python benchmarks/bench_apply_persi
 
 - date: {dt.datetime.now().strftime('%Y-%m-%d %H:%M')}
 - machine: {m['arch']}, {m['cpu']}, {m['nproc']} cores (nproc), {m['memory']} RAM, Linux {m['kernel']}
-- versions: python {v['python']}, numpy {v['numpy']}, galsim {v['galsim']}, astropy {v['astropy']}, perscli {v['perscli']}
+- versions: python {v['python']}, numpy {v['numpy']}, galsim {v['galsim']}, astropy {v['astropy']}, perscli {v['perscli']} (git {git_commit()})
 - data: 1 current + {NPREV} earlier float32 frames of {args.size}x{args.size} px in electrons
   (one frame = {frame_bytes / mb:.1f} MB), seed {args.seed}; sky 100-1500 e-, {NSTARS} Moffat stars per frame
   with peaks 1e3-3e5 e-, {NNAN} NaN pixels per frame; pixels above half_well = 5e4 e- per frame:
@@ -510,6 +527,11 @@ Reproduce with `make bench` (runs `.venv/bin/python benchmarks/bench_apply_persi
   writes float32): max relative difference **{max_rel:.2e}** over {npix_cmp} pixels with persistence
   > 1e-3 e- (required < 1e-6; float32 output rounding alone is up to 6e-8); max absolute difference
   {max_abs:.2e} e- over all finite pixels; largest persistence {pers_max:.3g} e-.
+- **before / after** (issue 8): recorded {BEFORE['date']} (commit {BEFORE['commit']}, same machine) GalSim
+  {BEFORE['galsim']:.3f} s, perscli {BEFORE['w1']:.3f} s (`--workers 1`) and {BEFORE['w2']:.3f} s (`--workers 2`): {BEFORE['galsim'] / BEFORE['w1']:.1f}x and
+  {BEFORE['galsim'] / BEFORE['w2']:.1f}x, peak RSS {BEFORE['rss_w1'] / mb:.0f} MB; now perscli {w1_best:.3f} s and {w2_best:.3f} s
+  ({w1_best / BEFORE['w1']:.2f} and {w2_best / BEFORE['w2']:.2f} of the times before), GalSim {g_best:.3f} s
+  ({g_best / BEFORE['galsim']:.2f} of its time before: the VM's speed varies between runs), peak RSS {w1_rss / mb:.0f} MB.
 - result: **{'PASS' if ok else 'FAIL'}**
 
 Per-repeat times (s): GalSim {', '.join(f'{t:.3f}' for t in g_times)}; perscli

@@ -80,6 +80,10 @@ REQUIRED = 150.0           # fits per second per core
 NGMIX_MS = 6.0             # ngmix exp fit with a fixed PSF, ms per galaxy (NOTES.md section 4)
 ZPT_AB, EXPTIME = 26.0, ROMAN_EXPTIME   # header values of the frame of the whole-process run (start flux)
 PIXEL_SCALE = ROMAN_PIXEL_SCALE
+#: the figures recorded before issue 8 (FITS through fitsio, the measure noise model from the detector model,
+#: one executor) on the same machine, RESULTS.md at commit 132d716: the reference of "not slower"
+BEFORE = dict(date="2026-11-22 20:21", commit="132d716", rate=183.0, fam=5537.0, regauss=1957.0, t_exp=3.22,
+              t_hsm=1.84)
 
 
 # --------------------------------------------------------------------------------------------
@@ -547,6 +551,10 @@ def main(argv=None):
             f"process's fits of the same float32 stamps and weights from the same start to max abs(dg) = {proc['dg']:.1e}; "
             f"{proc['good']}/{args.n} rows unflagged.")
 
+    proc_cmp = ""
+    if proc is not None:
+        proc_cmp = (f"; whole process {proc['t_exp']:.2f} s ({proc['t_exp'] / BEFORE['t_exp']:.2f} of before), "
+                    f"`--method hsm` {proc['t_hsm']:.2f} s ({proc['t_hsm'] / BEFORE['t_hsm']:.2f} of before)")
     body = f"""
 ## measure: exp fits per second per core vs GalSim HSM (48x48 stamps)
 
@@ -595,6 +603,11 @@ the PSF's rounding, not noise; it is here for its speed.
 - relative speed: FindAdaptiveMom is {rate['fam'] / rate['perscli']:.1f}x and REGAUSS {rate['regauss'] / rate['perscli']:.1f}x
   as fast as perscli's fit here ({ms['fam']:.2f} and {ms['regauss']:.2f} ms per stamp; NOTES' anchors ~0.2 and ~0.6 ms).
 {proc_text}
+- **before / after** (issue 8): recorded {BEFORE['date']} (commit {BEFORE['commit']}, same machine): perscli
+  {BEFORE['rate']:.0f} fits/s, FindAdaptiveMom {BEFORE['fam']:.0f}/s, REGAUSS {BEFORE['regauss']:.0f}/s, whole `perscli measure`
+  process {BEFORE['t_exp']:.2f} s (`--method hsm` {BEFORE['t_hsm']:.2f} s); now {rate['perscli']:.0f} fits/s ({rate['perscli'] / BEFORE['rate']:.2f}x before),
+  FindAdaptiveMom {rate['fam'] / BEFORE['fam']:.2f}x and REGAUSS {rate['regauss'] / BEFORE['regauss']:.2f}x their rates before (the VM's speed
+  varies between runs), perscli's rate relative to REGAUSS {(rate['perscli'] / rate['regauss']) / (BEFORE['rate'] / BEFORE['regauss']):.2f} of before{proc_cmp}.
 - result: **{verdict}**
 
 Per-pass times (s): perscli {', '.join(f'{t[0]:.3f}' for t in runs['perscli'])}; FindAdaptiveMom
@@ -617,6 +630,9 @@ Per-pass times (s): perscli {', '.join(f'{t[0]:.3f}' for t in runs['perscli'])};
             print(f"  {r['func']:<20} calls {r['ncalls']:>6} own {r['tottime']:.3f} cum {r['cumtime']:.3f}")
         for r in top:
             print(f"  {short_name(r):<70} calls {r['ncalls']:>6} own {r['tottime']:.3f}")
+    print(f"before issue 8 ({BEFORE['date']}, {BEFORE['commit']}): {BEFORE['rate']:.0f} fits/s, FindAdaptiveMom "
+          f"{BEFORE['fam']:.0f}/s, REGAUSS {BEFORE['regauss']:.0f}/s, whole process {BEFORE['t_exp']:.2f} s; now "
+          f"{rate['perscli']:.0f}, {rate['fam']:.0f}, {rate['regauss']:.0f}/s" + (f", {proc['t_exp']:.2f} s" if proc else ""))
     print(verdict)
 
     dest = args.results

@@ -56,7 +56,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_apply_persistence import (  # noqa: E402  (helpers shared with the other benchmark)
     _PROFILE,
-    machine, perscli_command, run_child, versions, write_section)
+    git_commit, machine, perscli_command, run_child, versions, write_section)
 
 SECTION = "render"
 RA, DEC, PA, MJD = 10.0, -44.0, 30.0, 61541.97
@@ -176,24 +176,77 @@ def galsim_loop(cols, exposure, keep: bool = False, subset=None, maxk_threshold=
     return seconds, image.array, stamps, (optics, todo, x, y, flux, sizes)
 
 
-def compression_md(truth: Path, workdir: Path, bounds) -> str:
-    """The same render written plain, tile-compressed (--compress gzip) and as .fits.gz: sizes and times."""
-    rows, sizes = [], {}
-    for label, name, extra in (("plain", "size_plain.fits", []), ("--compress gzip", "size_tiles.fits", ["--compress", "gzip"]),
-                               ("-o x.fits.gz", "size_whole.fits.gz", [])):
+#: the whole-process figures recorded before issue 8 (FITS through fitsio, effect registry with saturation
+#: on by default, one executor) on the same machine, RESULTS.md at commit 132d716: the reference of "not slower"
+BEFORE = dict(date="2026-11-22 19:57", commit="132d716", galsim=24.33, s1=2.57, s2=2.72, p1=6.50, rss=1239e6,
+              written=200e6)
+SIZE_REQUIRED = 0.5        # --compress output / plain output (issue 8)
+
+
+def _readback(path: Path, plain: dict | None) -> dict:
+    """Read ``path`` with astropy (checksums verified, warnings as errors) and fitsio (verify_checksum of
+    every HDU); return the SCI/IDEAL/FLUENCE arrays and whether they equal ``plain``'s bit for bit."""
+    import warnings
+
+    import fitsio
+    from astropy.io import fits
+
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with fits.open(path, checksum=True) as hdul:
+            astro = {e: np.array(hdul[e].data) for e in ("SCI", "IDEAL", "FLUENCE")}
+            nhdu = len(hdul)
+    with fitsio.FITS(str(path)) as f:
+        for hdu in f:
+            hdu.verify_checksum()           # raises on a bad CHECKSUM or DATASUM
+        fio = {e: f[e].read() for e in ("SCI", "IDEAL", "FLUENCE")}
+    out["same_readers"] = all(np.array_equal(astro[e], fio[e], equal_nan=True) for e in astro)
+    out["lossless"] = True if plain is None else all(
+        astro[e].dtype.newbyteorder('=') == plain[e].dtype.newbyteorder('=') and np.array_equal(astro[e], plain[e], equal_nan=True) for e in astro)
+    out["nhdu"] = nhdu
+    out["arrays"] = astro
+    return out
+
+
+def output_sizes(truth: Path, workdir: Path, bounds) -> tuple[str, bool, dict]:
+    """The same render written plain, tile-compressed (--compress gzip) and as .fits.gz: sizes, times, and
+    whether each reads back in astropy and fitsio with valid checksums and the plain file's pixels."""
+    variants = (("plain", "size_plain.fits", []), ("--compress gzip", "size_tiles.fits", ["--compress", "gzip"]),
+                ("-o x.fits.gz", "size_whole.fits.gz", []))
+    rows, sizes, cmds, plain, checks = [], {}, {}, None, {}
+    for label, name, extra in variants:
         dest = workdir / name
-        wall, rss, _ = run_child(render_command(truth, dest, 1, bounds) + extra)
+        cmd = render_command(truth, dest, 1, bounds) + extra
+        wall, rss, _ = run_child(cmd)
         sizes[label] = dest.stat().st_size
-        rows.append(f"| {label} | {sizes[label] / 1e6:.1f} MB | {sizes[label] / sizes['plain']:.2f} | {wall:.2f} s |")
-    ok = sizes["--compress gzip"] <= 0.5 * sizes["plain"]
-    print(f"sizes: {sizes}")
-    return "\n".join([
-        "", "### Output size (issue 8: a full SCA with --compress at most half the plain size)", "",
-        "The same render (SCI, IDEAL, FLUENCE, MODEL) written three ways; compression is lossless (GZIP_2 tiles "
-        "of one row, no quantisation).", "",
-        "| output | size | / plain | whole process |", "|---|---:|---:|---:|", *rows, "",
-        f"- result: **{'PASS' if ok else 'FAIL'}** (tile-compressed / plain = "
-        f"{sizes['--compress gzip'] / sizes['plain']:.2f}, required <= 0.5)", ""])
+        rb = _readback(dest, plain)
+        if plain is None:
+            plain = rb["arrays"]
+        checks[label] = rb["lossless"] and rb["same_readers"]
+        cmds[label] = " ".join(["perscli"] + cmd[len(perscli_command()):]).replace(str(workdir) + "/", "")
+        rows.append(f"| {label} | {sizes[label] / 1e6:.1f} MB | {sizes[label] / sizes['plain']:.2f} | "
+                    f"{sizes[label] / BEFORE['written']:.2f} | {wall:.2f} s | {rss / 1e6:.0f} MB | "
+                    f"{'yes' if checks[label] else '**no**'} |")
+        print(f"  {label}: {sizes[label] / 1e6:.1f} MB ({sizes[label] / sizes['plain']:.2f} of plain), {wall:.2f} s, "
+              f"peak RSS {rss / 1e6:.0f} MB; reads back with valid checksums, same pixels as plain: {checks[label]}",
+              flush=True)
+    del plain
+    ratio = sizes["--compress gzip"] / sizes["plain"]
+    ok = ratio <= SIZE_REQUIRED and all(checks.values())
+    md = "\n".join([
+        "### Output size (issue 8: a full SCA with `--compress` at most half the plain size)", "",
+        "The same render (primary, SCI, IDEAL, FLUENCE, MODEL) written three ways, each timed as a whole process "
+        "(`--workers 1`) once after the timings above; `--compress gzip` is CFITSIO tile compression of the images "
+        "(GZIP_2, lossless: no quantisation), `.fits.gz` gzips the whole file.  Commands:", "",
+        *[f"- {label}: `{cmds[label]}`" for label, _, _ in variants], "",
+        f"| output | size | / plain | / before issue 8 ({BEFORE['written'] / 1e6:.0f} MB) | whole process | peak RSS | reads back (astropy and "
+        "fitsio, checksums verified), same pixels as plain |",
+        "|---|---:|---:|---:|---:|---:|---|", *rows, "",
+        f"- result: **{'PASS' if ok else 'FAIL'}** (`--compress gzip` / plain = {ratio:.2f}, required <= "
+        f"{SIZE_REQUIRED:g}; / the {BEFORE['written'] / 1e6:.0f} MB written before issue 8 = "
+        f"{sizes['--compress gzip'] / BEFORE['written']:.2f})"])
+    return md, ok, sizes
 
 
 def render_command(truth: Path, dest: Path, workers: int, bounds) -> list:
@@ -446,6 +499,8 @@ def main(argv=None):
                     help="write the results here (default: benchmarks/RESULTS.md, full SCA only)")
     ap.add_argument("--no-results", action="store_true", help="do not write a results file")
     ap.add_argument("--no-profile", action="store_true", help="skip the cProfile runs of both sides")
+    ap.add_argument("--no-sizes", action="store_true",
+                    help="skip writing the render plain, with --compress gzip and as .fits.gz (output sizes)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
         ap.error("--repeats must be >= 1")
@@ -540,12 +595,18 @@ def main(argv=None):
         profile = (profile_render(cmd_w1[len(perscli_command()):], workdir),
                    profile_galsim(cols, exposure, workdir, 10))
 
+    sizes_md, sizes_ok, sizes = "", True, None
+    if not args.no_sizes:
+        print("output sizes: the same render plain, with --compress gzip and as .fits.gz (read back and compared)")
+        sizes_md, sizes_ok, sizes = output_sizes(truth, workdir, args.bounds)
+    written = (workdir / "out.fits").stat().st_size
+
     inner_acc = float(arows["inner"].max())
     sp_max = float(sp["a_N"].max()) if len(sp) else 0.0
     checks_ok = recon_maxabs == 0.0 and same_workers and file_same and ideal_rel < 1e-7 and nobj_file == len(rows)
     agree_ok = inner_acc < INNER_TOL and sp_max < SAME_PERIOD_TOL
     speed_ok = ratios["p1"] >= RATIO_REQUIRED and ratios["s1"] >= RATIO_REQUIRED
-    ok = agree_ok and speed_ok and checks_ok
+    ok = agree_ok and speed_ok and checks_ok and sizes_ok
 
     # ---- report -----------------------------------------------------------------------------
     n_star, n_gal = int(rows["star"].sum()), int((~rows["star"]).sum())
@@ -590,6 +651,13 @@ def main(argv=None):
     print(f"checks: stamps re-drawn one by one sum to draw_sources' image within {recon_maxabs:.1e} e-; "
           f"workers=2 image identical: {same_workers}; render --workers 1/2 HDUs identical: {file_same}; "
           f"render IDEAL - sky vs draw_sources: max relative {ideal_rel:.1e} (float32); NOBJ {nobj_file}")
+    print(f"before issue 8 ({BEFORE['date']}, {BEFORE['commit']}): GalSim loop {BEFORE['galsim']:.2f} s, draw_sources "
+          f"{BEFORE['s1']:.2f} s, perscli render {BEFORE['p1']:.2f} s ({BEFORE['rss'] / 1e6:.0f} MB); now "
+          f"{g_best:.2f} s, {s1_best:.2f} s, {p1_best:.2f} s ({p1_rss / 1e6:.0f} MB)")
+    if sizes is not None:
+        print(f"output sizes: plain {sizes['plain'] / 1e6:.1f} MB, --compress gzip {sizes['--compress gzip'] / 1e6:.1f} MB "
+              f"({sizes['--compress gzip'] / sizes['plain']:.2f}; required <= {SIZE_REQUIRED:g}), .fits.gz "
+              f"{sizes['-o x.fits.gz'] / 1e6:.1f} MB; {'PASS' if sizes_ok else 'FAIL'}")
     print("PASS" if ok else "FAIL")
     if profile is not None:
         (rp, rtot), (gp, gtot) = profile
@@ -643,7 +711,7 @@ Reproduce with `make bench-render` (runs `.venv/bin/python benchmarks/bench_rend
 
 - date: {dt.datetime.now().strftime('%Y-%m-%d %H:%M')}
 - machine: {m['arch']}, {m['cpu']}, {m['nproc']} cores (nproc), {m['memory']} RAM, Linux {m['kernel']}
-- versions: python {v['python']}, numpy {v['numpy']}, galsim {v['galsim']}, astropy {v['astropy']}, perscli {v['perscli']}
+- versions: python {v['python']}, numpy {v['numpy']}, galsim {v['galsim']}, astropy {v['astropy']}, perscli {v['perscli']} (git {git_commit()})
 - exposure: SCA {SCA}, {FILTER}, pointing ra={RA} dec={DEC} pa={PA}, mjd={MJD}, {exposure.exptime} s,
   {xmax - xmin + 1}x{ymax - ymin + 1} px ({sca_area:.1f} arcmin^2); PSF `galsim.roman.getPSF` at the SCA centre
   and the filter's effective wavelength, in SCA pixel units.
@@ -653,7 +721,8 @@ Reproduce with `make bench-render` (runs `.venv/bin/python benchmarks/bench_rend
   ({n_gal} galaxies, {n_star} stars: all whose stamps reach the SCA); stamps {size_text} px.
 - perscli command timed: `{cmd_text}` (and with `--workers 2`):
   the whole process from spawn to exit, with the full Roman detector chain and SCI + IDEAL + FLUENCE
-  written (200 MB).
+  written ({written / 1e6:.0f} MB with the MODEL table; saturation at the full well is on in the Roman model
+  now, it was not before issue 8).
 - GalSim loop, in this process: for each object `galsim.Convolve(obj, psf).drawImage(image=stamp,
   center=(x, y), method='auto')` (FFT convolution with the PSF and the pixel) on the same n x n stamp
   as perscli, `obj` a `DeltaFunction` or `wcs.local(pos).toImage(Exponential(half_light_radius=hlr).shear(g1=e1, g2=e2))`,
@@ -674,8 +743,14 @@ Reproduce with `make bench-render` (runs `.venv/bin/python benchmarks/bench_rend
 | same, `--workers 2` | {p2_best:.2f} s | {ratios['p2']:.1f}x | {p2_rss / 1e6:.0f} MB |
 
 - **speed ratio** GalSim loop / perscli: **{ratios['s1']:.1f}x** sources only, **{ratios['p1']:.1f}x** for the whole
-  `perscli render` process (which also runs the detector chain and writes 200 MB); required >= {RATIO_REQUIRED:g}x.
+  `perscli render` process (which also runs the detector chain and writes {written / 1e6:.0f} MB); required >= {RATIO_REQUIRED:g}x.
   Against the tightened GalSim loop: {ratios['a1']:.1f}x and {ratios['ap']:.1f}x.
+- **before / after** (issue 8): recorded {BEFORE['date']} (commit {BEFORE['commit']}, same machine): GalSim loop
+  {BEFORE['galsim']:.2f} s, `draw_sources` {BEFORE['s1']:.2f} s ({BEFORE['galsim'] / BEFORE['s1']:.1f}x), the whole `perscli render`
+  {BEFORE['p1']:.2f} s ({BEFORE['galsim'] / BEFORE['p1']:.1f}x) at {BEFORE['rss'] / 1e6:.0f} MB peak RSS, {BEFORE['written'] / 1e6:.0f} MB written; now
+  {s1_best:.2f} s ({s1_best / BEFORE['s1']:.2f} of before) and {p1_best:.2f} s ({p1_best / BEFORE['p1']:.2f} of before) at
+  {p1_rss / 1e6:.0f} MB, {written / 1e6:.0f} MB written; the GalSim loop took {g_best / BEFORE['galsim']:.2f} of its time before
+  (the VM's speed varies between runs).
 - **agreement with the default GalSim loop**, per object (max |perscli - GalSim| over the stamp / the object's
   peak pixel, {len(rows)} objects): whole stamp median {np.median(rows['full']):.1e}, 99th percentile
   {pct(rows['full'], 99):.1e}, max {rows['full'].max():.1e}; central half of the stamp median
@@ -727,7 +802,7 @@ Per-repeat times (s): GalSim loop {fmt(g_times)}; draw_sources {fmt(s1)}; worker
 perscli render {fmt([t for t, _ in p1])}; --workers 2 {fmt([t for t, _ in p2])}.  Building the optics alone:
 {optics_s:.2f} s (first time in this process).
 {profile_md}
-{compression_md(truth, workdir, args.bounds)}"""
+{sizes_md}"""
     write_section(dest, SECTION, text)
     print(f"wrote the {SECTION} section of {dest}")
     return 0 if ok else 1
