@@ -6,7 +6,7 @@ setup(
         Extension(
             "perscli._kernels",
             ["src/perscli/_kernels.c"],
-            extra_compile_args=["-O3", "-std=c99"],
+            extra_compile_args=["-O3", "-std=c99", "-fno-trapping-math"],
         )
     ]
 )

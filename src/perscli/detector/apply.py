@@ -303,7 +303,8 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
     ny, nx = current.shape
     nplanes = current.nreads
     sci_hdus = [current.hdus[i] for i in current.sci]
-    dtype = np.dtype("f8") if sci_hdus[0].dtype == np.dtype(">f8") and sci_hdus[0].is_plain_float else np.dtype("f4")
+    # stored (big-endian) order: each block is converted and its DATASUM summed in the thread that made it
+    dtype = np.dtype(">f8") if sci_hdus[0].dtype == np.dtype(">f8") and sci_hdus[0].is_plain_float else np.dtype(">f4")
     out = np.empty((nplanes, ny, nx), dtype=dtype)
     factors = [_unit_factor(current, k) for k in range(nplanes)]
     # the fast path: the current frame's stored bytes are checksummed as they are used
@@ -313,6 +314,7 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
         peak_total = (float(electrons[-1].max()), float(electrons[-1].sum()))
         scratch = np.empty((r1 - r0, nx))
         part = 0
+        out_sums = []
         for k in range(nplanes):
             if factors[k] == 0.0:
                 work = scratch
@@ -331,15 +333,18 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
                 else:
                     np.subtract(rows, work, out=work)
             out[k, r0:r1] = work
-        return (part,) + peak_total
+            out_sums.append(_kernels.datasum(out[k, r0:r1]))
+        return (part,) + peak_total + (out_sums,)
 
     threads = workers if (fold_current or mode == "predict") else 1  # CFITSIO reads stay in one thread
     parts = map_blocks(the_plan, model, consume, workers=threads, progress=progress)
     current_sum = 0
-    for part, _, _ in parts:
+    plane_sums = [0] * nplanes
+    for part, _, _, sums in parts:
         current_sum = ones_complement_add(current_sum, part)
-    peak = max((p for _, p, _ in parts), default=0.0)
-    total = float(sum(t for _, _, t in parts))
+        plane_sums = [ones_complement_add(a, b) for a, b in zip(plane_sums, sums)]
+    peak = max((p for _, p, _, _ in parts), default=0.0)
+    total = float(sum(t for _, _, t, _ in parts))
     if fold_current and mode != "predict":
         current_sum = current.verify(current.sci[0], current_sum)
     else:
@@ -348,9 +353,15 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
     hdus = []
     for hdu in current.hdus:
         if hdu.index in current.sci:
-            data = out if current.layout == "cube" else out[current.sci.index(hdu.index)]
+            if current.layout == "cube":
+                data, datasum = out, 0
+                for s in plane_sums:
+                    datasum = ones_complement_add(datasum, s)
+            else:
+                k = current.sci.index(hdu.index)
+                data, datasum = out[k], plane_sums[k]
             extname = hdu.header.get("EXTNAME") if "EXTNAME" in hdu.header else None
-            hdus.append(OutHDU(list(hdu.header.cards), data, extname=extname))
+            hdus.append(OutHDU(list(hdu.header.cards), data, extname=extname, datasum=datasum))
         else:
             data, units = hdu.read_copy()
             hdus.append(OutHDU(list(hdu.header.cards), data, units=units))

@@ -1196,12 +1196,18 @@ class OutHDU:
     extname : str, optional
     units : sequence of str, optional
         TUNITn of a table's columns.
+    datasum : int, optional
+        The FITS DATASUM of ``data`` as stored, when whoever made ``data``
+        (big-endian, C-contiguous) summed it already, block by block in its
+        own threads; the plain-image writer then writes the bytes in one
+        call instead of summing them again in one thread.
     """
 
     cards: list
     data: object = None
     extname: str | None = None
     units: list | None = None
+    datasum: int | None = None
 
     def set(self, key: str, value, comment: str | None = None):
         """Replace ``key``'s card (and its CONTINUE cards), or append it."""
@@ -1488,7 +1494,13 @@ def _write_plain(hdus, path: str) -> None:
             start = fh.tell()
             fh.write(_header_bytes(cards))  # its size does not depend on the checksum values
             datasum, nbytes = 0, 0
-            if data is not None:
+            if data is not None and hdu.datasum is not None and data.dtype.byteorder == ">" \
+                    and data.flags.c_contiguous:
+                # stored bytes already, summed by their producer
+                datasum, nbytes = int(hdu.datasum), data.nbytes
+                fh.write(memoryview(data.reshape(-1)).cast("B"))
+                fh.write(b"\0" * (padded(nbytes) - nbytes))
+            elif data is not None:
                 # big-endian a slab at a time: no second copy of the whole image in memory
                 be = data.dtype.newbyteorder(">")
                 flat = data.reshape(-1) if data.flags.c_contiguous else np.ascontiguousarray(data).reshape(-1)
