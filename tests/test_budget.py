@@ -181,14 +181,73 @@ def test_cli_one_bin_above_fails_check_but_writes_the_output(tmp_path):
     out = tmp_path / "cmp.fits"
     result = invoke(xi, "-o", out, "--check")
     assert result.exit_code == 1, (result.output, result.stderr)
-    assert "exceeds budget in 1 of 12 bins" in result.stderr
+    # the verdict names the bin: its separation, xi+ against the budget plus N sigma, and the ratio
+    line = result.stderr.strip()
+    assert f"exceeds the budget at {THETA[5]:.3g} arcmin (xi+ = {xip[5]:.3g} > {BUDGET[5]:.3g} + 2 sigma" in line
+    assert "3 +- 0.001 x the budget" in line and line.endswith("; 1 of 12 bins")
     assert "Error" not in result.stderr
     with fits.open(out) as hdul:
         assert list(np.flatnonzero(hdul["BUDGET"].data["exceeds"])) == [5]
-        assert hdul["BUDGET"].header["BUDNEXC"] == 1
+        header = hdul["BUDGET"].header
+        assert header["BUDNEXC"] == 1 and header["BUDWBIN"] == 5
+        assert header["BUDWSEP"] == pytest.approx(THETA[5]) and header["BUDWRAT"] == pytest.approx(3.0)
+        assert header["VERDICT"] == line.split(": ", 1)[1]
     # without --check the finding is reported but the exit status is 0
     again = invoke(xi, "-o", tmp_path / "cmp2.fits")
-    assert again.exit_code == 0 and "exceeds budget in 1 of 12 bins" in again.stderr
+    assert again.exit_code == 0 and f"exceeds the budget at {THETA[5]:.3g} arcmin" in again.stderr
+
+
+def test_verdict_names_the_worst_exceeding_bin_not_a_noisy_one(tmp_path):
+    xip, sigma = BUDGET * 0.01, BUDGET * 1e-3
+    xip[2], sigma[2] = 50 * BUDGET[2], 100 * BUDGET[2]          # far over, but within its (huge) errors
+    xip[7] = 4 * BUDGET[7]                                      # over by many sigma
+    xip[9] = 2 * BUDGET[9]
+    result = compare(read_xi(xi_file(tmp_path / "xi.fits", THETA, xip, sigma)))
+    assert result.n_exceeding == 2 and result.worst == 7
+    assert result.verdict.startswith(f"exceeds the budget at {THETA[7]:.3g} arcmin (xi+ = {xip[7]:.3g} > "
+                                     f"{BUDGET[7]:.3g} + 2 sigma, sigma = {sigma[7]:.2g}: 4 +- 0.001 x the budget)")
+    assert result.verdict.endswith(f"; 2 of 12 bins exceed, at {THETA[7]:.3g}, {THETA[9]:.3g} arcmin")
+    assert [row["bin"] for row in result.exceeding()] == [7, 9]
+    assert result.exceeding()[0]["ratio"] == pytest.approx(4.0)
+
+
+def test_verdict_where_the_budget_is_negative_compares_magnitudes(tmp_path):
+    theta = np.array([200.0, 250.0])                            # arcmin: the budget is negative here
+    budget_values = xi_plus(theta * ARCMIN)
+    assert np.all(budget_values < 0)
+    xi = xi_file(tmp_path / "xi.fits", theta, [-5 * budget_values[0], 0.0], [1e-15, 1e-15])
+    result = compare(read_xi(xi))
+    assert result.n_exceeding == 1 and result.worst == 0
+    assert f"(|xi+| = {abs(5 * budget_values[0]):.3g} > |budget| {abs(budget_values[0]):.3g} + 2 sigma" in \
+        result.verdict
+
+
+def test_verdict_says_when_errors_are_shot_noise(tmp_path):
+    path = tmp_path / "xi.fits"
+    xi_file(path, THETA, BUDGET * 0.01, BUDGET * 1e-3)
+    with fits.open(path, mode="update") as hdul:
+        hdul["XI"].header["VAR_METH"] = "shot"
+    result = invoke(path, "-o", tmp_path / "cmp.fits")
+    assert result.exit_code == 0, result.stderr
+    assert result.stderr.strip().endswith("over 12 bins; errors are shot noise (no jackknife)")
+    with fits.open(tmp_path / "cmp.fits") as hdul:
+        header = hdul["BUDGET"].header
+        assert header["BUDVARM"] == "shot"
+        # below the budget: the bin closest to it is named
+        assert header["BUDWSEP"] == pytest.approx(THETA[header["BUDWBIN"]])
+
+
+def test_verdict_says_when_the_named_bin_has_a_shot_noise_error(tmp_path):
+    xip, sigma = BUDGET * 0.01, BUDGET * 1e-3
+    xip[11] = 3 * BUDGET[11]
+    path = tmp_path / "xi.fits"
+    xi_file(path, THETA, xip, sigma)
+    with fits.open(path, mode="update") as hdul:
+        hdul["XI"].header["VAR_METH"] = "jackknife"
+        hdul["XI"].header["SHOTBINS"] = "11"
+    result = compare(read_xi(str(path)))
+    assert result.worst == 11 and result.shot_bins == (11,)
+    assert result.verdict.endswith("; that bin's error is shot noise (too few pairs there for the jackknife)")
 
 
 def test_cli_above_but_within_errors_passes_check(tmp_path):
@@ -199,7 +258,8 @@ def test_cli_above_but_within_errors_passes_check(tmp_path):
     assert "within 2 sigma of the budget" in result.stderr
     # a tighter --sigma makes it a finding: 1.5 - 0.4 > 1
     tight = invoke(xi, "-o", tmp_path / "cmp2.fits", "--check", "--sigma", "0.4")
-    assert tight.exit_code == 1 and "exceeds budget in 12 of 12 bins" in tight.stderr
+    assert tight.exit_code == 1 and "+ 0.4 sigma" in tight.stderr
+    assert "12 of 12 bins exceed, at 0.5, 0.823, 1.35, 2.23, 3.67, ... arcmin" in tight.stderr
 
 
 def test_cli_budget_alone_on_a_grid_and_eb(tmp_path):

@@ -55,7 +55,7 @@ def test_help_lists_the_registered_commands(flag):
     # one command per line indented by two spaces; wrapped help lines are indented further
     names = re.findall(r"^  (\S+)", commands, re.M)
     assert names == sorted(cli.commands) == ["apply-persistence", "budget", "catalog", "correlate", "diagnose",
-                                             "measure", "pointings", "render"]
+                                             "measure", "pointings", "render", "study"]
 
 
 def test_no_command_shows_usage():

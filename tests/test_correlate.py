@@ -130,7 +130,9 @@ def test_output_layout_covariance_and_provenance(two_frames):
         head = hdul[0].header
         assert head["CREATOR"].startswith("perscli") and head["SEED"] == 3 and head["NPATCH"] == 4
         assert head["SHAPES"] == "both.fits" and "SHAPESDS" in head and head["FRAMEA"] == 0
-        assert head["GFRAME"] == "as given" and head["NOBJ"] == 2000
+        # per-frame SHAPES tables (no GAXES/GFRAME keyword) are in pixel axes
+        assert head["GFRAME"] == "pixel" and head["NOBJ"] == 2000
+        assert head["VARMETHD"] == "jackknife" and head["VARASKED"] == "auto" and "VARWHY" not in head
         assert len(hdul["PATCHES"].data) == 4 and hdul["PATCHES"].data["nobj"].sum() == 2000
     # the patch centres can be reused: the same patches, the same pairs
     out2 = t["tmp"] / "reuse.fits"
@@ -332,9 +334,11 @@ def test_nan_column(tmp_path):
 
 
 def test_too_few_objects_for_patches(tmp_path):
+    # asking for the jackknife insists on it (by default, shot noise takes over: test_correlate_few.py)
     table, *_ = shapes_frames(n=30)
     both = write_table(tmp_path / "both.fits", table)
-    one_line_error(tmp_path, [both, "--frames", 0, 1], "only 30 objects for 4 jackknife patches", "--npatch 3")
+    one_line_error(tmp_path, [both, "--frames", 0, 1, "--var-method", "jackknife"],
+                   "only 30 objects for 4 jackknife patches", "--npatch 3")
 
 
 def test_missing_column_and_frame(tmp_path, two_frames):

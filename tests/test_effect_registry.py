@@ -137,6 +137,9 @@ def test_registry_order_and_schemas():
     ("ipc.kernel=[[1,0],[0,1]]", ["ipc.kernel must be 'roman' or a 3x3 list"]),
     ("saturation.well=3", ["unknown parameter(s) well for effect 'saturation'", "valid: full_well"]),
     ("persistence.coefficients=[]", ["persistence.coefficients", "non-empty list"]),
+    ("persistence.source=-1", ["persistence.source", "[0, inf) e- | all | stars", "not -1"]),
+    ("persistence.source=planets", ["persistence.source", "finite number", "not 'planets'"]),
+    ("persistence.fluence_cap=0", ["persistence.fluence_cap", "(0, inf) e- | well | none", "not 0"]),
 ])
 def test_schema_errors_name_effect_parameter_value_and_range(setting, needles):
     from perscli import PerscliError
@@ -174,6 +177,34 @@ def test_persistence_settings_are_model_parameters():
     assert (pm.A, pm.x0, pm.gamma) == (0.086, 1.37e5, 1.2)
     linear = load_detector_model("roman", ["persistence.kind=linear", "persistence.coefficients=[1e-4, 5e-5]"])
     assert linear.persistence_model().coefficients == (1e-4, 5e-5)
+
+
+def test_persistence_source_and_fluence_cap_are_model_parameters(tmp_path):
+    from perscli.detector.effects import (Persistence, load_detector_model, model_from_table, model_table,
+                                          model_to_yaml)
+
+    m = load_detector_model("roman")
+    assert m.get("persistence").resolved()["source"] == "all"
+    assert m.get("persistence").resolved()["fluence_cap"] == "well"
+    for settings, expect in ((["persistence.source=stars"], ("stars", None, 1e5)),
+                             (["persistence.source=5e4", "persistence.fluence_cap=2e5"], ("threshold", 5e4, 2e5)),
+                             (["persistence.fluence_cap=none"], ("all", None, None)),
+                             (["saturation=off"], ("all", None, None)),
+                             (["saturation.full_well=8e4"], ("all", None, 8e4))):
+        model = load_detector_model("roman", settings)
+        assert Persistence.fluence_input(model) == expect, settings
+        # the MODEL table and the YAML keep them
+        data, _ = model_table(model)
+        again = model_from_table({n: data[n] for n in data.dtype.names}, "test")
+        assert again.describe() == model.describe()
+        path = tmp_path / "m.yaml"
+        path.write_text(model_to_yaml(model))
+        assert load_detector_model(str(path)).describe() == model.describe()
+        # the law itself does not depend on them
+        assert model.persistence_model() == load_detector_model("roman").persistence_model()
+    path = tmp_path / "stars.yaml"
+    path.write_text("effects:\n  - persistence: {source: stars, fluence_cap: none}\n")
+    assert Persistence.fluence_input(load_detector_model(str(path))) == ("stars", None, None)
 
 
 def test_default_model_saturates_and_the_switch_restores_the_old_chain():

@@ -475,3 +475,279 @@ def test_existing_output_without_overwrite(tmp_path):
 def test_usage_errors(tmp_path, args, needle):
     """Option values out of range are usage errors (exit 2), as --gain 0 is for apply-persistence."""
     expect_usage_error(tmp_path, [tmp_path / "x.fits" if a == "OUT" else a for a in args], needle)
+
+
+# -- catalogues of detector footprints ------------------------------------------------------------
+
+from perscli.scene.regions import (ARCMIN2_PER_SR, FootprintUnion, expand_polygon,  # noqa: E402
+                                   polygon_area, rectangle_solid_angle)
+
+
+def square(ra0, dec0, half_deg, rot_deg=0.0):
+    """Corners (counter-clockwise) of a square of half-side ``half_deg`` on the TAN plane at (ra0, dec0)."""
+    from perscli.scene import deproject
+
+    t = np.radians(rot_deg) + np.array([0.25, 0.75, 1.25, 1.75]) * np.pi
+    h = math.tan(math.radians(half_deg)) * math.sqrt(2)
+    return deproject(ra0, dec0, h * np.cos(t), h * np.sin(t))
+
+
+def sca_footprints(n=4, sca=7, ra=RA, dec=DEC):
+    """Footprints of SCA ``sca`` for ``n`` pointings dithered by ~2.5' around (ra, dec) (GalSim's WCS)."""
+    from perscli.scene.pointings import Pointing, sca_footprint
+
+    out = []
+    for k in range(n):
+        p = Pointing(k, 61541.97 + k * 169.8 / 86400, 139.8, ra + 0.04 * (k % 2), dec + 0.03 * (k // 2), 30.0 + k,
+                     "J129", sca)
+        out.append(sca_footprint(p))
+    return out
+
+
+def inside_convex(ra0, dec0, corners, ra, dec):
+    """Points inside one convex polygon, by the textbook gnomonic formulas (independent of perscli)."""
+    x, y = gnomonic(ra0, dec0, np.asarray(ra), np.asarray(dec))
+    cx, cy = gnomonic(ra0, dec0, *corners)
+    s = np.sign(np.sum(cx * np.roll(cy, -1) - np.roll(cx, -1) * cy))
+    ok = np.ones(len(x), dtype=bool)
+    for i in range(len(cx)):
+        j = (i + 1) % len(cx)
+        ok &= s * ((cx[j] - cx[i]) * (y - cy[i]) - (cy[j] - cy[i]) * (x - cx[i])) >= 0
+    return ok
+
+
+def clip(subject, clipper):
+    """Sutherland-Hodgman: the intersection of two convex counter-clockwise polygons [(x, y), ...]."""
+    out = list(subject)
+    for i in range(len(clipper)):
+        a, b = clipper[i], clipper[(i + 1) % len(clipper)]
+        side = lambda p: (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0])   # noqa: E731
+        src, out = out, []
+        for k in range(len(src)):
+            p, q = src[k], src[(k + 1) % len(src)]
+            sp, sq = side(p), side(q)
+            if sp >= 0:
+                out.append(p)
+            if sp * sq < 0:
+                t = sp / (sp - sq)
+                out.append((p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])))
+    return out
+
+
+def test_area_of_one_footprint_is_its_solid_angle():
+    for corners in (square(RA, DEC, 0.06, 17.0), square(200.0, 70.0, 5.0, 33.0), *sca_footprints(1)):
+        u = FootprintUnion([corners])
+        assert u.area == pytest.approx(polygon_area(*corners) * ARCMIN2_PER_SR, rel=1e-10)
+    # an axis-aligned square on the plane of its own centre: the closed form of a gnomonic rectangle
+    a = math.tan(math.radians(2.0))
+    assert FootprintUnion([square(RA, DEC, 2.0)], centre=(RA, DEC)).area == \
+        pytest.approx(box_solid_angle(-a, a, -a, a) * ARCMIN2_PER_SR, rel=1e-10)
+    assert rectangle_solid_angle(-a, a, -a, a) == pytest.approx(box_solid_angle(-a, a, -a, a), rel=1e-14)
+
+
+def test_area_of_overlapping_footprints_counts_the_overlap_once():
+    from perscli.scene import deproject
+
+    a, b = square(RA, DEC, 0.06, 17.0), square(RA + 0.05, DEC + 0.03, 0.06, 40.0)
+    u = FootprintUnion([a, b])
+    # the overlap, clipped on the plane where both are straight-sided, then measured on the sphere
+    pa = list(zip(*gnomonic(u.ra, u.dec, *a)))
+    pb = list(zip(*gnomonic(u.ra, u.dec, *b)))
+    both = clip(pa, pb)
+    assert len(both) >= 3
+    ora, odec = deproject(u.ra, u.dec, [p[0] for p in both], [p[1] for p in both])
+    expect = polygon_area(*a) + polygon_area(*b) - polygon_area(ora, odec)
+    assert u.area == pytest.approx(expect * ARCMIN2_PER_SR, rel=1e-6)
+    # a footprint inside another adds nothing; disjoint ones add up
+    assert FootprintUnion([a, square(RA, DEC, 0.01)]).area == pytest.approx(polygon_area(*a) * ARCMIN2_PER_SR,
+                                                                             rel=1e-9)
+    far = square(RA + 1.0, DEC, 0.06)
+    assert FootprintUnion([a, far]).area == pytest.approx((polygon_area(*a) + polygon_area(*far)) * ARCMIN2_PER_SR,
+                                                          rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def footprint_catalog():
+    """Four dithered SCA footprints (+30"), galaxies at 40 and stars at 60 per arcmin^2."""
+    fps = sca_footprints(4)
+    return fps, make_truth_catalog(footprints=fps, margin_arcsec=30.0, star_density=60.0, seed=21)
+
+
+def test_footprint_catalog_counts_are_poisson_with_the_densities(footprint_catalog):
+    fps, table = footprint_catalog
+    u = FootprintUnion(fps, 30.0)
+    assert table.meta["FIELDAR"] == pytest.approx(u.area, rel=1e-6)
+    assert table.meta["REGION"] == "footprints" and table.meta["NFOOT"] == 4 and table.meta["FOOTMARG"] == 30.0
+    assert u.area < table.meta["BOXAREA"]
+    for kind, density in (("galaxy", 40.0), ("star", 60.0)):
+        sub = table[table["kind"] == kind]
+        lam = density * u.area
+        assert abs(len(sub) - lam) < 4 * math.sqrt(lam), (kind, len(sub), lam)
+        # and in each footprint on its own (grown by the margin): Poisson with its own solid angle
+        for corners in fps:
+            grown = expand_polygon(*corners, 30.0)
+            n = inside_convex(u.ra, u.dec, grown, sub["ra"], sub["dec"]).sum()
+            lam_k = density * polygon_area(*grown) * ARCMIN2_PER_SR
+            assert abs(n - lam_k) < 4 * math.sqrt(lam_k), (kind, n, lam_k)
+
+
+def test_footprint_catalog_has_nothing_outside_the_grown_footprints(footprint_catalog):
+    fps, table = footprint_catalog
+    u = FootprintUnion(fps, 30.0)
+    grown = [expand_polygon(*c, 30.0) for c in fps]
+    inside = np.zeros(len(table), dtype=bool)
+    for g in grown:
+        inside |= inside_convex(u.ra, u.dec, g, table["ra"], table["dec"])
+    assert inside.all()
+    # the margin is populated: objects outside every footprint itself, within 30" of one
+    bare = np.zeros(len(table), dtype=bool)
+    for c in fps:
+        bare |= inside_convex(u.ra, u.dec, c, table["ra"], table["dec"])
+    assert 0.05 < (~bare).mean() < 0.3
+    assert set(table["kind"]) == {"galaxy", "star"}
+    assert np.all(table["hlr"][table["kind"] == "star"] == 0) and np.all(table["gaia_id"] == -1)
+
+
+def test_footprint_positions_are_uniform_in_solid_angle():
+    """A 20-degree footprint at Dec 60: counts in its quadrants follow their exact solid angles."""
+    from perscli.scene import deproject
+
+    big = square(200.0, 60.0, 10.0, 20.0)
+    table = make_truth_catalog(footprints=[big], margin_arcsec=0.0, galaxy_density=0.0, star_density=0.02,
+                               seed=5)
+    u = FootprintUnion([big])
+    cx, cy = gnomonic(u.ra, u.dec, *big)
+    mx, my = cx.mean(), cy.mean()
+    counts, expect = [], []
+    for i in range(4):
+        j = (i + 1) % 4
+        # the triangle of the centre and side (i, j): straight on the plane, a spherical triangle
+        tri = [(mx, my), (cx[i], cy[i]), (cx[j], cy[j])]
+        tra, tdec = deproject(u.ra, u.dec, [p[0] for p in tri], [p[1] for p in tri])
+        counts.append(inside_convex(u.ra, u.dec, (tra, tdec), table["ra"], table["dec"]).sum())
+        expect.append(0.02 * polygon_area(tra, tdec) * ARCMIN2_PER_SR)
+    counts, expect = np.array(counts), np.array(expect)
+    assert counts.sum() == len(table)
+    chi2 = np.sum((counts - expect) ** 2 / expect)
+    assert stats.chi2.sf(chi2, len(counts)) > 1e-3, (counts, expect)
+
+
+def test_expand_polygon_contains_every_point_within_the_margin():
+    from perscli.scene import deproject
+
+    corners = sca_footprints(1)[0]
+    grown = expand_polygon(*corners, 30.0)
+    ra0, dec0 = np.mean(corners[0]), np.mean(corners[1])
+    cx, cy = gnomonic(ra0, dec0, *corners)
+    m = math.radians(30.0 / 3600.0)
+    for i in range(4):
+        j = (i + 1) % 4
+        mid = np.array([(cx[i] + cx[j]) / 2, (cy[i] + cy[j]) / 2])
+        out = mid - np.array([np.mean(cx), np.mean(cy)])
+        edge = np.array([cx[j] - cx[i], cy[j] - cy[i]])
+        normal = np.array([edge[1], -edge[0]]) / np.hypot(*edge)
+        normal *= np.sign(normal @ out)
+        for f, want in ((0.98, True), (1.02, False)):
+            pra, pdec = deproject(ra0, dec0, *(mid + f * m * normal))
+            assert inside_convex(ra0, dec0, grown, [pra], [pdec])[0] == want
+    assert polygon_area(*grown) > polygon_area(*corners)
+    with pytest.raises(PerscliError, match="margin"):
+        expand_polygon(*corners, -1.0)
+
+
+def test_footprint_catalog_same_seed_same_bytes_and_galaxies_independent_of_stars(tmp_path):
+    fps = sca_footprints(2)
+    a, b, c = (tmp_path / f"{k}.fits" for k in "abc")
+    from perscli.scene.catalog import make_truth_catalog_file
+
+    for out, seed in ((a, 4), (b, 4), (c, 5)):
+        make_truth_catalog_file(str(out), footprints=fps, margin_arcsec=10.0, seed=seed)
+    assert raw_cards_masked(a) == raw_cards_masked(b) != raw_cards_masked(c)
+    g1 = galaxies(make_truth_catalog(footprints=fps, margin_arcsec=10.0, seed=4, star_density=1.0))
+    g2 = galaxies(make_truth_catalog(footprints=fps, margin_arcsec=10.0, seed=4, star_density=9.0))
+    assert len(g1) > 100 and np.array_equal(g1["ra"], g2["ra"]) and np.array_equal(g1["e1"], g2["e1"])
+    # the square field's catalogue is what it always was: no footprint keyword in it
+    sq = make_truth_catalog(RA, DEC, 3.0, seed=4)
+    assert "REGION" not in sq.meta and "FOOTPRINTS" not in sq.meta and sq.meta["FIELDSZ"] == 3.0
+
+
+def test_library_call_with_a_field_centre_and_footprints(tmp_path):
+    """As a study calls it: the field centre as the tangent point, footprints, margin, densities, seed."""
+    from perscli.scene.catalog import make_truth_catalog_file
+
+    out = tmp_path / "truth.fits"
+    table = make_truth_catalog_file(str(out), RA, DEC, footprints=sca_footprints(3), margin_arcsec=20.0,
+                                    galaxy_density=40.0, star_density=2.5, gaia=None, seed=3, overwrite=True)
+    with fits.open(out, checksum=True) as hdul:
+        assert [h.name for h in hdul] == ["PRIMARY", "TRUTH", "FOOTPRNT"]
+        hdr = hdul["TRUTH"].header
+        assert hdr["FIELDRA"] == RA and hdr["FIELDDEC"] == DEC and hdr["NFOOT"] == 3 and hdr["FOOTMARG"] == 20.0
+        assert hdr["NGAL"] + hdr["NSTAR"] == len(hdul["TRUTH"].data) == len(table)
+        assert "footprints=3 margin=20.0" in str(hdr["HISTORY"])
+        corners = hdul["FOOTPRNT"].data
+        assert corners["corner_ra"].shape == (3, 4)
+        np.testing.assert_array_equal(corners["corner_dec"][1], sca_footprints(3)[1][1])
+        assert hdul["FOOTPRNT"].header["FOOTMARG"] == 20.0
+    for kwargs, needle in ((dict(footprints=[]), "at least one"),
+                           (dict(footprints=[square(RA, DEC, 0.1)], size=5.0), "not both"),
+                           (dict(footprints=[(np.array([1.0, 2.0, 2.0, 1.0]), np.array([0.0, 1.0, 0.0, 1.0]))]),
+                            "convex"),
+                           (dict(footprints=[square(RA, DEC, 0.1), square(RA + 150, 0.0, 0.1)]), "60 degrees"),
+                           (dict(footprints=[square(RA, DEC, 0.1)], margin_arcsec=-2.0), "margin")):
+        with pytest.raises(PerscliError, match=needle):
+            make_truth_catalog(**kwargs)
+
+
+def test_cli_footprints_of_a_pointings_table(tmp_path):
+    from perscli.scene.pointings import read_pointings, sca_footprint
+
+    ptg = tmp_path / "p.fits"
+    assert invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 3, "--dither", 120, "--start", 61541.97,
+                  "--pa", 30, "--sca", 7, "-o", ptg).exit_code == 0
+    out, again = tmp_path / "cat.fits", tmp_path / "again.fits"
+    for path in (out, again):
+        result = invoke("catalog", "--footprints", ptg, "--margin", 15, "--seed", 2, "-o", path)
+        assert result.exit_code == 0, result.stderr
+    assert raw_cards_masked(out) == raw_cards_masked(again)
+    pts = read_pointings(str(ptg))
+    with fits.open(out) as hdul:
+        hdr = hdul["TRUTH"].header
+        assert hdr["PTGS"] == "p.fits" and hdr["PTGSDS"].isdigit() and hdr["FOOTMARG"] == 15.0
+        for row, p in zip(hdul["FOOTPRNT"].data, pts):
+            np.testing.assert_array_equal(row["corner_ra"], sca_footprint(p)[0])
+        data = hdul["TRUTH"].data
+    lib = make_truth_catalog(footprints=[sca_footprint(p) for p in pts], margin_arcsec=15.0, seed=2)
+    assert np.array_equal(lib["ra"], data["ra"]) and np.array_equal(lib["kind"], np.char.strip(data["kind"]))
+    # --sca chooses another detector of the same pointings; --bounds a cutout of it
+    assert invoke("catalog", "--footprints", ptg, "--sca", 3, "--bounds", 1, 512, 1, 512, "-o",
+                  tmp_path / "cut.fits").exit_code == 0
+    with fits.open(tmp_path / "cut.fits") as hdul:
+        np.testing.assert_array_equal(hdul["FOOTPRNT"].data["corner_ra"][0],
+                                      sca_footprint(pts[0], 3, bounds=(1, 512, 1, 512))[0])
+
+
+def test_cli_footprints_errors(tmp_path):
+    ptg = tmp_path / "p.fits"
+    assert invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--start", 61541.97,
+                  "-o", ptg).exit_code == 0
+    # rows without an SCA and no --sca: one line
+    expect_one_line_error(tmp_path, ["catalog"], ["--footprints", ptg], "--sca")
+    for args, needle in ((["--footprints", ptg, "--ra", RA], "--ra is for a square field"),
+                         (["--footprints", ptg, "--size", 3], "--size is for a square field"),
+                         (["--ra", RA, "--dec", DEC, "--margin", 5], "--margin is for --footprints"),
+                         (["--ra", RA, "--dec", DEC, "--sca", 3], "--sca is for --footprints"),
+                         (["--footprints", ptg, "--sca", 19], "--sca"),
+                         (["--footprints", ptg, "--sca", 1, "--margin", -1], "--margin")):
+        expect_usage_error(tmp_path, [*args, "-o", tmp_path / "x.fits"], needle)
+
+
+def test_footprint_catalog_with_gaia_keeps_the_stars_inside(shared_data, tmp_path):
+    gaia = [str(shared_data / "gaia" / f) for f in ("145649.fits", "145650.fits")]
+    fps = sca_footprints(4, ra=10.5)                    # SCA 7 then lies near RA 10, inside the Gaia chunks
+    table = make_truth_catalog(footprints=fps, margin_arcsec=30.0, gaia=gaia, seed=1)
+    u = FootprintUnion(fps, 30.0)
+    square_cat = make_truth_catalog(u.ra, u.dec, 40.0, gaia=gaia, seed=1)
+    s_in = stars(square_cat)[u.contains(stars(square_cat)["ra"], stars(square_cat)["dec"])]
+    got = stars(table)
+    assert len(got) > 10 and set(got["gaia_id"]) == set(s_in["gaia_id"])
+    assert table.meta["STARSRC"] == "gaia" and table.meta["NSTAR"] == len(got)

@@ -12,8 +12,9 @@ import pytest
 from astropy.io import fits
 
 from perscli import PerscliError
-from perscli.scene.pointings import (Pointing, Schedule, plan_dithers, read_pointings, read_schedule,
-                                     select_covering, write_pointings)
+from perscli.scene.pointings import (Pointing, Schedule, plan_dithers, previous_exposures, read_pointings,
+                                     read_schedule, sca_footprint, schedule_pointing, select_covering,
+                                     write_pointings)
 
 from fits_factory import expect_one_line_error, invoke, listing, raw_cards_masked
 
@@ -87,8 +88,11 @@ def test_real_schedule_all_filters_limit_after_and_sca(was):
     assert len(sched) == 16956
     every = select_covering(sched, RA, DEC, 1.0)
     assert len({p.filter for p in every}) == 6 and len(every) > 1000
+    # with an SCA, the exposures that put it on the field (test_real_schedule_sca_footprint_selection);
+    # --limit keeps the earliest of those
     first = select_covering(sched, RA, DEC, 1.0, limit=5, sca=7)
-    assert first == [Pointing(**{**p.__dict__, "sca": 7}) for p in every[:5]]
+    assert first == select_covering(sched, RA, DEC, 1.0, sca=7)[:5]
+    assert all(p.sca == 7 for p in first)
     later = select_covering(sched, RA, DEC, 1.0, after=every[2].mjd)
     assert later[0] == every[3] and all(p.mjd > every[2].mjd for p in later)
 
@@ -335,3 +339,250 @@ def test_schedule_through_real_pipes(tmp_path):
     with fits.open(piped, checksum=True) as a, fits.open(direct) as b:
         assert list(a["POINTINGS"].data["expid"]) == [0, 5]
         assert a["POINTINGS"].data.tobytes() == b["POINTINGS"].data.tobytes()
+
+
+# -- SCA footprints ------------------------------------------------------------------------------
+
+#: a pointing Roman can observe (RA 10, Dec -44 is 54-126 degrees from the Sun on this date)
+P7 = Pointing(expid=0, mjd=61541.97, exptime=139.8, ra=RA, dec=DEC, pa=30.0, filter="J129", sca=7)
+
+
+def galsim_corners(p, sca, x, y):
+    """Sky positions of SCA pixels through GalSim's Roman WCS directly (independent of perscli)."""
+    import datetime
+
+    import galsim
+    import galsim.roman
+
+    date = datetime.datetime(1858, 11, 17) + datetime.timedelta(days=p.mjd)
+    wcs = galsim.roman.getWCS(world_pos=galsim.CelestialCoord(p.ra * galsim.degrees, p.dec * galsim.degrees),
+                              PA=p.pa * galsim.degrees, date=date, SCAs=sca)[sca]
+    return wcs.xyToradec(np.asarray(x, float), np.asarray(y, float), units="deg")
+
+
+def test_sca_footprint_is_the_wcs_of_the_outer_pixel_edges():
+    ra, dec = sca_footprint(P7, 7)
+    gra, gdec = galsim_corners(P7, 7, [0.5, 4088.5, 4088.5, 0.5], [0.5, 0.5, 4088.5, 4088.5])
+    np.testing.assert_allclose(ra, gra, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(dec, gdec, rtol=0, atol=1e-12)
+    # the sides are 4088 pixels of ~0.11" (the plate scale varies by a few per cent over the focal plane)
+    sides = distance(ra, dec, np.roll(ra, -1), np.roll(dec, -1)) * 3600
+    assert np.all(np.abs(sides / (4088 * 0.11) - 1) < 0.05)
+    # the pointing's own SCA is the default, and a cutout has its own corners
+    assert np.array_equal(sca_footprint(P7)[0], ra)
+    cra, cdec = sca_footprint(P7, 7, bounds=(1, 512, 101, 612))
+    gra, gdec = galsim_corners(P7, 7, [0.5, 512.5, 512.5, 0.5], [100.5, 100.5, 612.5, 612.5])
+    np.testing.assert_allclose(cra, gra, atol=1e-12)
+    np.testing.assert_allclose(cdec, gdec, atol=1e-12)
+
+
+def test_sca_footprint_margin_and_edges_are_great_circles():
+    from perscli.scene import project
+
+    ra, dec = sca_footprint(P7, 7)
+    mra, mdec = sca_footprint(P7, 7, margin_arcsec=30.0)
+    # each corner moves out diagonally by ~30" x sqrt(2)
+    moved = distance(ra, dec, mra, mdec) * 3600
+    np.testing.assert_allclose(moved, 30 * math.sqrt(2), rtol=0.05)
+    # pixels along the edges lie on the great-circle arcs between the corners (straight on a TAN plane)
+    t = np.linspace(0.5, 4088.5, 33)
+    ex, ey = np.concatenate([t, np.full(33, 4088.5)]), np.concatenate([np.full(33, 0.5), t])
+    era, edec = galsim_corners(P7, 7, ex, ey)
+    x, y = project(ra.mean(), dec.mean(), np.concatenate([ra, era]), np.concatenate([dec, edec]))
+    cx, cy, px, py = x[:4], y[:4], x[4:], y[4:]
+    for (a, b), pts in (((0, 1), slice(0, 33)), ((1, 2), slice(33, 66))):
+        d = np.array([cx[b] - cx[a], cy[b] - cy[a]])
+        n = np.array([-d[1], d[0]]) / np.hypot(*d)
+        off = np.abs((px[pts] - cx[a]) * n[0] + (py[pts] - cy[a]) * n[1])
+        assert np.degrees(off.max()) * 3600 < 0.01
+
+
+def test_every_sca_lies_within_the_focal_plane_reach():
+    from perscli.scene.pointings import FPA_REACH_DEG
+
+    for pa in (0.0, 123.0):
+        p = Pointing(**{**P7.__dict__, "pa": pa})
+        for sca in range(1, 19):
+            ra, dec = sca_footprint(p, sca)
+            reach = distance(p.ra, p.dec, ra, dec).max()
+            assert 0.1 < reach < FPA_REACH_DEG
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    (dict(sca=0, pointing=Pointing(**{**P7.__dict__, "sca": 0})), "give an SCA"),
+    (dict(sca=19), "1 to 18"),
+    (dict(sca=7, bounds=(0, 10, 1, 10)), "bounds"),
+    (dict(sca=7, margin_arcsec=-1.0), "margin"),
+    (dict(sca=7, pointing=Pointing(**{**P7.__dict__, "mjd": 60000.0})), "Roman cannot point at"),
+])
+def test_sca_footprint_errors(kwargs, needle):
+    pointing = kwargs.pop("pointing", P7)
+    with pytest.raises(PerscliError, match=needle):
+        sca_footprint(pointing, **kwargs)
+
+
+def test_polygon_meets_circle_exactly():
+    from perscli.scene.regions import polygon_meets_circle
+
+    ra, dec = sca_footprint(P7, 7)
+    cra, cdec = ra.mean(), dec.mean()
+    assert polygon_meets_circle(ra, dec, cra, cdec, 1e-4)                   # the centre inside
+    # a circle just short of a side's midpoint, and just past it
+    mra, mdec = (ra[0] + ra[1]) / 2, (dec[0] + dec[1]) / 2
+    far = 2 * distance(cra, cdec, mra, mdec)
+    ora, odec = cra + 2 * (mra - cra), cdec + 2 * (mdec - cdec)          # beyond the side, about as far
+    gap = distance(ora, odec, mra, mdec)
+    assert not polygon_meets_circle(ra, dec, ora, odec, gap * 0.98)
+    assert polygon_meets_circle(ra, dec, ora, odec, gap * 1.02)
+    assert far > 0 and not polygon_meets_circle(ra, dec, cra + 5, cdec, 1.0)
+
+
+def test_real_schedule_sca_footprint_selection(was):
+    """SCA 7 on a small field: every exposure whose SCA 7 footprint (checked independently, pixel by
+    pixel along its edges through GalSim) comes within the radius, and no other."""
+    sched = read_schedule(was)
+    radius = 0.05
+    chosen = select_covering(sched, RA, DEC, radius, sca=7)
+    assert 3 <= len(chosen) < 200 and all(p.sca == 7 for p in chosen)
+    assert np.all(np.diff([p.mjd for p in chosen]) > 0)
+    got = {p.expid for p in chosen}
+    # independent check of the rows whose boresight is within 1 degree (the SCAs reach 0.45)
+    near = np.flatnonzero(distance(RA, DEC, sched.ra, sched.dec) <= radius + 0.6)
+    t = np.linspace(0.5, 4088.5, 400)
+    edge_x = np.concatenate([t, np.full_like(t, 4088.5), t, np.full_like(t, 0.5)])
+    edge_y = np.concatenate([np.full_like(t, 0.5), t, np.full_like(t, 4088.5), t])
+    expect = set()
+    for i in near:
+        p = schedule_pointing(sched, i)
+        era, edec = galsim_corners(p, 7, edge_x, edge_y)
+        if distance(RA, DEC, era, edec).min() <= radius * 0.999:
+            expect.add(int(i))
+            continue
+        # or the field centre inside the SCA
+        import datetime
+
+        import galsim
+        import galsim.roman
+
+        date = datetime.datetime(1858, 11, 17) + datetime.timedelta(days=p.mjd)
+        wcs = galsim.roman.getWCS(world_pos=galsim.CelestialCoord(p.ra * galsim.degrees, p.dec * galsim.degrees),
+                                  PA=p.pa * galsim.degrees, date=date, SCAs=7)[7]
+        x, y = wcs.radecToxy(RA, DEC, units="deg")
+        if 0.5 <= x <= 4088.5 and 0.5 <= y <= 4088.5:
+            expect.add(int(i))
+    # rows within a hair of the radius may go either way by the edge sampling; none is here
+    assert got == expect
+    boresight = {p.expid for p in select_covering(sched, RA, DEC, radius)}
+    assert got != boresight
+
+
+def test_sca_selection_on_a_small_schedule(tmp_path):
+    # boresights 0.3 degrees apart along RA: at PA 30, SCA 7 lies off the boresight
+    rows = [(61541.97 + i * 169.8 / DAY, 139.8, RA + 0.1 * i, DEC, 30.0, "J129") for i in range(-8, 9)]
+    sched = read_schedule(schedule_file(tmp_path / "s.fits", rows))
+    radius = 0.02
+    chosen = select_covering(sched, RA, DEC, radius, sca=7)
+    from perscli.scene.regions import polygon_meets_circle
+
+    for i in range(len(sched)):
+        p = schedule_pointing(sched, i)
+        hit = polygon_meets_circle(*sca_footprint(p, 7), RA, DEC, radius)
+        assert hit == (i in {q.expid for q in chosen})
+    assert chosen and 8 not in {q.expid for q in chosen}          # the boresight row does not see it
+
+
+# -- the exposures before a row ----------------------------------------------------------------------
+
+def test_previous_exposures_in_time_order_whatever_filter_and_pointing(tmp_path):
+    rows = [(60000.0 + t / DAY, 139.8, ra, DEC, 0.0, f) for t, ra, f in
+            [(500, 10, "J129"), (0, 50, "H158"), (1000, 200, "Y106"), (300, 10, "J129"), (1000, 10, "J129"),
+             (700, 10, "F184"), (float("nan"), 10, "J129")]]
+    sched = read_schedule(schedule_file(tmp_path / "s.fits", rows))
+    # row 2 starts at t=1000: the rows starting before it, earliest first; row 4 (same start) is not earlier
+    assert [p.expid for p in previous_exposures(sched, 2, 10)] == [1, 3, 0, 5]
+    assert [p.expid for p in previous_exposures(sched, 2, 2)] == [0, 5]
+    assert [p.expid for p in previous_exposures(sched, 2, 2, sca=7)] == [0, 5]
+    assert all(p.sca == 7 for p in previous_exposures(sched, 2, 2, sca=7))
+    assert previous_exposures(sched, 1, 3) == [] and previous_exposures(sched, 2, 0) == []
+    p = previous_exposures(sched, 0, 1)[0]
+    assert p == schedule_pointing(sched, 3) and p.filter == "J129" and p.mjd == rows[3][0]
+    for args, needle in (((7, 1), "row 7 does not exist"), ((-1, 1), "does not exist"), ((2, -1), ">= 0"),
+                         ((6, 1), "no finite start")):
+        with pytest.raises(PerscliError, match=needle):
+            previous_exposures(sched, *args)
+
+
+def test_previous_exposures_of_the_real_schedule(was, tmp_path):
+    sched = read_schedule(was)
+    prev = previous_exposures(sched, 4183, 10)
+    assert [p.expid for p in prev] == list(range(4173, 4183))        # the schedule is in time order
+    # the survey changes filter at row 4576 (J129 to H158): the history of row 4578 crosses it
+    assert [p.filter for p in previous_exposures(sched, 4578, 4)] == ["J129", "J129", "H158", "H158"]
+    out = tmp_path / "prev.fits"
+    result = invoke("pointings", "--schedule", was, "--before", 4183, "--n", 10, "--sca", 7, "--footprints",
+                    "-o", out)
+    assert result.exit_code == 0, result.stderr
+    with fits.open(out, checksum=True) as hdul:
+        data, hdr = hdul["POINTINGS"].data, hdul["POINTINGS"].header
+        assert list(data["expid"]) == list(range(4173, 4183)) and np.all(data["sca"] == 7)
+        assert hdr["PTMODE"] == "before" and hdr["PTBEFORE"] == 4183 and hdr["PTN"] == 10
+        assert data["corner_ra"].shape == (10, 4)
+        ra, dec = sca_footprint(prev[3], 7)
+        np.testing.assert_array_equal(data["corner_ra"][3], ra)
+        np.testing.assert_array_equal(data["corner_dec"][3], dec)
+        assert hdul["POINTINGS"].columns["corner_ra"].unit == "deg"
+    # the table reads back as pointings (the corner columns are extra)
+    assert read_pointings(str(out)) == [Pointing(**{**p.__dict__, "sca": 7}) for p in prev]
+
+
+def test_cli_before_warns_when_the_schedule_starts_later(tmp_path):
+    path = schedule_file(tmp_path / "s.fits")
+    out = tmp_path / "p.fits"
+    result = invoke("pointings", "--schedule", path, "--before", 2, "--n", 5, "-o", out)
+    assert result.exit_code == 0 and "only 2 exposure(s)" in result.stderr
+    with fits.open(out) as hdul:
+        assert list(hdul["POINTINGS"].data["expid"]) == [0, 1]
+    result = invoke("pointings", "--schedule", path, "--before", 99, "--n", 5, "-o", tmp_path / "q.fits")
+    assert result.exit_code == 1 and "row 99 does not exist" in result.stderr
+    assert not (tmp_path / "q.fits").exists()
+
+
+def test_cli_footprints_of_a_selection_and_a_plan(was, tmp_path):
+    out = tmp_path / "sel.fits"
+    result = invoke("pointings", "--schedule", was, "--ra", RA, "--dec", DEC, "--radius", 0.05, "--sca", 7,
+                    "--filter", "J129", "--footprints", "-o", out)
+    assert result.exit_code == 0, result.stderr
+    with fits.open(out) as hdul:
+        data, hdr = hdul["POINTINGS"].data, hdul["POINTINGS"].header
+        assert hdr["PTCOVER"] == "sca footprint" and hdr["PTSCA"] == 7 and len(data) > 0
+        for row in data:
+            p = Pointing(int(row["expid"]), row["mjd"], row["exptime"], row["ra"], row["dec"], row["pa"],
+                         row["filter"].strip(), int(row["sca"]))
+            assert np.array_equal(sca_footprint(p)[0], row["corner_ra"])
+    plan = tmp_path / "plan.fits"
+    result = invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--start", 61541.97, "--sca", 3,
+                    "--footprints", "-o", plan)
+    assert result.exit_code == 0, result.stderr
+    with fits.open(plan) as hdul:
+        assert hdul["POINTINGS"].data["corner_dec"].shape == (2, 4)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--schedule", "S", "--before", 3], "--before needs --n"),
+    (["--schedule", "S", "--before", 3, "--n", 2, "--ra", RA], "--ra is not for --before"),
+    (["--schedule", "S", "--before", 3, "--n", 2, "--filter", "J129"], "--filter is not for --before"),
+    (["--schedule", "S", "--before", 3, "--n", 2, "--seed", 4], "--seed is not for --before"),
+    (["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--before", 1], "--before is for --schedule"),
+    (["--schedule", "S", "--ra", RA, "--dec", DEC, "--radius", 1, "--n", 3], "--n is for --plan or --before"),
+    (["--schedule", "S", "--ra", RA, "--dec", DEC, "--radius", 1, "--footprints"], "--footprints needs --sca"),
+    (["--schedule", "S", "--dec", DEC, "--radius", 1], "--ra"),
+])
+def test_usage_errors_of_before_and_footprints(tmp_path, args, needle):
+    args = [schedule_file(tmp_path / "s.fits") if a == "S" else a for a in args]
+    expect_usage_error(tmp_path, args, needle)
+
+
+def test_plan_on_a_date_roman_cannot_observe_is_one_line(tmp_path):
+    # the default --start (MJD 60000) is too close to the Sun for RA 10, Dec -44: footprints say so
+    expect_one_line_error(tmp_path, ["pointings"], ["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7,
+                                                    "--footprints"], "Roman cannot point at", "--start")

@@ -57,7 +57,12 @@ def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, check, outp
     sigma_xip / |budget|, and per bin whether |xip| - N sigma_xip > |budget|
     (--sigma N).  Bins without pairs (weight 0) are skipped.  A one-line
     verdict goes to stderr, e.g. 'below budget by 1.8 orders of magnitude at
-    worst (theta = 0.5 arcmin)', and into the header (VERDICT).
+    worst (theta = 0.5 arcmin)', and into the header (VERDICT).  When bins
+    exceed, it names the one furthest over its budget, e.g. 'exceeds the
+    budget at 2.5 arcmin (xi+ = 1.2e-07 > 5.45e-08 + 2 sigma, sigma = 3e-09:
+    2.2 +- 0.055 x the budget); 1 of 20 bins', and the header gives that
+    bin (BUDWBIN, BUDWSEP, BUDWRAT).  Errors that are shot noise (correlate
+    without a jackknife) are said in the verdict.
 
     Output: a FITS table 'BUDGET': theta, xip_budget, and with XI also xip,
     sigma_xip, ratio, sigma_ratio, exceeds; the bands, modes and --sigma in

@@ -6,17 +6,35 @@ import logging
 
 import click
 
+from ..instrument import ROMAN_N_SCA, ROMAN_SCA_SIZE
 from .helpers import check_outputs, report_errors
-from .options import dec_opt, output_opt, overwrite_opt, ra_opt, seed_opt, verbosity_opts
+from .options import output_opt, overwrite_opt, seed_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
+
+# --ra/--dec as in every command (perscli.cli.options), but --footprints needs neither
+ra_opt = click.option("--ra", type=float, default=None, metavar="DEG",
+                      help="Field centre: right ascension in degrees (ICRS).")
+dec_opt = click.option("--dec", type=click.FloatRange(-90, 90), default=None, metavar="DEG",
+                       help="Field centre: declination in degrees (ICRS).")
 
 
 @click.command("catalog", short_help="Draw a truth catalog of galaxies and stars for a field.")
 @ra_opt
 @dec_opt
-@click.option("--size", type=click.FloatRange(min=0, max=3600, min_open=True, max_open=True), default=10.0,
-              show_default=True, metavar="ARCMIN", help="Side of the square field on the tangent plane.")
+@click.option("--size", type=click.FloatRange(min=0, max=3600, min_open=True, max_open=True), default=None,
+              metavar="ARCMIN", help="Side of the square field on the tangent plane  [default: 10].")
+@click.option("--footprints", "footprints", metavar="POINTINGS.fits", default=None,
+              help="Instead of a square: the union of the SCA footprints of every row of this pointings table "
+                   "(perscli pointings), each grown by --margin.")
+@click.option("--sca", type=click.IntRange(0, ROMAN_N_SCA), default=0, show_default=True, metavar="N",
+              help=f"--footprints: the detector (1-{ROMAN_N_SCA}); 0: each row's own sca.")
+@click.option("--margin", type=click.FloatRange(min=0), default=None, metavar="ARCSEC",
+              help="--footprints: grow each footprint by this much, so that objects just off a detector still "
+                   "spill light onto it  [default: 30].")
+@click.option("--bounds", type=int, nargs=4, default=None, metavar="XMIN XMAX YMIN YMAX",
+              help=f"--footprints: the footprint of this cutout (1-indexed inclusive SCA pixels, as render "
+                   f"--bounds) [default: the full {ROMAN_SCA_SIZE} x {ROMAN_SCA_SIZE}].")
 @click.option("--galaxy-density", type=click.FloatRange(min=0), default=40.0, show_default=True,
               metavar="PER_ARCMIN2", help="Mean number of galaxies per arcmin^2 (Poisson).")
 @click.option("--star-density", type=click.FloatRange(min=0), default=2.5, show_default=True,
@@ -28,12 +46,19 @@ log = logging.getLogger("perscli")
 @output_opt
 @overwrite_opt
 @verbosity_opts
+@click.pass_context
 @report_errors
-def catalog(ra, dec, size, galaxy_density, star_density, gaia, seed, output, overwrite):
-    """Draw a truth catalog of galaxies and stars for a square field.
+def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density, star_density, gaia, seed, output,
+            overwrite):
+    """Draw a truth catalog of galaxies and stars for a square field or detector footprints.
 
     The field is a square of --size arcmin on the tangent plane at (--ra,
-    --dec); positions are uniform in solid angle and counts are Poisson.
+    --dec), or with --footprints POINTINGS.fits the union of the SCA
+    footprints (GalSim's Roman WCS) of every row of that table (for --sca N,
+    or each row's own sca), each grown by --margin arcsec (default 30) so
+    that objects just off an edge still spill light onto the detector: only
+    what the exposures see is drawn.  Positions are uniform in solid angle
+    and counts are Poisson, at the same densities in both cases.
     Galaxies are exponential profiles: J129 (AB) from dN/dm ~ 10^(0.28 m)
     for 20 <= J <= 25.5 (deep near-infrared counts), J-H ~ N(0.30, 0.15),
     log10(hlr/arcsec) ~ N(log10(0.35) - 0.08 (J - 23), 0.2) within
@@ -51,7 +76,8 @@ def catalog(ra, dec, size, galaxy_density, star_density, gaia, seed, output, ove
     ln(wavelength) through J129 and H158.  The output is a FITS table
     'TRUTH': id, ra, dec, kind, mag_R062 ... mag_W146, hlr, e1, e2 (as
     galsim.Shear(g1, g2)), gaia_id; its header holds the field, the models
-    and the seed.  The same seed gives the same catalog.
+    and the seed (with --footprints also a table FOOTPRNT of their corners).
+    The same seed gives the same catalog.
 
     \b
     Examples:
@@ -59,14 +85,38 @@ def catalog(ra, dec, size, galaxy_density, star_density, gaia, seed, output, ove
       perscli catalog --ra 10 --dec -44 --size 150 --seed 7 -o field.fits
       perscli catalog --ra 10 --dec -44 --gaia 145649.fits --gaia 145650.fits -o truth.fits
       perscli catalog --ra 10 --dec -44 --galaxy-density 0 -o - | gzip > stars.fits.gz
+      perscli catalog --footprints sca7.fits --sca 7 --margin 30 --gaia 145649.fits -o truth.fits
     """
-    from ..scene.catalog import make_truth_catalog_file
+    from click.core import ParameterSource
 
-    check_outputs(output, inputs=gaia, overwrite=overwrite)
-    table = make_truth_catalog_file(output, ra, dec, size, overwrite=overwrite, galaxy_density=galaxy_density,
-                                    star_density=star_density, gaia=gaia or None, seed=seed)
+    from ..scene.catalog import DEFAULT_MARGIN_ARCSEC, make_truth_catalog_file
+
+    given = {name for name in ctx.params
+             if ctx.get_parameter_source(name) not in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)}
+    if footprints is not None:
+        wrong = [name for name in ("ra", "dec", "size") if name in given]
+        if wrong:
+            raise click.UsageError(f"--{wrong[0]} is for a square field, not --footprints", ctx)
+    else:
+        wrong = [name for name in ("sca", "margin", "bounds") if name in given]
+        if wrong:
+            raise click.UsageError(f"--{wrong[0]} is for --footprints", ctx)
+        for name, value in (("ra", ra), ("dec", dec)):
+            if value is None:
+                raise click.UsageError(f"Missing option '--{name}': give --ra and --dec (a square field) or "
+                                       "--footprints POINTINGS.fits", ctx)
+    check_outputs(output, inputs=[*gaia, footprints], overwrite=overwrite)
+    if footprints is not None:
+        table = make_truth_catalog_file(output, footprints=footprints, sca=sca, bounds=bounds,
+                                        margin_arcsec=DEFAULT_MARGIN_ARCSEC if margin is None else margin,
+                                        overwrite=overwrite, galaxy_density=galaxy_density,
+                                        star_density=star_density, gaia=gaia or None, seed=seed)
+    else:
+        table = make_truth_catalog_file(output, ra, dec, size, overwrite=overwrite, galaxy_density=galaxy_density,
+                                        star_density=star_density, gaia=gaia or None, seed=seed)
     log.info("%s: %d galaxies and %d %s stars in %.6g arcmin^2",
              "stdout" if output == "-" else output, table.meta["NGAL"], table.meta["NSTAR"],
              table.meta["STARSRC"], table.meta["FIELDAR"])
     if gaia and table.meta["NSTAR"] == 0:
-        log.warning("no Gaia star of %s lies inside the field; check --ra/--dec/--size", ", ".join(gaia))
+        log.warning("no Gaia star of %s lies inside the field; check %s", ", ".join(gaia),
+                    "--footprints" if footprints else "--ra/--dec/--size")

@@ -27,10 +27,16 @@ def _numbers(ctx, param, value):
 
 
 @click.command("correlate", short_help="Correlation function xi+/- and statistics of shape changes De.")
-@click.argument("shapes", nargs=-1, required=True, metavar="SHAPES_A.fits [SHAPES_B.fits]")
+@click.argument("shapes", nargs=-1, required=False, metavar="[SHAPES_A.fits [SHAPES_B.fits]]")
+@click.option("--pair", "pair_list", type=(str, str), multiple=True, metavar="A B",
+              help="One pair of SHAPES tables, A (with persistence) and B (its reference); repeat for many: the De "
+                   "of every pair are pooled into one catalogue.  Not with SHAPES arguments.")
+@click.option("--pairs", "pairs_file", metavar="FILE", default=None,
+              help="A text file of pairs to pool: 'A.fits B.fits' per line, # comments, names relative to the "
+                   "file's folder.  Adds to --pair.")
 @click.option("--frames", type=int, nargs=2, default=None, metavar="A B",
               help="Frames (the frame column of perscli measure) to difference: with one table, De = g(frame A) "
-                   "- g(frame B) of it; with two, frame A of the first minus frame B of the second.")
+                   "- g(frame B) of it; with two (or pairs), frame A of the first minus frame B of the second.")
 @click.option("--de1", metavar="COL", default=None, help="One table: the column holding De1.")
 @click.option("--de2", metavar="COL", default=None, help="One table: the column holding De2.")
 @click.option("--common-ids", is_flag=True, default=False,
@@ -55,6 +61,11 @@ def _numbers(ctx, param, value):
 @click.option("--patch-centers", metavar="FILE", default=None,
               help="Jackknife patch centres instead of k-means: TreeCorr's write_patch_centers file, a table "
                    "of ra/dec (degrees), or an earlier perscli correlate output (its PATCHES table).")
+@click.option("--var-method", type=click.Choice(["auto", "jackknife", "shot"]), default="auto", show_default=True,
+              help="Errors of xi: the jackknife over patches, or shot noise; auto is the jackknife unless it is "
+                   "impossible (fewer than 10 objects per patch, fewer than 2 patches with objects), then shot "
+                   "noise with a warning; a bin whose jackknife variance is zero though it has pairs gets its shot "
+                   "noise (header SHOTBINS).")
 @click.option("--cross-patch-weight", type=click.Choice(["match", "simple", "mean"]), default="match",
               show_default=True,
               help="TreeCorr's weight of pairs across a removed and a kept patch (match: Mohammad & Percival "
@@ -75,9 +86,9 @@ def _numbers(ctx, param, value):
 @verbosity_opts
 @click.pass_context
 @report_errors
-def correlate(ctx, shapes, frames, de1, de2, common_ids, positions, pixel_scale, min_sep, max_sep, nbins, sep_units,
-              bin_slop, npatch, patch_centers, cross_patch_weight, thresholds, theta_bins, nboot, seed, plot,
-              plots_dir, output, overwrite, workers):
+def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, positions, pixel_scale, min_sep,
+              max_sep, nbins, sep_units, bin_slop, npatch, patch_centers, var_method, cross_patch_weight, thresholds,
+              theta_bins, nboot, seed, plot, plots_dir, output, overwrite, workers):
     """Correlation function xi+/- and statistics of the shape changes De.
 
     De is the change of each object's shape between two measurements:
@@ -89,29 +100,45 @@ def correlate(ctx, shapes, frames, de1, de2, common_ids, positions, pixel_scale,
     hold De itself: --de1 COL --de2 COL (rows with flags != 0, if it has a
     flags column, are left out).
 
+    Many pairs (each final exposure against its reference): --pair A B,
+    repeated, and/or --pairs FILE.  Each pair gives De as above and all are
+    pooled into one catalogue for xi+/-, STATS, HIST_DE and THETA_DE; an
+    object measured in several pairs appears once per pair, at its ra/dec
+    (pooled pairs need ra/dec).  A table may be a joint fit (one row per
+    galaxy, no frame column needed) whose header says g is in sky axes
+    (GAXES or GFRAME = 'sky'); a pair's A and B, and all pairs, must agree
+    on the axes.  The output adds a PAIRS table (files, DATASUMs, counts per
+    pair).
+
     xi+/- of De is TreeCorr's GGCorrelation on ra/dec (or x/y) positions
     with log bins --min-sep to --max-sep, and its covariance is the
-    jackknife over --npatch k-means patches (or --patch-centers).  The
-    output has the HDUs XI (TreeCorr's columns: r_nom, meanr, meanlogr,
-    xip, xim, xip_im, xim_im, sigma_xip, sigma_xim, weight, npairs; header
-    SEP_UNIT), COV (the covariance, xi+ bins then xi- bins), STATS (N, mean
+    jackknife over --npatch k-means patches (or --patch-centers).  When a
+    jackknife is impossible (a few dozen objects, say) the errors are
+    TreeCorr's shot noise instead, with a warning saying why, and the
+    header says so (VARMETHD, VARWHY); --var-method jackknife refuses
+    instead.  A separation bin whose jackknife variance is zero though it
+    has pairs (a pair or two at the edge of the range) gets its shot noise
+    instead (header SHOTBINS).  The output has the HDUs XI (TreeCorr's
+    columns: r_nom, meanr, meanlogr, xip, xim, xip_im, xim_im, sigma_xip,
+    sigma_xim, weight, npairs; header SEP_UNIT), COV (the covariance, xi+ bins then xi- bins), STATS (N, mean
     intrinsic e = mean g of B, mean De1 and De2 with standard errors, the
     number and fraction of objects with |De| >= each --thresholds), HIST_DE
     (histogram of |De|, log bins 1e-12 to 1 plus under- and overflow),
     THETA_DE (the |De|-weighted distribution of De's position angle
     0.5 atan2(De2, De1) in 18 bins, per --theta-bins |De| bin, with
-    bootstrap errors and a chi2 against uniform) and PATCHES (the patch
+    bootstrap errors, and a chi2 against uniform with the variance under
+    uniform: chi2_uniform, dof_uniform, p_uniform) and PATCHES (the patch
     centres, reusable with --patch-centers).
 
-    Orientation: g in a SHAPES table is in the frame's pixel axes, and the
-    table does not say how those sit on the sky, so De is correlated in the
-    axes it is given in.  xi+ does not depend on that when one rotation
+    Orientation: g in a per-frame SHAPES table is in the frame's pixel
+    axes, and De is correlated in the axes it is given in.  xi+ does not depend on that when one rotation
     takes those axes to the sky over the whole catalogue (one detector, one
     pointing); if the axes are also mirrored, xi+ changes only by the small
     parallel-transport terms of the sphere.  xi- does depend on it: a
     rotation by phi turns it into xi- exp(4i phi), mixing xim and xim_im.
-    For catalogues that combine orientations, rotate De to the sky first and
-    give it with --de1/--de2.
+    For catalogues that combine orientations, pool joint fits (sky axes),
+    or rotate De to the sky first and give it with --de1/--de2; pooled
+    pairs in pixel axes whose orientations differ get a warning.
 
     The same --seed gives the same patches and bootstrap, hence the same
     output (to rounding in the last digits: TreeCorr's threads add up in
@@ -123,15 +150,25 @@ def correlate(ctx, shapes, frames, de1, de2, common_ids, positions, pixel_scale,
       perscli correlate shapes_persist.fits shapes_ref.fits -o xi.fits --plot xi.png
       perscli correlate de.fits --de1 de1 --de2 de2 --min-sep 0.5 --max-sep 60 --nbins 15 -o xi.fits
       perscli correlate both.fits --frames 0 1 --patch-centers earlier_xi.fits -o xi2.fits
+      perscli correlate --pair e1.fits e1_ref.fits --pair e2.fits e2_ref.fits -o xi.fits
+      perscli correlate --pairs pairs.txt --npatch 10 -o xi.fits --plots figs
     """
     from ..stats.correlate import correlate_files
 
+    pooled = bool(pair_list) or pairs_file is not None
+    if pooled and shapes:
+        raise click.UsageError("give SHAPES tables or --pair/--pairs, not both", ctx)
+    if not pooled and not shapes:
+        raise click.UsageError("give one or two SHAPES tables, or pairs of them with --pair A B or --pairs FILE",
+                               ctx)
     if len(shapes) > 2:
-        raise click.UsageError(f"give one or two SHAPES tables, not {len(shapes)}", ctx)
+        raise click.UsageError(f"give one or two SHAPES tables, not {len(shapes)} (many pairs: --pair A B, "
+                               "repeated, or --pairs FILE)", ctx)
     if (de1 is None) != (de2 is None):
         raise click.UsageError("give both --de1 and --de2", ctx)
-    if de1 is not None and (len(shapes) == 2 or frames is not None):
-        raise click.UsageError("--de1/--de2 name the De columns of one table: not with two tables or --frames", ctx)
+    if de1 is not None and (len(shapes) == 2 or frames is not None or pooled):
+        raise click.UsageError("--de1/--de2 name the De columns of one table: not with two tables, pairs or "
+                               "--frames", ctx)
     if len(shapes) == 1 and de1 is None and frames is None:
         raise click.UsageError("one SHAPES table needs --frames A B (two of its frames) or --de1 COL --de2 COL "
                                "(its De columns)", ctx)
@@ -139,15 +176,26 @@ def correlate(ctx, shapes, frames, de1, de2, common_ids, positions, pixel_scale,
         raise click.UsageError("--patch-centers and --npatch: give one (the centres fix the number of patches)", ctx)
     if min_sep >= max_sep:
         raise click.UsageError(f"--min-sep {min_sep} must be less than --max-sep {max_sep}", ctx)
-    check_outputs(output, inputs=[*shapes, patch_centers], plot=plot, overwrite=overwrite)
+    pairs = None
+    if pooled:
+        from ..stats.correlate import read_pairs_file
+
+        check_outputs(output, inputs=[pairs_file], plot=plot, overwrite=overwrite)
+        pairs = [*pair_list, *(read_pairs_file(pairs_file) if pairs_file is not None else [])]
+    inputs = [*shapes, *(name for pair in pairs or () for name in pair), pairs_file, patch_centers]
+    check_outputs(output, inputs=inputs, plot=plot, overwrite=overwrite)
     summary = correlate_files(
-        shapes, output, frames=frames, de_columns=(de1, de2) if de1 is not None else None, common_ids=common_ids,
-        positions=positions, pixel_scale=pixel_scale, min_sep=min_sep, max_sep=max_sep, nbins=nbins,
-        sep_units=sep_units, bin_slop=bin_slop, npatch=npatch, patch_centers=patch_centers,
-        cross_patch_weight=cross_patch_weight, thresholds=thresholds, theta_edges=theta_bins, nboot=nboot,
-        seed=seed, workers=workers, plot=plot, plots_dir=plots_dir, overwrite=overwrite)
+        shapes, output, pairs=pairs, frames=frames, de_columns=(de1, de2) if de1 is not None else None,
+        common_ids=common_ids, positions=positions, pixel_scale=pixel_scale, min_sep=min_sep, max_sep=max_sep,
+        nbins=nbins, sep_units=sep_units, bin_slop=bin_slop, npatch=npatch, patch_centers=patch_centers,
+        cross_patch_weight=cross_patch_weight, var_method=var_method, thresholds=thresholds,
+        theta_edges=theta_bins, nboot=nboot, seed=seed, workers=workers, plot=plot, plots_dir=plots_dir,
+        overwrite=overwrite)
     stats = summary["stats"]
     fracs = ", ".join(f">= {t:g}: {f:.3g}" for t, f in zip(stats["threshold"], stats["frac_ge"]))
-    log.info("%s: %d objects, %d patches; mean De = (%.3g +- %.2g, %.3g +- %.2g); fraction with |De| %s",
-             "stdout" if output == "-" else output, summary["n"], summary["npatch"], stats["de1_mean"],
+    errors = (f"jackknife over {summary['npatch']} patches" if summary["var_method"] == "jackknife"
+              else "shot-noise errors")
+    pooled_from = f" from {summary['npairs']} pairs" if summary["npairs"] else ""
+    log.info("%s: %d objects%s, %s; mean De = (%.3g +- %.2g, %.3g +- %.2g); fraction with |De| %s",
+             "stdout" if output == "-" else output, summary["n"], pooled_from, errors, stats["de1_mean"],
              stats["de1_err"], stats["de2_mean"], stats["de2_err"], fracs)

@@ -13,6 +13,7 @@ from .correlate import correlate
 from .catalog import catalog
 from .pointings import pointings
 from .diagnose import diagnose
+from .study import study
 from .helpers import configure_logging  # noqa: F401  (re-exported: perscli.cli.main.configure_logging)
 from .options import no_checksum_opt
 
@@ -42,6 +43,7 @@ cli.add_command(correlate)
 cli.add_command(catalog)
 cli.add_command(pointings)
 cli.add_command(diagnose)
+cli.add_command(study)
 
 
 def main():

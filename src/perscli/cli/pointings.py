@@ -7,15 +7,28 @@ import logging
 import click
 from click.core import ParameterSource
 
-from ..instrument import ROMAN_EXPTIME, ROMAN_WAS_GAP
+from ..instrument import ROMAN_EXPTIME, ROMAN_N_SCA, ROMAN_WAS_GAP
 from .helpers import check_outputs, report_errors
-from .options import dec_opt, filter_opt, output_opt, overwrite_opt, ra_opt, sca_opt, seed_opt, verbosity_opts
+from .options import filter_opt, output_opt, overwrite_opt, seed_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
 
-#: options that belong to one mode only
+#: options that belong to one mode only (--n is shared by --plan and --before)
 SCHEDULE_ONLY = ("radius", "limit", "after")
-PLAN_ONLY = ("n", "dither", "start", "exptime", "gap", "pa", "seed")
+PLAN_ONLY = ("dither", "start", "exptime", "gap", "pa", "seed")
+#: what --before does not take: it needs no field
+BEFORE_EXCLUDES = ("ra", "dec", "radius", "filter_name", "limit", "after")
+
+# --ra/--dec as in every command (perscli.cli.options), but only the field modes need them:
+# --before takes a schedule row instead
+ra_opt = click.option("--ra", type=float, default=None, metavar="DEG",
+                      help="Field centre: right ascension in degrees (ICRS).")
+dec_opt = click.option("--dec", type=click.FloatRange(-90, 90), default=None, metavar="DEG",
+                       help="Field centre: declination in degrees (ICRS).")
+sca_opt = click.option(
+    "--sca", type=click.IntRange(0, ROMAN_N_SCA), default=0, show_default=True, metavar="N",
+    help=f"Roman detector (SCA 1-{ROMAN_N_SCA}), written into every row; 0 for none chosen. With --schedule and "
+         "--radius: keep the exposures whose SCA N footprint overlaps the field circle.")
 
 
 @click.command("pointings", short_help="Select exposures of a field from a schedule, or plan dithered ones.")
@@ -26,14 +39,18 @@ PLAN_ONLY = ("n", "dither", "start", "exptime", "gap", "pa", "seed")
 @ra_opt
 @dec_opt
 @click.option("--radius", type=click.FloatRange(min=0, min_open=True), default=None, metavar="DEG",
-              help="--schedule: pointing centres within this great-circle distance of the field centre.")
+              help="--schedule: radius of the field circle (great circle): pointing centres within it, or "
+                   "with --sca N the exposures whose SCA N overlaps it.")
 @filter_opt
 @click.option("--limit", type=click.IntRange(min=1), default=None, metavar="N",
               help="--schedule: only the N earliest exposures selected.")
 @click.option("--after", type=float, default=None, metavar="MJD",
               help="--schedule: only exposures that start after this MJD.")
+@click.option("--before", type=click.IntRange(min=0), default=None, metavar="ROW",
+              help="--schedule: the --n exposures that start last before schedule row ROW (from 0), "
+                   "whatever their filter and pointing, in time order.")
 @click.option("--n", "n", type=click.IntRange(min=1), default=None, metavar="N",
-              help="--plan: number of exposures.")
+              help="--plan: number of exposures; --before: number of earlier exposures.")
 @click.option("--dither", type=click.FloatRange(min=0), default=10.0, show_default=True, metavar="ARCSEC",
               help="--plan: offsets uniform within +-ARCSEC east and north of the field centre.")
 @click.option("--start", type=float, default=60000.0, show_default=True, metavar="MJD",
@@ -46,21 +63,32 @@ PLAN_ONLY = ("n", "dither", "start", "exptime", "gap", "pa", "seed")
 @click.option("--pa", type=float, default=0.0, show_default=True, metavar="DEG",
               help="--plan: position angle of every exposure.")
 @sca_opt
+@click.option("--footprints", is_flag=True, default=False,
+              help="Add each row's SCA corners on the sky (columns corner_ra, corner_dec, 4 values each, "
+                   "degrees; GalSim's Roman WCS); needs --sca N.")
 @seed_opt
 @output_opt
 @overwrite_opt
 @verbosity_opts
 @click.pass_context
 @report_errors
-def pointings(ctx, schedule, plan, ra, dec, radius, filter_name, limit, after, n, dither, start, exptime, gap,
-              pa, sca, seed, output, overwrite):
+def pointings(ctx, schedule, plan, ra, dec, radius, filter_name, limit, after, before, n, dither, start, exptime,
+              gap, pa, sca, footprints, seed, output, overwrite):
     """Select the exposures of a field from a schedule, or plan a dithered sequence.
 
     With --schedule FILE: the exposures of a survey schedule (such as the
-    public Roman Wide Area Survey sequence) whose pointing centre lies within
-    --radius degrees of (--ra, --dec), optionally in one --filter, after an
-    MJD, at most --limit of them, in time order; expid is the row in the
+    public Roman Wide Area Survey sequence) that look at the field, the
+    circle of --radius degrees about (--ra, --dec): without --sca, those
+    whose pointing centre lies in it; with --sca N, those whose SCA N
+    footprint on the sky (GalSim's Roman WCS for the pointing, position
+    angle and date) overlaps it.  Optionally in one --filter, after an MJD,
+    at most --limit of them, in time order; expid is the row in the
     schedule (from 0).
+
+    With --schedule FILE --before ROW --n N: the N exposures that start last
+    before row ROW starts, whatever their filter and wherever they point
+    (on one detector, they are what leaves persistence in ROW), in time
+    order (the most recent last).
 
     With --plan: --n exposures of --exptime seconds, each starting --gap
     seconds after the previous one ends, pointed at (--ra, --dec) offset by
@@ -68,12 +96,16 @@ def pointings(ctx, schedule, plan, ra, dec, radius, filter_name, limit, after, n
     --seed), all at --pa, in --filter (default J129); expid 0 to N-1.
 
     The output is a FITS table 'POINTINGS': expid, mjd (start), exptime,
-    ra, dec, pa, filter, sca (--sca, 0 when none is chosen), with the
+    ra, dec, pa, filter, sca (--sca, 0 when none is chosen), and with
+    --footprints corner_ra, corner_dec (the SCA's outer pixel edges at
+    (0.5, 0.5), (4088.5, 0.5), (4088.5, 4088.5), (0.5, 4088.5)), with the
     selection or plan and its inputs in the header.
 
     \b
     Examples:
       perscli pointings --schedule Roman_WAS_obseq_11_1_23.fits --ra 10 --dec -44 --radius 1 --filter J129 -o p.fits
+      perscli pointings --schedule obseq.fits --ra 10 --dec -44 --radius 0.05 --sca 7 --footprints -o sca7.fits
+      perscli pointings --schedule obseq.fits --before 4183 --n 10 --sca 7 -o prev.fits
       perscli pointings --schedule obseq.fits --ra 10 --dec -44 --radius 0.5 --limit 10 --after 61900 -o p.fits
       perscli pointings --plan --ra 10 --dec -44 --n 8 --dither 30 --seed 3 -o plan.fits
       perscli pointings --plan --ra 10 --dec -44 --n 4 --exptime 60 --gap 10 --sca 7 -o - | gzip > plan.fits.gz
@@ -83,29 +115,53 @@ def pointings(ctx, schedule, plan, ra, dec, radius, filter_name, limit, after, n
     if (schedule is None) == (not plan):
         raise click.UsageError("give either --schedule FILE or --plan", ctx)
     if plan:
-        wrong = [name for name in SCHEDULE_ONLY if name in given]
+        wrong = [name for name in (*SCHEDULE_ONLY, "before") if name in given]
         if wrong:
             raise click.UsageError(f"--{wrong[0]} is for --schedule, not --plan", ctx)
         if n is None:
             raise click.UsageError("--plan needs --n N (the number of exposures)", ctx)
-    else:
-        wrong = [name for name in PLAN_ONLY if name in given]
+    elif before is not None:
+        wrong = [name for name in (*PLAN_ONLY, *BEFORE_EXCLUDES) if name in given]
         if wrong:
-            raise click.UsageError(f"--{wrong[0]} is for --plan, not --schedule", ctx)
+            option = "--filter" if wrong[0] == "filter_name" else f"--{wrong[0]}"
+            raise click.UsageError(f"{option} is not for --before (the earlier exposures of a schedule row, "
+                                   "whatever their filter and pointing)", ctx)
+        if n is None:
+            raise click.UsageError("--before needs --n N (the number of earlier exposures)", ctx)
+    else:
+        wrong = [name for name in (*PLAN_ONLY, "n") if name in given]
+        if wrong:
+            raise click.UsageError(f"--{wrong[0]} is for --plan{' or --before' if wrong[0] == 'n' else ''}, "
+                                   "not a field selection from --schedule", ctx)
         if radius is None:
-            raise click.UsageError("--schedule needs --radius DEG", ctx)
+            raise click.UsageError("--schedule needs --radius DEG (or --before ROW --n N)", ctx)
+    if before is None:
+        for name in ("ra", "dec"):
+            if name not in given:
+                raise click.UsageError(f"Missing option '--{name}': the field centre", ctx)
+    if footprints and not sca:
+        raise click.UsageError("--footprints needs --sca N (1-18): the detector whose corners to add", ctx)
 
-    from ..scene.pointings import plan_dithers_file, select_covering_file
+    from ..scene.pointings import plan_dithers_file, previous_exposures_file, select_covering_file
 
     check_outputs(output, inputs=[schedule], overwrite=overwrite)
 
     if plan:
         chosen = plan_dithers_file(output, ra, dec, n, dither=dither, filter=filter_name or "J129", start=start,
-                                   exptime=exptime, gap=gap, pa=pa, sca=sca, seed=seed, overwrite=overwrite)
+                                   exptime=exptime, gap=gap, pa=pa, sca=sca, seed=seed, footprints=footprints,
+                                   overwrite=overwrite)
+    elif before is not None:
+        chosen = previous_exposures_file(output, schedule, before, n, sca=sca, footprints=footprints,
+                                         overwrite=overwrite)
+        if len(chosen) < n:
+            log.warning("%s: only %d exposure(s) start before row %d (asked for %d)", schedule, len(chosen),
+                        before, n)
     else:
         chosen = select_covering_file(output, schedule, ra, dec, radius, filter=filter_name, after=after,
-                                      limit=limit, sca=sca, overwrite=overwrite)
+                                      limit=limit, sca=sca, footprints=footprints, overwrite=overwrite)
         if not chosen:
-            log.warning("%s: no exposure within %g degrees of (%g, %g)%s; the output table is empty",
-                        schedule, radius, ra, dec, f" in {filter_name}" if filter_name else "")
+            what = f"whose SCA {sca} overlaps the circle of {radius:g} degrees" if sca else \
+                f"within {radius:g} degrees"
+            log.warning("%s: no exposure %s about (%g, %g)%s; the output table is empty",
+                        schedule, what, ra, dec, f" in {filter_name}" if filter_name else "")
     log.info("%s: %d exposures", "stdout" if output == "-" else output, len(chosen))

@@ -52,7 +52,15 @@ def _list_effects(ctx, param, value):
               help="Override the model: e.g. read_noise.sigma=5, persistence.base=pessimistic, ipc=off.")
 @click.option("--previous", multiple=True, metavar="FRAME",
               help="An earlier exposure of the same SCA (a frame perscli rendered); repeatable. Its FLUENCE "
-                   "leaves persistence in this one.")
+                   "(STARFLU for --persistence-source stars) leaves persistence in this one.")
+@click.option("--persistence-source", "persistence_source", metavar="all|stars|ELECTRONS", default=None,
+              help="What of the --previous frames persists: all (their FLUENCE: every photon), stars (their "
+                   "STARFLU: the light of stars only, the paper's setting) or a number of electrons (only pixels "
+                   "whose FLUENCE exceeds it); same as --set persistence.source=...  [default: the model's, all]")
+@click.option("--hdus", metavar="NAME,...", default=None,
+              help="The HDUs to write, among SCI,IDEAL,FLUENCE,STARFLU,PERSIST,MODEL (STARFLU: the stars' "
+                   "fluence, for later frames rendered with --persistence-source stars)  "
+                   "[default: SCI,IDEAL,FLUENCE,PERSIST,MODEL]")
 @required_seed_opt
 @plot_opt("the frame and its persistence")
 @click.option("--list-effects", is_flag=True, expose_value=False, is_eager=True, callback=_list_effects,
@@ -65,7 +73,7 @@ def _list_effects(ctx, param, value):
 @verbosity_opts
 @report_errors
 def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds, model_spec, settings,
-           previous, seed, plot, output, compress, overwrite, workers):
+           previous, persistence_source, hdus, seed, plot, output, compress, overwrite, workers):
     """Draw a Roman SCA exposure of TRUTH.fits through a detector model.
 
     Optics from GalSim's Roman module: the SCA's WCS for the pointing, its PSF
@@ -83,6 +91,15 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     well: what drives later persistence), with --previous PERSIST (electrons
     of persistence), and MODEL (the resolved detector model, which --model
     FRAME.fits reads back); WCS, timing, SCA, FILTER and GAIN in the headers.
+    --hdus chooses among them and STARFLU (the noise-free electrons of the
+    stars alone, not clipped at the well).
+
+    What of the --previous frames persists (--persistence-source): all their
+    FLUENCE, their STARFLU (stars), or the FLUENCE of pixels above a number
+    of electrons; the fluence fed to the persistence law is capped at
+    persistence.fluence_cap (default: the saturation full well, 1e5 e-).
+    A frame rendered once with FLUENCE and STARFLU serves as the history of
+    later frames for any source.
 
     \b
     Examples:
@@ -91,6 +108,9 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
       perscli render truth.fits --pointings seq.fits --row 1 --sca 7 --seed 2 --set persistence=off -o e2_nop.fits
       perscli render truth.fits --pointings seq.fits --sca 7 --bounds 1 512 1 512 --seed 1 -o cutout.fits
       perscli render truth.fits --pointings seq.fits --row 2 --sca 7 --seed 3 --model e2.fits -o e3.fits
+      perscli render truth.fits --pointings seq.fits --row 0 --sca 7 --seed 1 --hdus SCI,FLUENCE,STARFLU -o h0.fits
+      perscli render truth.fits --pointings seq.fits --row 1 --sca 7 --seed 2 --previous h0.fits \\
+          --persistence-source stars --hdus SCI,PERSIST -o e1_stars.fits
       perscli render --list-effects
     """
     from ..detector.effects import load_detector_model
@@ -101,7 +121,7 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     model = load_detector_model(model_spec, settings)
     summary = render_file(truth, exposure, output, model=model, seed=seed, previous=previous,
                           overwrite=overwrite, workers=workers, progress=progress_reporter("objects"), plot=plot,
-                          compress=compress)
+                          compress=compress, persistence_source=persistence_source, hdus=hdus)
     log.info("%s: %d objects, sky %.3f e-/pixel/s, units %s, persistence max %.3g e-",
              "stdout" if output == "-" else output, summary["objects"], summary["sky_rate"], summary["unit"],
              summary["persistence_max"])

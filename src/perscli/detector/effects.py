@@ -461,14 +461,20 @@ def _persistence_schema():
         Param("combine", "choice", "sum", "", "sum over earlier exposures (the paper, GalSim) or per-pixel max "
               "(WFC3 pipeline)", choices=COMBINES),
         Param("max_previous", "int", 10, "", "only the N most recent earlier exposures count (0: all)", lo=0),
+        Param("source", "float", "all", "e-", "what of an earlier exposure persists: all (its FLUENCE: every "
+              "photon), stars (its STARFLU: the light of stars only, the paper's setting), or a number: only "
+              "pixels whose FLUENCE exceeds that many electrons", lo=0.0, choices=("all", "stars")),
+        Param("fluence_cap", "float", "well", "e-", "the fluence fed to the law is at most this: well = "
+              "saturation.full_well (no cap with saturation off), none = no cap (STARFLU beyond the well "
+              "persists: the law extrapolated)", lo=0.0, lo_open=True, choices=("well", "none")),
     )
 
 
 @register
 class Persistence(DetectorEffect):
     name = "persistence"
-    description = ("charge released by earlier exposures (--previous), from their FLUENCE "
-                   "(perscli.detector.persistence; added as its expectation)")
+    description = ("charge released by earlier exposures (--previous), from their FLUENCE or STARFLU "
+                   "(source, fluence_cap) (perscli.detector.persistence; added as its expectation)")
     schema = _persistence_schema()
 
     @classmethod
@@ -516,6 +522,33 @@ class Persistence(DetectorEffect):
         charge = ctx.persistence_charge()
         return mean if charge is None else mean + charge
 
+    @staticmethod
+    def fluence_input(model: "DetectorModel") -> tuple:
+        """What of an earlier exposure feeds the law in ``model``: (source, threshold, cap).
+
+        Returns
+        -------
+        source : {'all', 'stars', 'threshold'}
+            Which image of the earlier frame: FLUENCE ('all', 'threshold') or STARFLU ('stars').
+        threshold : float or None
+            Electrons: only pixels whose FLUENCE exceeds it persist ('threshold').
+        cap : float or None
+            The fluence is clipped at this many electrons (None: no cap).
+            'well' is the saturation effect's full well when saturation is on,
+            else no cap: a model without a well has nothing to clip at.
+        """
+        eff = model.get("persistence")
+        p = eff.resolved() if eff is not None else Persistence.resolve({})
+        source, threshold = p["source"], None
+        if not isinstance(source, str):
+            source, threshold = "threshold", float(p["source"])
+        cap = p["fluence_cap"]
+        if cap == "well":
+            cap = model.value("saturation", "full_well")
+        elif cap == "none":
+            cap = None
+        return source, threshold, None if cap is None else float(cap)
+
 
 #: the full well of Roman's H4RG-10 pixels, electrons (see README: detector model)
 FULL_WELL = ROMAN_FULL_WELL
@@ -525,7 +558,7 @@ FULL_WELL = ROMAN_FULL_WELL
 class Saturation(DetectorEffect):
     name = "saturation"
     description = ("the pixel's full well: collected charge above it is lost (clipped), so FLUENCE, "
-                   "what drives later persistence, never exceeds it")
+                   "what drives later persistence, never exceeds it (persistence.fluence_cap: well)")
     schema = (Param("full_well", "float", FULL_WELL, "e-", "charge a pixel holds (H4RG-10: ~1e5; the paper's "
                     "half_well is half of it)", lo=0.0, lo_open=True),)
 

@@ -81,6 +81,31 @@ class Exposure:
                 raise PerscliError(f"--bounds {self.bounds} must lie within 1..{SCA_SIZE} with min <= max")
             self.bounds = (xmin, xmax, ymin, ymax)
 
+    @classmethod
+    def from_pointing(cls, pointing, *, sca: int | None = None, bounds=None) -> "Exposure":
+        """The exposure of one SCA for a pointing (a schedule row or a pointings-table row).
+
+        Parameters
+        ----------
+        pointing : perscli.scene.pointings.Pointing
+            E.g. ``schedule_pointing(schedule, row)``, a row of
+            ``read_pointings(...)``, ``select_covering(...)`` or
+            ``previous_exposures(...)``: ra, dec, pa, filter, mjd, exptime and
+            expid are taken from it.
+        sca : int, optional
+            1-18; default the pointing's ``sca``.
+        bounds : (xmin, xmax, ymin, ymax), optional
+            A cutout, as :attr:`bounds`.
+        """
+        from ..scene import check_filter
+
+        sca = sca or pointing.sca
+        if not sca:
+            raise PerscliError("the pointing names no SCA: give sca (1-18)")
+        return cls(ra=float(pointing.ra), dec=float(pointing.dec), pa=float(pointing.pa), sca=int(sca),
+                   filter=check_filter(pointing.filter), mjd=float(pointing.mjd), exptime=float(pointing.exptime),
+                   bounds=None if bounds is None else tuple(bounds), expid=int(pointing.expid))
+
     @property
     def full_bounds(self) -> tuple:
         return self.bounds or (1, SCA_SIZE, 1, SCA_SIZE)
@@ -101,11 +126,12 @@ class Optics:
         import galsim
         import galsim.roman as roman
 
+        from ..scene.pointings import sca_wcs
+
         self.exposure = exposure
         self.bandpass = roman.getBandpasses(AB_zeropoint=True)[exposure.filter]
-        pointing = galsim.CelestialCoord(exposure.ra * galsim.degrees, exposure.dec * galsim.degrees)
-        self.wcs = roman.getWCS(world_pos=pointing, PA=exposure.pa * galsim.degrees, date=exposure.date,
-                                SCAs=exposure.sca)[exposure.sca]
+        # getWCS, with a clear error for a position Roman cannot observe at that date
+        self.wcs = sca_wcs(exposure, exposure.sca)
         self.zeropoint = self.bandpass.zeropoint
         self.electrons_per_unit_flux = roman.collecting_area * exposure.exptime
         self.psf_world = roman.getPSF(exposure.sca, exposure.filter,
@@ -127,6 +153,8 @@ class Optics:
 
     def positions(self, ra_deg, dec_deg):
         """Image positions (x, y) of sky positions, GalSim convention (pixel centres at integers)."""
+        if np.size(ra_deg) == 0:
+            return np.empty(0), np.empty(0)
         x, y = self.wcs.radecToxy(np.radians(ra_deg), np.radians(dec_deg), units="radians")
         return np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
 
@@ -224,7 +252,7 @@ def draw_one(context: DrawContext, job):
     return index, stamp, ix - n // 2, iy - n // 2
 
 
-def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None):
+def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, stars: bool = False):
     """Expected electrons from the catalogue's objects on the exposure's pixels.
 
     Stamps are drawn by :func:`draw_one` through :func:`perscli.executor.imap`
@@ -232,33 +260,55 @@ def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None):
     catalogue order whatever the number of workers, so the result is the same
     bytes for any ``workers``.
 
+    Parameters
+    ----------
+    cols : dict
+        The catalogue's columns (:func:`read_truth`).
+    exposure : Exposure
+    workers : int
+        Processes drawing stamps.
+    progress : callable, optional
+        Called as ``progress(done, total)`` after each stamp.
+    stars : bool
+        Also return the image of the stars alone (the same stamps, added to
+        a second image in the same order).
+
     Returns
     -------
-    (ndarray, int, Optics)
+    (ndarray, int, Optics) or (ndarray, int, Optics, ndarray)
         The image (float64, shape of the bounds), the number of objects drawn,
-        and the optics (WCS, PSF, zeropoint, sky) used.
+        the optics (WCS, PSF, zeropoint, sky) used, and with ``stars`` the
+        stars' image.
     """
     optics = Optics(exposure)
     xmin, xmax, ymin, ymax = exposure.full_bounds
     image = np.zeros((ymax - ymin + 1, xmax - xmin + 1))
+    star_image = np.zeros_like(image) if stars else None
     todo, x, y, flux, sizes = plan_objects(cols, optics, exposure.full_bounds)
     jobs = [(int(i), float(x[i]), float(y[i]), float(flux[i]), int(sizes[i]), cols["kind"][i],
              float(cols["hlr"][i]), float(cols["e1"][i]), float(cols["e2"][i])) for i in todo]
-    context = draw_context(exposure, optics)
-    # the PSF table of each stamp size (the costly part of a large stamp) is made once, here, and
-    # handed to every worker with the context, rather than remade in each of them
-    for n in sorted({job[4] for job in jobs}):
-        context.drawer.table(n)
-    # stamps vary a lot in cost (a bright star's is 2048 pixels wide): small chunks balance the load
-    stamps = imap(draw_one, jobs, context=context, workers=workers,
-                  chunksize=max(1, len(jobs) // (8 * max(1, workers))))
-    with contextlib.closing(stamps):
-        for done, (index, stamp, x0, y0) in enumerate(stamps, 1):
-            n = stamp.shape[0]
-            a0, a1 = max(x0, xmin), min(x0 + n, xmax + 1)
-            b0, b1 = max(y0, ymin), min(y0 + n, ymax + 1)
-            if a0 < a1 and b0 < b1:
-                image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += stamp[b0 - y0:b1 - y0, a0 - x0:a1 - x0]
-            if progress is not None:
-                progress(done, len(jobs))
+    if jobs:
+        context = draw_context(exposure, optics)
+        # the PSF table of each stamp size (the costly part of a large stamp) is made once, here, and
+        # handed to every worker with the context, rather than remade in each of them
+        for n in sorted({job[4] for job in jobs}):
+            context.drawer.table(n)
+        # stamps vary a lot in cost (a bright star's is 2048 pixels wide): small chunks balance the load
+        stamps = imap(draw_one, jobs, context=context, workers=workers,
+                      chunksize=max(1, len(jobs) // (8 * max(1, workers))))
+        is_star = {job[0]: job[5] == "star" for job in jobs}
+        with contextlib.closing(stamps):
+            for done, (index, stamp, x0, y0) in enumerate(stamps, 1):
+                n = stamp.shape[0]
+                a0, a1 = max(x0, xmin), min(x0 + n, xmax + 1)
+                b0, b1 = max(y0, ymin), min(y0 + n, ymax + 1)
+                if a0 < a1 and b0 < b1:
+                    part = stamp[b0 - y0:b1 - y0, a0 - x0:a1 - x0]
+                    image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += part
+                    if star_image is not None and is_star[index]:
+                        star_image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += part
+                if progress is not None:
+                    progress(done, len(jobs))
+    if stars:
+        return image, len(jobs), optics, star_image
     return image, len(jobs), optics

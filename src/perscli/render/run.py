@@ -1,4 +1,20 @@
-"""``perscli render`` as a function: catalogue + exposure + detector model -> FITS frame."""
+"""``perscli render`` as a function: catalogue + exposure + detector model -> FITS frame.
+
+What a frame holds (:data:`HDU_NAMES`, chosen with ``hdus``): SCI (the frame,
+DN after gain), IDEAL (noise-free electrons of sky and sources), FLUENCE (the
+charge collected, after saturation: at most the full well), STARFLU (the
+noise-free electrons of the stars alone, not clipped), PERSIST (the
+persistence charge from earlier exposures) and MODEL (the detector model).
+
+What persists of an earlier exposure (the persistence effect's ``source``
+and ``fluence_cap``, :meth:`perscli.detector.effects.Persistence.fluence_input`):
+its FLUENCE ('all'), its STARFLU ('stars'), or its FLUENCE where it exceeds a
+number of electrons (a threshold); the fluence x fed to the law is then
+min(x, cap), cap = the saturation full well by default.  A frame rendered
+once with FLUENCE and STARFLU is therefore the history of later frames for
+every source, and the persistence is applied when the later frame is
+rendered (:func:`persisting_fluence`).
+"""
 
 from __future__ import annotations
 
@@ -63,9 +79,174 @@ def _exposure_cards(exposure: Exposure, optics, seed: int, bunit: str, gain: flo
     ]
 
 
+#: the HDUs a rendered frame can hold, in the order they are written
+HDU_NAMES = ("SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL")
+
+#: what ``perscli render`` writes unless told otherwise (PERSIST only with earlier exposures)
+DEFAULT_HDUS = ("SCI", "IDEAL", "FLUENCE", "PERSIST", "MODEL")
+
+
+def check_hdus(hdus) -> tuple:
+    """The HDUs to write, checked and in :data:`HDU_NAMES` order.
+
+    Parameters
+    ----------
+    hdus : str or sequence of str or None
+        Names (any case), or one comma-separated string ('SCI,FLUENCE');
+        None: :data:`DEFAULT_HDUS`.
+
+    Raises
+    ------
+    PerscliError
+        An unknown name, or none at all.
+    """
+    if hdus is None:
+        return DEFAULT_HDUS
+    if isinstance(hdus, str):
+        hdus = hdus.split(",")
+    names = [str(h).strip().upper() for h in hdus if str(h).strip()]
+    unknown = [h for h in names if h not in HDU_NAMES]
+    if unknown:
+        raise PerscliError(f"--hdus: unknown HDU(s) {', '.join(unknown)}; choose from {','.join(HDU_NAMES)}")
+    if not names:
+        raise PerscliError(f"--hdus: give at least one HDU of {','.join(HDU_NAMES)}")
+    return tuple(h for h in HDU_NAMES if h in names)
+
+
+def with_persistence_source(model: DetectorModel, source) -> DetectorModel:
+    """A copy of ``model`` whose persistence effect takes its fluence from ``source``.
+
+    Parameters
+    ----------
+    model : DetectorModel
+        Not changed.
+    source : {'all', 'stars'} or float or str
+        'all', 'stars', or electrons (a number, or text such as '5e4'):
+        the ``source`` parameter of the persistence effect
+        (:class:`perscli.detector.effects.Persistence`).  None: ``model`` itself.
+
+    Raises
+    ------
+    PerscliError
+        Not one of those (one line naming persistence.source).
+    """
+    import copy
+
+    from ..detector.effects import Persistence
+
+    if source is None:
+        return model
+    if isinstance(source, str):
+        source = source.strip()
+        if source.lower() in ("all", "stars"):
+            source = source.lower()
+    value = Persistence.validate({"source": source}, "--persistence-source")["source"]
+    model = copy.deepcopy(model)
+    eff = model.get("persistence")
+    if eff is not None:
+        eff.params = {**eff.params, "source": value}
+    return model
+
+
+def open_history(name: str, source: str):
+    """Open an earlier exposure (``--previous``) for the persistence it leaves: a frame perscli rendered.
+
+    Parameters
+    ----------
+    name : str
+        The frame: a path (plain, ``.fits.gz`` or tile-compressed, optionally
+        with an image section ``[x1:x2,y1:y2]``), '-' for standard input, or
+        ``path[EXT]`` naming the image to use, which must then be that HDU.
+    source : {'all', 'stars', 'threshold'}
+        'stars' reads its STARFLU extension, the others its FLUENCE.
+
+    Returns
+    -------
+    perscli.io.frames.Frame
+        Opened on that one image (its science image), with the timing, SCA
+        and cutout offsets of its header.
+
+    Raises
+    ------
+    PerscliError
+        The frame has no such extension (one line saying how to render it
+        with one), or cannot be read.
+    """
+    from ..io.fitsfile import open_fits, split_selector
+    from ..io.frames import open_frame
+
+    want = "STARFLU" if source == "stars" else "FLUENCE"
+    why = ("--persistence-source stars needs the stars' fluence of every earlier exposure: render it with "
+           "STARFLU in --hdus" if want == "STARFLU" else
+           "an earlier exposure leaves persistence through the charge it collected: render it with FLUENCE in "
+           "--hdus (the default)")
+    if name == "-":
+        # standard input is read once: the whole frame, then its extension by name
+        frame = open_frame(name)
+        found = [h.index for h in frame.hdus if h.name == want and h.is_image and h.shape]
+        if not found:
+            frame.close()
+            raise PerscliError(f"stdin: no {want} extension: {why}")
+        from ..io.frames import normalize_unit
+
+        frame.sci, frame.fluence_hdu = found[:1], None
+        frame.unit = normalize_unit(frame.hdus[found[0]].header.get("BUNIT", "electron"), f"stdin: {want} BUNIT")
+        return frame
+    path, ext, sec = split_selector(name)
+    target = name if ext is not None else (f"{path}[{want}]" + (f"[{sec}]" if sec else ""))
+    try:
+        frame = open_frame(target)
+    except PerscliError:
+        if ext is not None:
+            raise
+        with open_fits(path) as probe:          # why it failed: most often, no such extension
+            if not any(h.name == want for h in probe.hdus):
+                raise PerscliError(f"{path}: no {want} extension: {why}") from None
+        raise
+    used = frame.hdus[frame.sci[0]].name
+    if used != want:
+        frame.close()
+        raise PerscliError(f"{name}: names the {used or 'primary'} HDU, but the persistence of an earlier exposure "
+                           f"comes from its {want} ({why.split(':')[0]})")
+    frame.name = path if ext is None and sec is None else name
+    return frame
+
+
+def persisting_fluence(fluence: np.ndarray, scale: float = 1.0, *, threshold: float | None = None,
+                       cap: float | None = None) -> np.ndarray:
+    """What of an earlier exposure's fluence enters the persistence law.
+
+    Parameters
+    ----------
+    fluence : ndarray
+        The earlier exposure's FLUENCE or STARFLU (times ``scale``: electrons).
+    scale : float
+    threshold : float, optional
+        Electrons: pixels at or below it leave nothing (the 'threshold' source).
+    cap : float, optional
+        Electrons: larger values count as this (the fluence cap, e.g. the full well).
+
+    Returns
+    -------
+    ndarray
+        Same dtype and scale as ``fluence``; ``fluence`` itself when nothing changes
+        (so that the default path is the bytes it always was).
+    """
+    out = fluence
+    if threshold is not None:
+        with np.errstate(invalid="ignore"):
+            out = np.where(out * scale > threshold, out, 0).astype(fluence.dtype)
+    if cap is not None:
+        with np.errstate(invalid="ignore"):
+            if np.any(out * scale > cap):
+                out = np.minimum(out, cap / scale).astype(fluence.dtype)
+    return out
+
+
 def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, seed: int,
                 previous=(), overwrite: bool = False, workers: int = 1, progress=None,
-                plot: str | None = None, compress: str = "none") -> dict:
+                plot: str | None = None, compress: str = "none", persistence_source=None,
+                hdus=None) -> dict:
     """Render ``exposure`` of the truth catalogue ``truth`` and write ``dest``.
 
     Parameters
@@ -73,34 +254,52 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
     truth : str
         FITS truth catalogue (``perscli catalog``).
     exposure : Exposure
+        E.g. ``Exposure.from_pointing(schedule_pointing(schedule, row), sca=7)``.
     dest : str
         Output path or '-'.
     model : DetectorModel
+        Not changed (``persistence_source`` acts on a copy).
     seed : int
         Seed of every random stream; the same seed gives the same bytes
-        (apart from DATE and CHECKSUM).
+        (apart from DATE and CHECKSUM), and frames of one exposure rendered
+        with and without persistence, whatever its source, share their noise.
     previous : sequence of str
-        Earlier exposures of the same SCA area (frames perscli rendered: their
-        FLUENCE drives the persistence), for the persistence effect.
+        Earlier exposures of the same SCA area: frames perscli rendered, with
+        FLUENCE (or STARFLU for the 'stars' source), see :func:`open_history`.
     overwrite, workers, progress
         As for every command.
     plot : str, optional
         Also write a PNG of the frame and its persistence.
     compress : {'none', 'gzip', 'rice'}
         Lossless tile compression of the images (a full SCA: ~40% of the plain size with gzip).
+    persistence_source : {'all', 'stars'} or float, optional
+        What of the earlier exposures persists (the persistence effect's
+        ``source``; None: the model's, 'all' by default): 'all' their FLUENCE,
+        'stars' their STARFLU, a number of electrons: only pixels whose
+        FLUENCE exceeds it.  The fluence is then capped at the effect's
+        ``fluence_cap`` (default: the saturation full well).
+    hdus : sequence of str or str, optional
+        The HDUs to write, among :data:`HDU_NAMES` (default
+        :data:`DEFAULT_HDUS`); written in that order, PERSIST only when
+        earlier exposures were given.  A frame that is to be the history of
+        later ones needs FLUENCE, and STARFLU for the 'stars' source.
 
     Returns
     -------
     dict
-        Summary: objects drawn, sky rate, units, persistence maximum.
+        Summary: objects drawn, sky rate, units, persistence maximum, the HDUs
+        written and the persistence source.
     """
-    from ..io.frames import open_frame
+    from ..detector.effects import Persistence
 
     check_output(dest, overwrite=overwrite, inputs=[truth, *previous])
     if plot:
         check_output(plot, overwrite=overwrite, inputs=[truth, *previous])
         if dest != "-" and os.path.abspath(plot) == os.path.abspath(dest):
             raise PerscliError(f"{plot}: --plot and -o name the same file: choose another name for the figure")
+    hdus = check_hdus(hdus)
+    model = with_persistence_source(model, persistence_source)
+    source, threshold, cap = Persistence.fluence_input(model)
     cols = read_truth(truth, exposure.filter)
     previous = list(previous)
     if previous and not model.enabled("persistence"):
@@ -108,13 +307,15 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
     opened = []
     try:
         for name in previous if model.enabled("persistence") else []:
-            opened.append(open_frame(name))
-        sources, nobj, optics = draw_sources(cols, exposure, workers=workers, progress=progress)
+            opened.append(open_history(name, source))
+        drawn = draw_sources(cols, exposure, workers=workers, progress=progress, stars="STARFLU" in hdus)
+        sources, nobj, optics = drawn[:3]
+        star_light = drawn[3] if len(drawn) > 3 else None
         xmin, xmax, ymin, ymax = exposure.full_bounds
         pers_info = []
 
         def persistence():
-            # persistence on arrays: the earlier exposures' FLUENCE (electrons) and their end times
+            # persistence on arrays: the earlier exposures' FLUENCE or STARFLU (electrons) and their end times
             from ..detector.apply import check_earlier
             from ..detector.persistence import order_earlier, persistence_charge
             from ..io.frames import SECONDS_PER_DAY
@@ -132,6 +333,7 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
             fluences = [frame.fluence() for frame in opened]
             for frame in opened:
                 frame.verify(frame.fluence_source)
+            fluences = [(persisting_fluence(f, scale, threshold=threshold, cap=cap), scale) for f, scale in fluences]
             # the window from the header times, as for any frame read from a file
             window = (exposure.end - exposure.mjd) * SECONDS_PER_DAY
             return persistence_charge([f for f, _ in fluences], ends, start, window, pmodel,
@@ -140,25 +342,41 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         result = run_chain(sources, model, exptime=exposure.exptime, seed=seed, sky_rate=optics.sky_rate,
                            persistence=persistence if opened else None)
         gain = model.value("gain", "gain", off=1.0)
+        well = model.value("saturation", "full_well")
         common = _wcs_cards(optics, exposure.full_bounds)
         sci_cards = common + _exposure_cards(exposure, optics, seed, result.unit, gain) + [
             format_card("SKYRATE", result.sky_rate, "[e-/pixel/s] sky background used"),
             format_card("NOBJ", nobj, "objects drawn")]
         e_cards = common + _exposure_cards(exposure, optics, seed, "electron", 1.0)
-        hdus = [OutHDU([format_card("SIMPLE", True), format_card("BITPIX", 8), format_card("NAXIS", 0),
-                        format_card("EXTEND", True)])]
+        source_params = _source_params(source, threshold, cap)
+        source_cards = [format_card(k, v, c) for k, (v, c) in source_params.items()]
+        out = [OutHDU([format_card("SIMPLE", True), format_card("BITPIX", 8), format_card("NAXIS", 0),
+                       format_card("EXTEND", True)])]
 
         def image(data, name, cards, dtype=np.float32):
             return OutHDU(list(cards), np.asarray(data, dtype=dtype), extname=name)
 
-        hdus.append(image(result.sci, "SCI", sci_cards))
-        hdus.append(image(result.ideal, "IDEAL", e_cards))
-        hdus.append(image(result.fluence, "FLUENCE", e_cards))
-        if result.persistence is not None:
-            hdus.append(image(result.persistence, "PERSIST", e_cards))
-        hdus.append(_model_hdu(model))
-        _provenance(hdus[0], truth, cols["datasum"], exposure, model, seed, opened, pers_info)
-        write_hdus(hdus, dest, overwrite=overwrite, compress=compress)
+        if "SCI" in hdus:
+            out.append(image(result.sci, "SCI", sci_cards))
+        if "IDEAL" in hdus:
+            out.append(image(result.ideal, "IDEAL", e_cards))
+        if "FLUENCE" in hdus:
+            out.append(image(result.fluence, "FLUENCE", e_cards + [
+                format_card("CONTENT", "charge collected, after saturation",
+                            "what persists for source all or a threshold"),
+                format_card("SATWELL", float(well) if well is not None else 0.0,
+                            "[e-] full well FLUENCE is clipped at (0: none)")]))
+        if "STARFLU" in hdus:
+            out.append(image(star_light, "STARFLU", e_cards + [
+                format_card("CONTENT", "expected electrons of the stars alone", "what persists for source stars"),
+                format_card("COMMENT", "noise-free, not clipped at the well: the persistence cap applies when used")]))
+        if "PERSIST" in hdus and result.persistence is not None:
+            out.append(image(result.persistence, "PERSIST", e_cards + source_cards))
+        if "MODEL" in hdus:
+            out.append(_model_hdu(model))
+        _provenance(out[0], truth, cols["datasum"], exposure, model, seed, opened, pers_info,
+                    source_params if opened else {}, result.sky_rate, nobj, hdus)
+        write_hdus(out, dest, overwrite=overwrite, compress=compress)
         if plot:
             from ..io.output import atomic_path
             from .plots import frame_figure
@@ -167,10 +385,22 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
                 frame_figure(result.sci, tmp, persist=result.persistence, unit=result.unit,
                              title=f"SCA {exposure.sca} {exposure.filter} MJD {exposure.mjd:.5f} seed {seed}")
         return {"objects": nobj, "sky_rate": result.sky_rate, "unit": result.unit,
-                "persistence_max": float(result.persistence.max()) if result.persistence is not None else 0.0}
+                "persistence_max": float(result.persistence.max()) if result.persistence is not None else 0.0,
+                "hdus": tuple(h.extname for h in out[1:]),
+                "persistence_source": "threshold" if source == "threshold" else source,
+                "persistence_threshold": threshold, "fluence_cap": cap}
     finally:
         for frame in opened:
             frame.close()
+
+
+def _source_params(source: str, threshold, cap) -> dict:
+    """Header keywords saying what of the earlier exposures persisted: KEY -> (value, comment)."""
+    params = {"PS_SRC": (source, "persisting: all (FLUENCE), stars (STARFLU), threshold")}
+    if threshold is not None:
+        params["PS_THR"] = (float(threshold), "[e-] only FLUENCE above this persisted")
+    params["PS_CAP"] = (float(cap) if cap is not None else "none", "[e-] fluence fed to the law clipped here")
+    return params
 
 
 def _model_hdu(model: DetectorModel) -> OutHDU:
@@ -186,12 +416,19 @@ def _model_hdu(model: DetectorModel) -> OutHDU:
 
 
 def _provenance(primary: OutHDU, truth, truth_datasum, exposure: Exposure, model: DetectorModel, seed, opened,
-                used):
+                used, source_params=None, sky_rate=None, nobj=None, hdus=()):
     params = {
         "DETMODEL": (os.path.basename(model.source)[-68:], "detector model given; as resolved: MODEL table"),
         "FILTER": exposure.filter, "SCA": exposure.sca,
     }
     params["DETNEFF"] = (len(model.effects), "effects in the MODEL table, in physical order")
+    if sky_rate is not None:
+        params["SKYRATE"] = (float(sky_rate), "[e-/pixel/s] sky background used")
+    if nobj is not None:
+        params["NOBJ"] = (int(nobj), "objects drawn")
+    if hdus:
+        params["HDUS"] = (",".join(hdus), "HDUs asked for (PERSIST only with earlier ones)")
+    params.update(source_params or {})
     inputs = [("TRUTH", truth, truth_datasum)]
     for i, frame in enumerate(opened, 1):
         inputs.append((f"PRV{i:02d}", frame.name,
@@ -201,3 +438,4 @@ def _provenance(primary: OutHDU, truth, truth_datasum, exposure: Exposure, model
     add_provenance(primary, step=f"render sca={exposure.sca} filter={exposure.filter} mjd={exposure.mjd} "
                                  f"model={model.source} previous={len(opened)}",
                    params=params, inputs=inputs, seed=seed)
+

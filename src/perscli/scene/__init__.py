@@ -4,7 +4,11 @@
   field, drawn from documented models or taken from Gaia DR2
   reference-catalog chunks;
 - :mod:`perscli.scene.pointings`: the exposures that look at a field,
-  selected from a real survey schedule or planned as a dithered sequence.
+  selected from a real survey schedule (by boresight, or by where one SCA
+  lands) or planned as a dithered sequence; SCA footprints on the sky; the
+  exposures before a given one;
+- :mod:`perscli.scene.regions`: footprints as convex spherical polygons,
+  their union, its solid angle and a Poisson process on it.
 
 Both read FITS binary tables (Gaia chunks, schedules) through
 :func:`perscli.io.tables.read_table`.

@@ -57,6 +57,17 @@ in ln(effective wavelength) through J129 and H158 (wavelengths in
 :data:`perscli.scene.EFFECTIVE_WAVELENGTH_UM`): a power-law spectrum, simple
 but monotonic and exact at J129 and H158.
 
+**Footprints** instead of a square: the union of detector footprints (convex
+quadrilaterals on the sky, e.g. the SCA corners of
+:func:`perscli.scene.pointings.sca_footprint`), each grown by a margin
+(default :data:`DEFAULT_MARGIN_ARCSEC`) so that objects just off a
+detector's edge still spill their light onto it
+(:class:`perscli.scene.regions.FootprintUnion`).  Objects are a Poisson
+process of the same densities drawn on the union's bounding box on the
+tangent plane and kept inside the union: the densities per unit solid angle
+are exact, and only the area the exposures see is drawn (not a square
+around them all).  Gaia stars are those inside the union.
+
 The random numbers: ``numpy.random.Generator(PCG64)`` streams spawned from
 ``SeedSequence(seed)``, one for galaxies and one for stars, so that changing
 the star model (or using Gaia) leaves the galaxies unchanged.
@@ -97,6 +108,11 @@ AB_NJY_ZP = 31.4
 MAG_COLUMNS = tuple(f"mag_{f}" for f in ROMAN_FILTERS)
 
 COLUMNS = ("id", "ra", "dec", "kind", *MAG_COLUMNS, "hlr", "e1", "e2", "gaia_id")
+
+#: default growth of each footprint, arcsec: the half-width of the stamp of a J = 14 star (28") and of
+#: the largest galaxy (14"), so that every object whose light render would draw on a detector at a level
+#: that matters is in the catalogue (stars of J < 14, ~215 per deg^2, spill only their faint outer halo)
+DEFAULT_MARGIN_ARCSEC = 30.0
 
 
 @dataclass(frozen=True)
@@ -173,6 +189,11 @@ class Field:
         with np.errstate(invalid="ignore"):
             return (np.abs(xi) <= a) & (np.abs(eta) <= a)
 
+    def poisson_positions(self, rng: np.random.Generator, density: float) -> tuple:
+        """Poisson(density x area) positions uniform in solid angle over the field: (ra, dec) in degrees."""
+        n = int(rng.poisson(density * self.area))
+        return self.sample(rng, n)
+
     def sample(self, rng: np.random.Generator, n: int) -> tuple:
         """``n`` positions uniform in solid angle over the field: (ra, dec) in degrees."""
         a = self.half_width
@@ -240,10 +261,13 @@ def filter_magnitudes(mag_j, mag_h) -> dict:
     return out
 
 
-def draw_galaxies(rng: np.random.Generator, fld: Field, density: float, model: GalaxyModel) -> dict:
-    """Poisson(density x area) galaxies of ``model`` in ``fld``: columns as arrays."""
-    n = int(rng.poisson(density * fld.area))
-    ra, dec = fld.sample(rng, n)
+def draw_galaxies(rng: np.random.Generator, fld, density: float, model: GalaxyModel) -> dict:
+    """A Poisson process of galaxies of ``model``, ``density`` per arcmin^2, in ``fld``: columns as arrays.
+
+    ``fld`` is a :class:`Field` or a :class:`~perscli.scene.regions.FootprintUnion`.
+    """
+    ra, dec = fld.poisson_positions(rng, density)
+    n = len(ra)
     mag_j = power_law_magnitudes(rng, n, model.mag_slope, model.mag_min, model.mag_max)
     mag_h = mag_j - rng.normal(model.jh_mean, model.jh_sigma, n)
     log_hlr = rng.normal(math.log10(model.hlr_at_23) + model.hlr_slope * (mag_j - 23.0), model.hlr_sigma)
@@ -253,10 +277,10 @@ def draw_galaxies(rng: np.random.Generator, fld: Field, density: float, model: G
             "gaia_id": np.full(n, -1, dtype=np.int64)}
 
 
-def draw_stars(rng: np.random.Generator, fld: Field, density: float, model: StarModel) -> dict:
-    """Poisson(density x area) model stars in ``fld``: columns as arrays."""
-    n = int(rng.poisson(density * fld.area))
-    ra, dec = fld.sample(rng, n)
+def draw_stars(rng: np.random.Generator, fld, density: float, model: StarModel) -> dict:
+    """A Poisson process of model stars, ``density`` per arcmin^2, in ``fld`` (a Field or a FootprintUnion)."""
+    ra, dec = fld.poisson_positions(rng, density)
+    n = len(ra)
     mag_j = power_law_magnitudes(rng, n, model.mag_slope, model.mag_min, model.mag_max)
     jh = np.clip(rng.normal(model.jh_mean, model.jh_sigma, n), model.jh_min, model.jh_max)
     return _point_sources(ra, dec, mag_j, mag_j - jh, np.full(n, -1, dtype=np.int64))
@@ -338,15 +362,15 @@ class GaiaStars:
     median_bp_rp: float = DEFAULT_BP_RP
 
 
-def read_gaia_stars(paths, fld: Field, *, stdin=None) -> GaiaStars:
+def read_gaia_stars(paths, fld, *, stdin=None) -> GaiaStars:
     """The stars of Gaia DR2 reference-catalog chunks that lie inside ``fld``.
 
     Parameters
     ----------
     paths : sequence of str
         FITS files (LSST reference-catalog format), '-' for standard input.
-    fld : Field
-        Only stars inside it are kept.
+    fld : Field or FootprintUnion
+        Only stars inside it (its ``contains``) are kept.
 
     Raises
     ------
@@ -396,7 +420,11 @@ KEYWORD_COMMENTS = {
     "FIELDDEC": "[deg] field centre, Dec",
     "FIELDSZ": "[arcmin] side of the square field (TAN plane)",
     "FIELDAR": "[arcmin2] solid angle of the field",
-    "POSMODEL": "positions in the TAN square",
+    "REGION": "field: square, or union of footprints",
+    "NFOOT": "footprints (table FOOTPRNT)",
+    "FOOTMARG": "[arcsec] each footprint grown by this much",
+    "BOXAREA": "[arcmin2] bounding box drawn from (TAN plane)",
+    "POSMODEL": "positions in the field",
     "GALDENS": "[arcmin-2] mean galaxy density (Poisson)",
     "NGAL": "galaxies in the catalog",
     "STARSRC": "stars: model or gaia",
@@ -445,18 +473,27 @@ _COLUMN_INFO = {
 _INPUT_STEM = re.compile(r"^GA\d{3}$")
 
 
-def make_truth_catalog(ra: float, dec: float, size: float = 10.0, *, galaxy_density: float = 40.0,
-                       star_density: float = 2.5, gaia=None, seed: int = 1,
+def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: float | None = None, *,
+                       footprints=None, margin_arcsec: float = DEFAULT_MARGIN_ARCSEC,
+                       galaxy_density: float = 40.0, star_density: float = 2.5, gaia=None, seed: int = 1,
                        galaxy_model: GalaxyModel = GalaxyModel(), star_model: StarModel = StarModel(),
                        stdin=None):
-    """A truth catalog of galaxies and stars for a square field.
+    """A truth catalog of galaxies and stars for a square field or for detector footprints.
 
     Parameters
     ----------
-    ra, dec : float
-        Field centre in degrees.
-    size : float
-        Side of the square field in arcmin.
+    ra, dec : float, optional
+        Field centre in degrees (needed for a square field).  With
+        ``footprints``: the tangent point of the plane they are drawn on
+        (default: the mean direction of their corners).
+    size : float, optional
+        Side of the square field in arcmin (default 10); not with ``footprints``.
+    footprints : sequence of (ra, dec), optional
+        Instead of a square: the corners (degrees, in order around each) of
+        convex footprints, e.g. ``[sca_footprint(p, sca) for p in pointings]``;
+        objects are drawn only in their union, each grown by ``margin_arcsec``.
+    margin_arcsec : float
+        Growth of each footprint in arcsec (default, or None: :data:`DEFAULT_MARGIN_ARCSEC`).
     galaxy_density : float
         Mean number of galaxies per arcmin^2 (the paper: 40).
     star_density : float
@@ -464,7 +501,7 @@ def make_truth_catalog(ra: float, dec: float, size: float = 10.0, *, galaxy_dens
     gaia : sequence of str, optional
         Gaia DR2 reference-catalog chunks: their stars in the field replace the model stars.
     seed : int
-        Random seed; the same seed gives the same catalog.
+        Random seed; the same seed (and inputs) gives the same catalog.
     galaxy_model, star_model : GalaxyModel, StarModel
         Population parameters (defaults: the module docstring).
     stdin : binary file, optional
@@ -474,29 +511,48 @@ def make_truth_catalog(ra: float, dec: float, size: float = 10.0, *, galaxy_dens
     -------
     astropy.table.Table
         Columns :data:`COLUMNS` (galaxies first, then stars; ``id`` from 1),
-        with units; ``meta`` holds the header keywords (field, densities,
-        models, counts, Gaia inputs as GA001/GA001DS..., SEED).
+        with units; ``meta`` holds the header keywords (field or footprints,
+        densities, models, counts, Gaia inputs as GA001/GA001DS..., SEED);
+        with footprints ``meta['FOOTPRINTS']`` is the list of corners given
+        (written as the FOOTPRNT table).
 
     Raises
     ------
     PerscliError
-        A negative density or seed, a bad field, or an unreadable Gaia file.
+        A negative density or seed, a bad field or footprint, or an unreadable Gaia file.
     """
     from astropy.table import Table
+
+    from .regions import FootprintUnion
 
     for label, value in (("galaxy density", galaxy_density), ("star density", star_density)):
         if not (math.isfinite(value) and value >= 0):
             raise PerscliError(f"{label} {value} per arcmin^2: must be a number >= 0")
     if int(seed) < 0:
         raise PerscliError(f"seed {seed}: must be an integer >= 0")
-    fld = Field(ra, dec, size)
+    if footprints is not None:
+        if margin_arcsec is None:
+            margin_arcsec = DEFAULT_MARGIN_ARCSEC
+        if size is not None:
+            raise PerscliError("give a square field (ra, dec, size) or footprints, not both")
+        if (ra is None) != (dec is None):
+            raise PerscliError("with footprints, give both ra and dec (the tangent point) or neither")
+        fld = FootprintUnion(footprints, margin_arcsec, centre=None if ra is None else (ra, dec))
+        meta = {"REGION": "footprints", "FIELDRA": fld.ra, "FIELDDEC": fld.dec, "NFOOT": len(fld),
+                "FOOTMARG": float(margin_arcsec), "FIELDAR": round(fld.area, 6),
+                "BOXAREA": round(fld.box_area, 6)}
+    else:
+        if ra is None or dec is None:
+            raise PerscliError("give the field centre (ra, dec) of a square field, or footprints")
+        size = 10.0 if size is None else size
+        fld = Field(ra, dec, size)
+        meta = {"FIELDRA": fld.ra, "FIELDDEC": float(dec), "FIELDSZ": float(size), "FIELDAR": round(fld.area, 6)}
     gal_seq, star_seq = np.random.SeedSequence(int(seed)).spawn(2)
     galaxies = draw_galaxies(np.random.Generator(np.random.PCG64(gal_seq)), fld, galaxy_density, galaxy_model)
-    meta = {
-        "FIELDRA": fld.ra, "FIELDDEC": float(dec), "FIELDSZ": float(size), "FIELDAR": round(fld.area, 6),
+    meta.update({
         "POSMODEL": "uniform in solid angle",
         "GALDENS": float(galaxy_density), "NGAL": len(galaxies["ra"]),
-    }
+    })
     if gaia:
         gaia_stars = read_gaia_stars(list(gaia), fld, stdin=stdin)
         stars = gaia_stars.columns
@@ -528,6 +584,9 @@ def make_truth_catalog(ra: float, dec: float, size: float = 10.0, *, galaxy_dens
     for name in ROMAN_FILTERS:
         meta[f"LEFF{name}"] = EFFECTIVE_WAVELENGTH_UM[name]
     meta["SEED"] = int(seed)
+    if footprints is not None:
+        meta["FOOTPRINTS"] = [(np.asarray(r, dtype=np.float64), np.asarray(d, dtype=np.float64))
+                              for r, d in fld.given]
 
     n_gal, n_star = len(galaxies["ra"]), len(stars["ra"])
     both = {k: np.concatenate([galaxies[k], stars[k]]) for k in galaxies}
@@ -556,8 +615,9 @@ def catalog_step(table) -> str:
     m = table.meta
     stars = (f"gaia files={sum(1 for k in m if _INPUT_STEM.match(k))}" if m.get("STARSRC") == "gaia"
              else f"star-density={m.get('STARDENS')}")
-    return (f"catalog ra={m['FIELDRA']} dec={m['FIELDDEC']} size={m['FIELDSZ']} "
-            f"galaxy-density={m['GALDENS']} {stars} galaxies={m['NGAL']} stars={m['NSTAR']}")
+    where = (f"footprints={m['NFOOT']} margin={m['FOOTMARG']}" if m.get("REGION") == "footprints"
+             else f"ra={m['FIELDRA']} dec={m['FIELDDEC']} size={m['FIELDSZ']}")
+    return f"catalog {where} galaxy-density={m['GALDENS']} {stars} galaxies={m['NGAL']} stars={m['NSTAR']}"
 
 
 def truth_hdulist(table):
@@ -576,8 +636,10 @@ def truth_hdulist(table):
     hdu = table_hdu(columns, "TRUTH", units=units, cards=cards)
     meta = dict(table.meta)
     seed = meta.pop("SEED", None)
+    footprints = meta.pop("FOOTPRINTS", None)
+    extra_inputs = meta.pop("INPUTS", [])
     stems = [k for k in meta if _INPUT_STEM.match(k)]
-    inputs = [(k, meta.pop(k), meta.pop(f"{k}DS")) for k in stems]
+    inputs = [(k, meta.pop(k), meta.pop(f"{k}DS")) for k in stems] + list(extra_inputs)
     params = {}
     for key, value in meta.items():
         comment = KEYWORD_COMMENTS.get(key)
@@ -585,7 +647,17 @@ def truth_hdulist(table):
             comment = f"[um] effective wavelength of {key[4:]}"
         params[key] = (value, comment) if comment else value
     add_provenance(hdu, step=catalog_step(table), params=params, inputs=inputs, seed=seed)
-    return [OutHDU([]), hdu]
+    hdus = [OutHDU([]), hdu]
+    if footprints is not None:
+        # the footprints as given (before the margin), so that the region can be rebuilt
+        corners = {"corner_ra": np.array([r for r, _ in footprints], dtype=np.float64).reshape(len(footprints), -1),
+                   "corner_dec": np.array([d for _, d in footprints], dtype=np.float64).reshape(len(footprints), -1)}
+        hdus.append(table_hdu(corners, "FOOTPRNT", units={"corner_ra": "deg", "corner_dec": "deg"},
+                              cards=[format_card("TCOMM1", "footprint corners, in order around it: RA"),
+                                     format_card("TCOMM2", "footprint corners: Dec"),
+                                     format_card("FOOTMARG", float(table.meta["FOOTMARG"]),
+                                                 "[arcsec] objects drawn within this of them")]))
+    return hdus
 
 
 def write_truth_catalog(table, dest: str, *, overwrite: bool = False, stdout=None) -> None:
@@ -595,9 +667,31 @@ def write_truth_catalog(table, dest: str, *, overwrite: bool = False, stdout=Non
     write_hdus(truth_hdulist(table), dest, overwrite=overwrite, stdout=stdout)
 
 
-def make_truth_catalog_file(dest: str, ra: float, dec: float, size: float = 10.0, *, overwrite: bool = False,
-                            stdin=None, stdout=None, **kw):
-    """Check ``dest``, make a catalog (:func:`make_truth_catalog` arguments) and write it.
+def make_truth_catalog_file(dest: str, ra: float | None = None, dec: float | None = None,
+                            size: float | None = None, *, footprints=None,
+                            margin_arcsec: float = DEFAULT_MARGIN_ARCSEC, sca: int = 0, bounds=None,
+                            overwrite: bool = False, stdin=None, stdout=None, **kw):
+    """Check ``dest``, make a catalog (:func:`make_truth_catalog`) and write it.
+
+    Parameters
+    ----------
+    dest : str
+        Output path, '-' for standard output.
+    ra, dec, size, margin_arcsec
+        As :func:`make_truth_catalog`.
+    footprints : sequence of (ra, dec), or str, optional
+        The footprints' corners, or the path of a pointings table
+        (``perscli pointings``) whose rows' SCA footprints
+        (:func:`perscli.scene.pointings.pointings_footprints`) make the
+        region; the table is recorded as an input (PTGS, PTGSDS).
+    sca : int
+        With a pointings table: the SCA (0: each row's own).
+    bounds : (xmin, xmax, ymin, ymax), optional
+        With a pointings table: the footprint of this cutout of the SCA.
+    overwrite, stdin, stdout
+        As for every command.
+    **kw
+        The other arguments of :func:`make_truth_catalog`.
 
     Returns
     -------
@@ -606,7 +700,18 @@ def make_truth_catalog_file(dest: str, ra: float, dec: float, size: float = 10.0
     """
     from ..io.output import check_output
 
-    check_output(dest, overwrite=overwrite, inputs=list(kw.get("gaia") or ()))
-    table = make_truth_catalog(ra, dec, size, stdin=stdin, **kw)
+    table_path = footprints if isinstance(footprints, (str, bytes)) else None
+    check_output(dest, overwrite=overwrite, inputs=list(kw.get("gaia") or ()) + ([table_path] if table_path else []))
+    inputs = []
+    if table_path is not None:
+        from .pointings import pointings_footprints
+
+        footprints, datasum = pointings_footprints(table_path, sca=sca, bounds=bounds, stdin=stdin)
+        inputs.append(("PTGS", table_path, datasum))
+    elif sca or bounds is not None:
+        raise PerscliError("sca and bounds choose the footprints of a pointings table: give its path as footprints")
+    table = make_truth_catalog(ra, dec, size, footprints=footprints, margin_arcsec=margin_arcsec, stdin=stdin, **kw)
+    if inputs:
+        table.meta["INPUTS"] = inputs
     write_truth_catalog(table, dest, overwrite=overwrite, stdout=stdout)
     return table

@@ -15,10 +15,26 @@ Two sources:
   field centre offset by a random amount uniform in [-dither, +dither]
   arcsec along east and north on the tangent plane, all at the same PA.
 
-A pointing is the telescope's boresight (the schedule's ra, dec, pa); ``sca``
-names one detector of the focal plane when the caller chooses one, 0 when
-not.  Pointings are written as a FITS table 'POINTINGS' (:func:`write_pointings`)
-and read back with :func:`read_pointings`.
+A pointing is the telescope's boresight (the schedule's ra, dec, pa: the
+centre of the focal plane and the observatory's position angle, as
+``galsim.roman.getWCS`` takes them); ``sca`` names one detector of the focal
+plane when the caller chooses one, 0 when not.
+
+Detectors on the sky:
+
+- :func:`sca_footprint`: the four corners on the sky of one SCA (its outer
+  pixel edges, or those of a cutout), through GalSim's Roman WCS for the
+  pointing, optionally grown by a margin;
+- :func:`select_covering` with ``sca=N`` keeps the exposures whose SCA N
+  footprint overlaps the field circle (not only those whose boresight is in
+  it): the SCAs lie up to :data:`FPA_REACH_DEG` from the boresight;
+- :func:`previous_exposures`: the exposures of a schedule that start before
+  a given row, whatever their filter and pointing: on the same detector they
+  are what leaves persistence in it.
+
+Pointings are written as a FITS table 'POINTINGS' (:func:`write_pointings`,
+with each row's SCA corners when asked) and read back with
+:func:`read_pointings`.
 """
 
 from __future__ import annotations
@@ -29,11 +45,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PerscliError
-from ..instrument import ROMAN_EXPTIME, ROMAN_WAS_GAP
+from ..instrument import ROMAN_EXPTIME, ROMAN_N_SCA, ROMAN_PIXEL_SCALE, ROMAN_SCA_SIZE, ROMAN_WAS_GAP
 from ..io.tables import read_table
 from . import check_filter, deproject, separation
 
 DAY = 86400.0
+
+#: farthest any SCA corner lies from the boresight (the centre of the focal plane), degrees: GalSim's
+#: Roman focal plane reaches 0.450 deg; 0.5 bounds it for the pre-selection of :func:`select_covering`
+FPA_REACH_DEG = 0.5
 
 #: the schedule's columns and what they must hold
 SCHEDULE_COLUMNS = {"date": "number", "exptime": "number", "ra": "number", "dec": "number", "pa": "number",
@@ -49,6 +69,12 @@ POINTING_COLUMNS = {
     "pa": ("D", "deg", "position angle of the focal plane"),
     "filter": ("4A", None, "Roman filter"),
     "sca": ("J", None, "detector (SCA 1-18), 0 if not chosen"),
+}
+
+#: the optional columns of :func:`pointings_hdulist` with ``footprints=True``
+FOOTPRINT_COLUMNS = {
+    "corner_ra": ("4D", "deg", "SCA corners (pixel edges) (0.5,0.5) (4088.5,0.5) (4088.5,4088.5) (0.5,4088.5): RA"),
+    "corner_dec": ("4D", "deg", "SCA corners, same order: Dec"),
 }
 
 #: Roman Wide Area Survey cadence (../shared/data/roman): exposure time and gap between exposures, s
@@ -108,6 +134,27 @@ class Schedule:
         return len(self.mjd)
 
 
+def schedule_pointing(schedule: Schedule, row: int, *, sca: int = 0) -> Pointing:
+    """Row ``row`` (from 0) of a schedule as a :class:`Pointing` (``expid`` = row, ``sca`` written in).
+
+    Raises
+    ------
+    PerscliError
+        A row outside the schedule.
+    """
+    row = _check_row(schedule, row)
+    return Pointing(expid=row, mjd=float(schedule.mjd[row]), exptime=float(schedule.exptime[row]),
+                    ra=float(schedule.ra[row]), dec=float(schedule.dec[row]), pa=float(schedule.pa[row]),
+                    filter=str(schedule.filter[row]).strip(), sca=_check_sca(sca))
+
+
+def _check_row(schedule: Schedule, row) -> int:
+    if isinstance(row, bool) or int(row) != row or not 0 <= int(row) < len(schedule):
+        where = f"{schedule.name}: " if schedule.name else ""
+        raise PerscliError(f"{where}schedule row {row} does not exist: the rows are 0 to {len(schedule) - 1}")
+    return int(row)
+
+
 def read_schedule(path: str, *, stdin=None) -> Schedule:
     """Read a survey schedule: the first binary table of a FITS file.
 
@@ -144,7 +191,7 @@ def _check_sca(sca: int) -> int:
 
 def select_covering(schedule: Schedule, ra: float, dec: float, radius: float, *, filter: str | None = None,
                     after: float | None = None, limit: int | None = None, sca: int = 0) -> list:
-    """The exposures of ``schedule`` pointed within ``radius`` of (ra, dec), in time order.
+    """The exposures of ``schedule`` that look at the field (ra, dec, radius), in time order.
 
     Parameters
     ----------
@@ -152,7 +199,7 @@ def select_covering(schedule: Schedule, ra: float, dec: float, radius: float, *,
     ra, dec : float
         Field centre, degrees.
     radius : float
-        Degrees, great-circle distance between the pointing centre and (ra, dec).
+        Degrees: the field is the circle (cap) of this great-circle radius.
     filter : str, optional
         Only exposures in this Roman filter (any case).
     after : float, optional
@@ -160,13 +207,25 @@ def select_covering(schedule: Schedule, ra: float, dec: float, radius: float, *,
     limit : int, optional
         At most this many (the earliest).
     sca : int
-        Written into every pointing (0: none chosen).
+        0: the exposures whose pointing centre (boresight) lies within
+        ``radius`` of (ra, dec).  1-18: the exposures that put that SCA on
+        the field, i.e. whose SCA footprint (:func:`sca_footprint`, GalSim's
+        WCS) overlaps the field circle; ``sca`` is written into every
+        pointing.  (A boresight up to :data:`FPA_REACH_DEG` beyond the
+        radius can qualify; a boresight inside it need not, since the SCA
+        may point elsewhere.)
 
     Returns
     -------
     list of Pointing
         ``expid`` is the exposure's row in the schedule (from 0).  Rows with
         non-finite times or positions are never selected.
+
+    Raises
+    ------
+    PerscliError
+        A bad centre, radius, limit or SCA; with ``sca``, a row that Roman
+        cannot observe at its date (GalSim's Sun-angle limits).
     """
     _check_centre(ra, dec)
     if not (radius > 0 and math.isfinite(radius)):
@@ -174,20 +233,183 @@ def select_covering(schedule: Schedule, ra: float, dec: float, radius: float, *,
     if limit is not None and limit < 0:
         raise PerscliError(f"limit {limit}: must be >= 0")
     sca = _check_sca(sca)
+    reach = radius + (FPA_REACH_DEG if sca else 0.0)
     with np.errstate(invalid="ignore"):
-        keep = separation(ra, dec, schedule.ra, schedule.dec) <= radius
+        keep = separation(ra, dec, schedule.ra, schedule.dec) <= reach
         keep &= np.isfinite(schedule.mjd) & np.isfinite(schedule.exptime)
+        if sca:
+            keep &= np.isfinite(schedule.pa)
         if filter is not None:
-            keep &= np.char.upper(schedule.filter) == check_filter(filter)
+            keep &= np.char.upper(np.char.strip(schedule.filter.astype(str))) == check_filter(filter)
         if after is not None:
             keep &= schedule.mjd > after
     rows = np.flatnonzero(keep)
     rows = rows[np.argsort(schedule.mjd[rows], kind="stable")]
-    if limit is not None:
-        rows = rows[:limit]
-    return [Pointing(expid=int(i), mjd=float(schedule.mjd[i]), exptime=float(schedule.exptime[i]),
-                     ra=float(schedule.ra[i]), dec=float(schedule.dec[i]), pa=float(schedule.pa[i]),
-                     filter=str(schedule.filter[i]), sca=sca) for i in rows]
+    if not sca:
+        if limit is not None:
+            rows = rows[:limit]
+        return [schedule_pointing(schedule, i) for i in rows]
+    from .regions import polygon_meets_circle
+
+    chosen = []
+    for i in rows:
+        if limit is not None and len(chosen) >= limit:
+            break
+        p = schedule_pointing(schedule, i, sca=sca)
+        if polygon_meets_circle(*sca_footprint(p, sca), ra, dec, radius):
+            chosen.append(p)
+    return chosen
+
+
+def previous_exposures(schedule: Schedule, row: int, n: int, *, sca: int = 0) -> list:
+    """The ``n`` exposures of ``schedule`` that start last before row ``row`` starts, in time order.
+
+    Whatever their filter and wherever they point: on one detector, every
+    earlier exposure leaves persistence, so a frame's history is the rows
+    just before it in time.
+
+    Parameters
+    ----------
+    schedule : Schedule
+    row : int
+        The exposure (schedule row, from 0).
+    n : int
+        How many earlier exposures (>= 0).
+    sca : int
+        Written into every pointing (0: none chosen).
+
+    Returns
+    -------
+    list of Pointing
+        At most ``n`` (fewer when the schedule starts sooner), earliest
+        first, the most recent last; ``expid`` is the schedule row.  Rows
+        that start at the same time as ``row`` or later, and rows with
+        non-finite times, are not earlier exposures.
+
+    Raises
+    ------
+    PerscliError
+        A row outside the schedule, a row without a finite start, or n < 0.
+    """
+    row = _check_row(schedule, row)
+    if isinstance(n, bool) or int(n) != n or n < 0:
+        raise PerscliError(f"number of earlier exposures {n}: must be a whole number >= 0")
+    sca = _check_sca(sca)
+    start = schedule.mjd[row]
+    if not math.isfinite(start):
+        raise PerscliError(f"schedule row {row} has no finite start time (date {start})")
+    with np.errstate(invalid="ignore"):
+        earlier = np.flatnonzero((schedule.mjd < start) & np.isfinite(schedule.exptime))
+    # time order, ties by row; the last n are the most recent
+    earlier = earlier[np.lexsort((earlier, schedule.mjd[earlier]))]
+    picked = earlier[len(earlier) - int(n):] if n else earlier[:0]
+    return [schedule_pointing(schedule, i, sca=sca) for i in picked]
+
+
+# -- detectors on the sky -------------------------------------------------------------------------
+
+def _date(mjd: float):
+    import datetime as _dt
+
+    return _dt.datetime(1858, 11, 17) + _dt.timedelta(days=float(mjd))
+
+
+def sca_wcs(pointing, sca: int):
+    """GalSim's Roman WCS of one SCA for a pointing.
+
+    Parameters
+    ----------
+    pointing
+        Anything with ``ra``, ``dec`` (centre of the focal plane, degrees),
+        ``pa`` (observatory position angle, degrees) and ``mjd`` (start):
+        a :class:`Pointing` or a :class:`perscli.render.exposure.Exposure`.
+    sca : int
+        1-18.
+
+    Returns
+    -------
+    galsim.GSFitsWCS
+        ``galsim.roman.getWCS(world_pos, PA=pa, date=...)[sca]``.
+
+    Raises
+    ------
+    PerscliError
+        Not an SCA, or a position Roman cannot observe at that date (GalSim
+        allows positions 54 to 126 degrees from the Sun).
+    """
+    import galsim
+    import galsim.roman as roman
+
+    if not 1 <= int(sca) <= ROMAN_N_SCA:
+        raise PerscliError(f"SCA {sca}: Roman has detectors 1 to {ROMAN_N_SCA}")
+    ra, dec, pa, mjd = (float(getattr(pointing, k)) for k in ("ra", "dec", "pa", "mjd"))
+    if not (math.isfinite(ra) and math.isfinite(pa) and math.isfinite(mjd) and -90.0 <= dec <= 90.0):
+        raise PerscliError(f"pointing ra={ra} dec={dec} pa={pa} mjd={mjd}: not a valid pointing")
+    date = _date(mjd)
+    world = galsim.CelestialCoord(ra * galsim.degrees, dec * galsim.degrees)
+    try:
+        return roman.getWCS(world_pos=world, PA=pa * galsim.degrees, date=date, SCAs=int(sca))[int(sca)]
+    except galsim.GalSimError as exc:
+        if not roman.allowedPos(world, date):
+            raise PerscliError(f"Roman cannot point at ra={ra:g} dec={dec:g} on MJD {mjd:.5f} ({date:%Y-%m-%d}): "
+                               "GalSim's Roman module allows positions 54 to 126 degrees from the Sun only; "
+                               "choose another date (--start of a plan, --mjd of render)") from None
+        raise PerscliError(f"GalSim's Roman WCS for ra={ra:g} dec={dec:g} pa={pa:g}: {exc}") from None
+
+
+def sca_footprint(pointing, sca: int | None = None, *, margin_arcsec: float = 0.0, bounds=None) -> tuple:
+    """The corners on the sky of one SCA (or a cutout of it) for a pointing.
+
+    Parameters
+    ----------
+    pointing
+        A :class:`Pointing` (or anything with ra, dec, pa, mjd: an Exposure).
+    sca : int, optional
+        1-18; default the pointing's own ``sca``.
+    margin_arcsec : float
+        Grow the footprint outwards by this much: the pixel box is widened
+        by margin / 0.11" pixels on each side before the corners go through
+        the WCS (the plate scale varies by a few per cent over the focal
+        plane, so the margin on the sky is that much approximate).
+    bounds : (xmin, xmax, ymin, ymax), optional
+        A cutout (1-indexed inclusive SCA pixels, as ``perscli render
+        --bounds``); default the whole 4088 x 4088 SCA.
+
+    Returns
+    -------
+    ra, dec : ndarray of 4
+        Degrees: the outer pixel edges (xmin - 0.5, ymin - 0.5),
+        (xmax + 0.5, ymin - 0.5), (xmax + 0.5, ymax + 0.5),
+        (xmin - 0.5, ymax + 0.5) in GalSim's convention (pixel centres at
+        integers), through ``galsim.roman.getWCS`` for the pointing's
+        position, position angle and date.  The sides between them are
+        great-circle arcs to within 0.001 arcsec.
+
+    Raises
+    ------
+    PerscliError
+        No SCA, bad bounds or margin, or a pointing Roman cannot observe.
+    """
+    if sca is None or sca == 0:
+        sca = getattr(pointing, "sca", 0)
+    if not sca:
+        raise PerscliError("footprint: give an SCA (1-18): the pointing does not name one")
+    if not (math.isfinite(margin_arcsec) and margin_arcsec >= 0):
+        raise PerscliError(f"margin {margin_arcsec} arcsec: must be a number >= 0")
+    xmin, xmax, ymin, ymax = 1, ROMAN_SCA_SIZE, 1, ROMAN_SCA_SIZE
+    if bounds is not None:
+        try:
+            xmin, xmax, ymin, ymax = (int(v) for v in bounds)
+        except (TypeError, ValueError):
+            raise PerscliError(f"bounds {bounds!r}: give (xmin, xmax, ymin, ymax) in SCA pixels") from None
+        if not (1 <= xmin <= xmax <= ROMAN_SCA_SIZE and 1 <= ymin <= ymax <= ROMAN_SCA_SIZE):
+            raise PerscliError(f"bounds {tuple(bounds)} must lie within 1..{ROMAN_SCA_SIZE} with min <= max")
+    wcs = sca_wcs(pointing, int(sca))
+    grow = 0.5 + margin_arcsec / ROMAN_PIXEL_SCALE
+    x = np.array([xmin - grow, xmax + grow, xmax + grow, xmin - grow])
+    y = np.array([ymin - grow, ymin - grow, ymax + grow, ymax + grow])
+    ra, dec = wcs.xyToradec(x, y, units="deg")
+    return np.asarray(ra, dtype=np.float64) % 360.0, np.asarray(dec, dtype=np.float64)
 
 
 def plan_dithers(ra: float, dec: float, n: int, *, dither: float = 10.0, filter: str = "J129",
@@ -241,11 +463,14 @@ def plan_dithers(ra: float, dec: float, n: int, *, dither: float = 10.0, filter:
                      pa=float(pa) % 360.0, filter=filter, sca=sca) for i in range(n)]
 
 
-def pointings_hdulist(pointings, *, step: str, params: dict | None = None, inputs=(), seed: int | None = None):
+def pointings_hdulist(pointings, *, step: str, params: dict | None = None, inputs=(), seed: int | None = None,
+                      footprints: bool = False):
     """The FITS file of ``pointings``: an empty primary HDU and the 'POINTINGS' table with provenance.
 
     ``step``, ``params``, ``inputs`` and ``seed`` are those of
-    :func:`perscli.io.output.add_provenance`.
+    :func:`perscli.io.output.add_provenance`.  With ``footprints`` the table
+    also has the columns of :data:`FOOTPRINT_COLUMNS`: each row's SCA
+    corners (:func:`sca_footprint` of its ``sca``, which must be 1-18).
     """
     from ..io.fitsfile import OutHDU, format_card, table_hdu
     from ..io.output import add_provenance
@@ -260,17 +485,25 @@ def pointings_hdulist(pointings, *, step: str, params: dict | None = None, input
         "filter": np.array([p.filter for p in pointings], dtype="S4"),
         "sca": np.array([p.sca for p in pointings], dtype=np.int32),
     }
-    names = list(POINTING_COLUMNS)
-    cards = [format_card(f"TCOMM{k}", desc) for k, (_, _, desc) in enumerate(POINTING_COLUMNS.values(), 1)]
+    columns = dict(POINTING_COLUMNS)
+    if footprints:
+        if any(not p.sca for p in pointings):
+            raise PerscliError("footprints need an SCA: give --sca N (1-18)")
+        corners = [sca_footprint(p, p.sca) for p in pointings]
+        values["corner_ra"] = np.array([c[0] for c in corners], dtype=np.float64).reshape(-1, 4)
+        values["corner_dec"] = np.array([c[1] for c in corners], dtype=np.float64).reshape(-1, 4)
+        columns.update(FOOTPRINT_COLUMNS)
+    cards = [format_card(f"TCOMM{k}", desc) for k, (_, _, desc) in enumerate(columns.values(), 1)]
     cards.append(format_card("NEXP", len(pointings), "exposures in this table"))
-    hdu = table_hdu({name: values[name] for name in names}, "POINTINGS",
-                    units={name: unit for name, (_, unit, _) in POINTING_COLUMNS.items()}, cards=cards)
+    hdu = table_hdu({name: values[name] for name in columns}, "POINTINGS",
+                    units={name: unit for name, (_, unit, _) in columns.items()}, cards=cards)
     add_provenance(hdu, step=step, params=params, inputs=inputs, seed=seed)
     return [OutHDU([]), hdu]
 
 
 def write_pointings(pointings, dest: str, *, overwrite: bool = False, stdout=None, **provenance) -> None:
-    """Write ``pointings`` atomically (or to standard output for '-'); ``provenance`` as :func:`pointings_hdulist`."""
+    """Write ``pointings`` atomically (or to standard output for '-'); ``provenance`` (and ``footprints``)
+    as :func:`pointings_hdulist`."""
     from ..io.output import write_hdus
 
     write_hdus(pointings_hdulist(pointings, **provenance), dest, overwrite=overwrite, stdout=stdout)
@@ -287,7 +520,48 @@ def read_pointings(path: str, *, stdin=None) -> list:
     PerscliError
         Unreadable file, or a column of :data:`POINTING_COLUMNS` missing or of the wrong type.
     """
+    return _read_pointings(path, stdin=stdin)[0]
+
+
+def pointings_footprints(path: str, *, sca: int = 0, margin_arcsec: float = 0.0, bounds=None,
+                         stdin=None) -> tuple:
+    """The SCA footprints (:func:`sca_footprint`) of every row of a pointings table.
+
+    Parameters
+    ----------
+    path : str
+        A pointings table (:func:`write_pointings`) or a schedule.
+    sca : int
+        The detector; 0: each row's own ``sca`` (every row must name one).
+    margin_arcsec, bounds
+        As :func:`sca_footprint`.
+
+    Returns
+    -------
+    (list of (ra, dec), int)
+        The corners of each row's footprint, and the table's DATASUM (for provenance).
+
+    Raises
+    ------
+    PerscliError
+        An unreadable table, an empty one, or a row without an SCA when ``sca`` is 0.
+    """
+    pointings, datasum = _read_pointings(path, stdin=stdin)
+    label = "stdin" if path == "-" else path
+    if not pointings:
+        raise PerscliError(f"{label}: the pointings table is empty: no footprint to cover")
+    sca = _check_sca(sca)
+    if not sca and any(not p.sca for p in pointings):
+        raise PerscliError(f"{label}: rows without an SCA (sca 0): give the detector (--sca N)")
+    return [sca_footprint(p, sca or p.sca, margin_arcsec=margin_arcsec, bounds=bounds) for p in pointings], datasum
+
+
+def _read_pointings(path: str, *, stdin=None) -> tuple:
     table = read_table(path, what="pointings table", stdin=stdin)
+    return _pointings_of(table), table.datasum
+
+
+def _pointings_of(table) -> list:
     names = {n.lower() for n in table.names}
     if "mjd" not in names and "date" in names:
         cols = {name: table.column(name, kind=kind, needed=tuple(SCHEDULE_COLUMNS))
@@ -305,8 +579,10 @@ def read_pointings(path: str, *, stdin=None) -> list:
 
 def select_covering_file(dest: str, schedule: str, ra: float, dec: float, radius: float, *,
                          filter: str | None = None, after: float | None = None, limit: int | None = None,
-                         sca: int = 0, overwrite: bool = False, stdin=None, stdout=None) -> list:
-    """Check ``dest``, select from the schedule file (:func:`select_covering`) and write the pointings."""
+                         sca: int = 0, footprints: bool = False, overwrite: bool = False, stdin=None,
+                         stdout=None) -> list:
+    """Check ``dest``, select from the schedule file (:func:`select_covering`) and write the pointings
+    (with each row's SCA corners when ``footprints``)."""
     from ..io.output import check_output
 
     check_output(dest, overwrite=overwrite, inputs=[schedule])
@@ -322,22 +598,47 @@ def select_covering_file(dest: str, schedule: str, ra: float, dec: float, radius
         "PTFILTER": (filter or "any", "filter selected"),
         "PTLIMIT": (int(limit) if limit is not None else 0, "at most this many (0: no limit)"),
         "PTSCA": (int(sca), "detector written in every row (0: none)"),
+        "PTCOVER": ("sca footprint" if sca else "boresight",
+                    "kept: SCA footprint meets the field circle, or boresight in it"),
         "PTNSCHED": (len(sched), "exposures in the schedule"),
     }
     if after is not None:
         params["PTAFTER"] = (float(after), "[MJD] only exposures starting later")
     step = (f"pointings schedule ra={ra} dec={dec} radius={radius} filter={filter or 'any'} "
-            f"selected={len(chosen)} of {len(sched)}")
+            f"{'sca=' + str(sca) + ' footprint' if sca else 'boresight'} selected={len(chosen)} of {len(sched)}")
     write_pointings(chosen, dest, overwrite=overwrite, stdout=stdout, step=step, params=params,
-                    inputs=[("SCHED", schedule, sched.datasum)])
+                    inputs=[("SCHED", schedule, sched.datasum)], footprints=footprints)
+    return chosen
+
+
+def previous_exposures_file(dest: str, schedule: str, row: int, n: int, *, sca: int = 0, footprints: bool = False,
+                            overwrite: bool = False, stdin=None, stdout=None) -> list:
+    """Check ``dest``, take the ``n`` exposures before ``row`` of the schedule file
+    (:func:`previous_exposures`) and write them (with their SCA corners when ``footprints``)."""
+    from ..io.output import check_output
+
+    check_output(dest, overwrite=overwrite, inputs=[schedule])
+    sched = read_schedule(schedule, stdin=stdin)
+    chosen = previous_exposures(sched, row, n, sca=sca)
+    params = {
+        "PTMODE": ("before", "pointings: the exposures before a schedule row"),
+        "PTBEFORE": (int(row), "schedule row whose earlier exposures these are"),
+        "PTN": (int(n), "earlier exposures asked for"),
+        "PTSCA": (int(sca), "detector written in every row (0: none)"),
+        "PTNSCHED": (len(sched), "exposures in the schedule"),
+    }
+    step = f"pointings schedule before={row} n={n} found={len(chosen)}"
+    write_pointings(chosen, dest, overwrite=overwrite, stdout=stdout, step=step, params=params,
+                    inputs=[("SCHED", schedule, sched.datasum)], footprints=footprints)
     return chosen
 
 
 def plan_dithers_file(dest: str, ra: float, dec: float, n: int, *, dither: float = 10.0, filter: str = "J129",
                       start: float = 60000.0, exptime: float = WAS_EXPTIME, gap: float = WAS_GAP,
-                      pa: float = 0.0, sca: int = 0, seed: int = 1, overwrite: bool = False,
-                      stdout=None) -> list:
-    """Check ``dest``, plan a dithered sequence (:func:`plan_dithers`) and write it."""
+                      pa: float = 0.0, sca: int = 0, seed: int = 1, footprints: bool = False,
+                      overwrite: bool = False, stdout=None) -> list:
+    """Check ``dest``, plan a dithered sequence (:func:`plan_dithers`) and write it (with its SCA
+    corners when ``footprints``)."""
     from ..io.output import check_output
 
     check_output(dest, overwrite=overwrite)
@@ -356,5 +657,6 @@ def plan_dithers_file(dest: str, ra: float, dec: float, n: int, *, dither: float
         "PTSCA": (int(sca), "detector written in every row (0: none)"),
     }
     step = f"pointings plan ra={ra} dec={dec} n={n} dither={dither} filter={check_filter(filter)} seed={seed}"
-    write_pointings(chosen, dest, overwrite=overwrite, stdout=stdout, step=step, params=params, seed=seed)
+    write_pointings(chosen, dest, overwrite=overwrite, stdout=stdout, step=step, params=params, seed=seed,
+                    footprints=footprints)
     return chosen

@@ -26,7 +26,12 @@ compared bin by bin (:func:`compare`): ratio = xi+ / budget, its error
 sigma_xip / |budget|, and a bin *exceeds* the budget when
 ``|xi+| - n_sigma * sigma_xip > |budget|``.  Magnitudes are compared because
 the budget bounds the size of the systematic, whatever its sign, and the
-budget itself is negative at large separations.
+budget itself is negative at large separations.  The verdict names the bin:
+where the measurement exceeds, the bin furthest over its budget (its
+separation, xi+, the budget, sigma and the ratio) and the separations of any
+other bins that exceed; otherwise the bin closest to the budget.  When the
+table's errors are shot noise (VAR_METH = 'shot': too few objects for a
+jackknife), the verdict says so.
 """
 
 from __future__ import annotations
@@ -211,6 +216,12 @@ class XiTable:
         Bins without pairs (weight or npairs 0): not compared.
     datasum : int
         DATASUM of the table as read (provenance).
+    var_method : str
+        What sigma_xip is, from the header's VAR_METH ('jackknife', 'shot'),
+        '' when the table does not say.
+    shot_bins : tuple of int
+        Rows whose error is shot noise inside a jackknife (header SHOTBINS:
+        too few pairs there for the jackknife).
     """
 
     label: str
@@ -221,6 +232,8 @@ class XiTable:
     sigma_xip: np.ndarray
     empty: np.ndarray
     datasum: int = 0
+    var_method: str = ""
+    shot_bins: tuple = ()
 
 
 def read_xi(path: str, *, stdin=None) -> XiTable:
@@ -279,8 +292,11 @@ def read_xi(path: str, *, stdin=None) -> XiTable:
         if sigma[k] < 0:
             raise PerscliError(f"{where}: column 'sigma_xip' is negative ({sigma[k]:.3g}) in bin {k}: "
                                "an error must be >= 0; check the correlation table")
+    var_method = str(table.header.get("VAR_METH", table.header.get("VARMETHD", "")) or "").strip().lower()
+    listed = str(table.header.get("SHOTBINS", "") or "")
+    shot_bins = tuple(int(k) for k in listed.split(",") if k.strip().isdigit())
     return XiTable(label=table.label, name=path, theta=theta, unit=unit, xip=xip, sigma_xip=sigma, empty=empty,
-                   datasum=table.datasum)
+                   datasum=table.datasum, var_method=var_method, shot_bins=shot_bins)
 
 
 def _xi_unit(table, column: str) -> str:
@@ -332,8 +348,18 @@ class Comparison:
         budget the measurement is at worst (inf when xip is 0 everywhere, nan
         without a comparison).
     verdict : str
-        One line: 'below budget by 1.8 orders of magnitude at worst (...)' or
-        'exceeds budget in N of M bins (...)'.
+        One line: 'below budget by 1.8 orders of magnitude at worst (...)',
+        or, naming the bin, 'exceeds the budget at 2.5 arcmin (xi+ = ... >
+        ... + 2 sigma, ...)'.
+    worst : int or None
+        The bin the verdict names: among the bins that exceed, the one
+        furthest over its budget (largest |ratio|); otherwise the compared
+        bin closest to its budget in orders of magnitude.  None without a
+        compared bin.
+    var_method : str
+        What the errors of xi+ are ('jackknife', 'shot'; '' when unknown).
+    shot_bins : tuple of int
+        Bins whose error is shot noise inside a jackknife (the XI table's SHOTBINS).
     """
 
     theta: np.ndarray
@@ -351,11 +377,24 @@ class Comparison:
     orders: float = float("nan")
     verdict: str = ""
     amplitudes: tuple = field(default_factory=tuple)
+    worst: int | None = None
+    var_method: str = ""
+    shot_bins: tuple = ()
 
     @property
     def n_exceeding(self) -> int:
         """Number of bins over the budget (0 without a measurement)."""
         return int(np.count_nonzero(self.exceeds)) if self.exceeds is not None else 0
+
+    def exceeding(self) -> list:
+        """The bins over the budget, worst first: dicts of bin, theta, xip, sigma_xip, budget, ratio, sigma_ratio."""
+        if self.exceeds is None:
+            return []
+        idx = np.flatnonzero(self.exceeds)
+        idx = idx[np.argsort(-np.abs(self.ratio[idx]), kind="stable")]
+        return [{"bin": int(k), "theta": float(self.theta[k]), "xip": float(self.xip[k]),
+                 "sigma_xip": float(self.sigma_xip[k]), "budget": float(self.budget[k]),
+                 "ratio": float(self.ratio[k]), "sigma_ratio": float(self.sigma_ratio[k])} for k in idx]
 
 
 def budget_at(theta, unit: str = "arcmin", *, bands="dore2018", modes: str = "E") -> Comparison:
@@ -400,27 +439,47 @@ def compare(xi: XiTable, *, bands="dore2018", modes: str = "E", n_sigma: float =
     result.ratio, result.sigma_ratio, result.exceeds, result.empty = ratio, sigma_ratio, exceeds, xi.empty.copy()
     result.n_sigma = float(n_sigma)
     result.orders = float(np.min(orders_per_bin[used])) if used.any() else float("nan")
+    result.var_method = xi.var_method
+    result.shot_bins = tuple(xi.shot_bins)
     result.verdict = _verdict(result, orders_per_bin)
     return result
 
 
+#: how many separations of exceeding bins the verdict lists before '...'
+VERDICT_LIST = 5
+
+
 def _verdict(c: Comparison, orders_per_bin: np.ndarray) -> str:
+    """The one-line verdict; sets ``c.worst`` to the bin it names."""
+    text = _verdict_text(c, orders_per_bin)
+    if c.worst is not None and c.var_method != "shot" and c.worst in c.shot_bins:
+        text += "; that bin's error is shot noise (too few pairs there for the jackknife)"
+    return text
+
+
+def _verdict_text(c: Comparison, orders_per_bin: np.ndarray) -> str:
     used = ~c.empty
     m = int(np.count_nonzero(used))
     skipped = int(np.count_nonzero(c.empty))
     tail = f"; {skipped} empty bin{'s' if skipped != 1 else ''} skipped" if skipped else ""
     if m == 0:
+        c.worst = None
         return f"no bin with pairs: nothing to compare with the budget{tail}"
+    if c.var_method == "shot":
+        # shot noise ignores any spatial coherence of De: errors too small, a finding too easy
+        tail += "; errors are shot noise (no jackknife)"
     idx = np.flatnonzero(used)
     if c.n_exceeding:
-        # the worst bin is the one furthest over its budget, in units of the budget
-        worst = idx[np.argmax(np.abs(c.ratio[idx]))]
-        return (f"exceeds budget in {c.n_exceeding} of {m} bins by more than {c.n_sigma:g} sigma (worst: "
-                f"xi+/budget = {c.ratio[worst]:.3g} +- {c.sigma_ratio[worst]:.2g} at theta = "
-                f"{c.theta[worst]:.3g} {c.unit}){tail}")
+        over = c.exceeding()
+        k = over[0]["bin"]
+        c.worst = k
+        at = f"{c.theta[k]:.3g} {c.unit}"
+        return f"exceeds the budget at {at} ({_excess(c, k)}){_others(c, over, m)}{tail}"
     if not np.isfinite(c.orders):
+        c.worst = int(idx[0])
         return f"below budget at every separation (xi+ = 0 in all {m} bins){tail}"
-    worst = idx[np.argmin(orders_per_bin[idx])]
+    worst = int(idx[np.argmin(orders_per_bin[idx])])
+    c.worst = worst
     where = f"theta = {c.theta[worst]:.3g} {c.unit}"
     if c.orders > 0:
         median = float(np.median(orders_per_bin[idx]))
@@ -428,6 +487,27 @@ def _verdict(c: Comparison, orders_per_bin: np.ndarray) -> str:
                 f"{median:.1f} at the median over {m} bins{tail}")
     return (f"within {c.n_sigma:g} sigma of the budget in all {m} bins, but |xi+| reaches "
             f"{abs(c.ratio[worst]):.3g} x |budget| at {where}{tail}")
+
+
+def _excess(c: Comparison, k: int) -> str:
+    """'xi+ = 2.04e-07 > 6.81e-08 + 2 sigma (sigma 6.8e-11): 3 x the budget' for bin k."""
+    x, s, b = float(c.xip[k]), float(c.sigma_xip[k]), float(c.budget[k])
+    # magnitudes are compared (the budget bounds the size of a systematic, and turns negative at large
+    # separations): say so when a sign makes the plain inequality read wrong
+    plain = x >= 0 and b > 0
+    lhs = f"xi+ = {x:.3g}" if plain else f"|xi+| = {abs(x):.3g}"
+    rhs = f"{b:.3g}" if plain else f"|budget| {abs(b):.3g}"
+    return (f"{lhs} > {rhs} + {c.n_sigma:g} sigma, sigma = {s:.2g}: "
+            f"{float(c.ratio[k]):.3g} +- {float(c.sigma_ratio[k]):.2g} x the budget")
+
+
+def _others(c: Comparison, over: list, m: int) -> str:
+    """'; 1 of 12 bins' or '; 3 of 12 bins exceed, at 2.5, 5.1, 10 arcmin'."""
+    if len(over) == 1:
+        return f"; 1 of {m} bins"
+    seps = sorted(row["theta"] for row in over)
+    listed = ", ".join(f"{t:.3g}" for t in seps[:VERDICT_LIST]) + (", ..." if len(seps) > VERDICT_LIST else "")
+    return f"; {len(over)} of {m} bins exceed, at {listed} {c.unit}"
 
 
 def _bands_name(bands) -> str:
@@ -475,6 +555,14 @@ def budget_hdulist(result: Comparison, *, inputs=()):
         params["BUDNEXC"] = (result.n_exceeding, "bins exceeding the budget")
         if np.isfinite(result.orders):
             params["BUDWORST"] = (round(result.orders, 4), "min log10(|budget|/|xip|) over bins")
+        if result.worst is not None:
+            k = result.worst
+            params["BUDWBIN"] = (int(k), "row of the bin the verdict names (0-based)")
+            params["BUDWSEP"] = (float(result.theta[k]), f"[{result.unit}] separation of that bin")
+            if np.isfinite(result.ratio[k]):
+                params["BUDWRAT"] = (float(result.ratio[k]), "xip / budget in that bin")
+        if result.var_method:
+            params["BUDVARM"] = (result.var_method, "errors of xip (XI VAR_METH)")
         params["VERDICT"] = result.verdict
         step += f" sigma={result.n_sigma:g}: {result.verdict}"
     add_provenance(hdu, step=step, params=params, inputs=inputs)

@@ -14,8 +14,9 @@ def _pyplot():
     return plt
 
 
-def xi_figure(xi: dict, png: str, *, sep_units: str = "arcmin", title: str = "") -> None:
-    """xi+ and xi- of De against separation, with jackknife errors, one panel each.
+def xi_figure(xi: dict, png: str, *, sep_units: str = "arcmin", title: str = "",
+              errors: str = "jackknife errors") -> None:
+    """xi+ and xi- of De against separation, with their errors, one panel each.
 
     The y axes are symmetric-log, linear within the median error of zero,
     so that a signal over orders of magnitude and a noise-dominated
@@ -31,6 +32,8 @@ def xi_figure(xi: dict, png: str, *, sep_units: str = "arcmin", title: str = "")
         Units of meanr, for the axis label.
     title : str
         Figure title.
+    errors : str
+        What the error bars are, for the legend ('jackknife errors', 'shot-noise errors').
     """
     plt = _pyplot()
     fig, axes = plt.subplots(2, 1, figsize=(6.4, 6.4), sharex=True)
@@ -39,13 +42,20 @@ def xi_figure(xi: dict, png: str, *, sep_units: str = "arcmin", title: str = "")
     for ax, key, colour, label in ((axes[0], "xip", "C0", r"$\xi_+$"), (axes[1], "xim", "C3", r"$\xi_-$")):
         val = np.asarray(xi[key])[ok]
         err = np.asarray(xi[f"sigma_{key}"])[ok]
-        ax.errorbar(r, val, yerr=err, fmt="o", color=colour, ms=4, capsize=2, label=f"{label} of $\\Delta e$")
+        ax.errorbar(r, val, yerr=err, fmt="o", color=colour, ms=4, capsize=2,
+                    label=f"{label} of $\\Delta e$ ({errors})")
         ax.axhline(0.0, color="k", lw=0.6)
         scale = np.median(err[err > 0]) if np.any(err > 0) else 0.0
         if scale > 0 and np.max(np.abs(val) + err, initial=0) > 10 * scale:
             ax.set_yscale("symlog", linthresh=scale)
         ax.set_ylabel(label)
         ax.legend(frameon=False, loc="upper right")
+    if not ok.any():
+        # no pair at all (a handful of objects): an empty figure that says so, on the nominal range
+        rnom = np.asarray(xi["r_nom"], dtype=float)
+        axes[1].set_xlim(rnom.min() / 1.2, rnom.max() * 1.2)
+        for ax in axes:
+            ax.text(0.5, 0.5, "no pair in any separation bin", transform=ax.transAxes, ha="center")
     axes[1].set_xscale("log")
     axes[1].set_xlabel(rf"$\theta$ ({sep_units})")
     axes[0].set_title(title if len(title) < 70 else title[:67] + "...", fontsize=9)
@@ -93,11 +103,17 @@ def hist_de_figure(hist: dict, png: str, *, thresholds=(), n: int | None = None)
 
 
 def theta_figure(theta: dict, png: str) -> None:
-    """|De|-weighted distribution of De's position angle per |De| bin, bootstrap errors (the paper's bin_theta)."""
+    """|De|-weighted distribution of De's position angle per |De| bin (the paper's bin_theta).
+
+    Bootstrap error bars; the legend gives each |De| bin's chi2 against
+    uniform (with the variance under uniform), its degrees of freedom and
+    p-value.
+    """
     plt = _pyplot()
     lo, hi, n = (np.asarray(theta[k]) for k in ("de_lo", "de_hi", "n"))
     t0, t1 = np.asarray(theta["theta_lo"]), np.asarray(theta["theta_hi"])
     frac, err, chi2 = (np.asarray(theta[k]) for k in ("frac", "frac_err", "chi2_uniform"))
+    pvalue = np.asarray(theta.get("p_uniform", np.full(len(frac), np.nan)))
     fig, ax = plt.subplots(figsize=(6.4, 4.6))
     bins = sorted(set(zip(lo.tolist(), hi.tolist())))
     nangle = int(np.sum((lo == bins[0][0]) & (hi == bins[0][1]))) if bins else 1
@@ -109,7 +125,7 @@ def theta_figure(theta: dict, png: str) -> None:
         centre = 0.5 * (t0[sel] + t1[sel])
         ax.errorbar(centre + (k - len(bins) / 2) * 0.8, frac[sel], yerr=err[sel], fmt="o-", ms=3, lw=0.8,
                     capsize=2, label=rf"{a:g} $\leq |\Delta e| <$ {b:g} (N={int(n[sel][0])}, "
-                                     rf"$\chi^2$={chi2[sel][0]:.1f}/{nangle - 1})")
+                                     rf"$\chi^2$={chi2[sel][0]:.1f}/{nangle - 1}, p={pvalue[sel][0]:.2g})")
         shown += 1
     ax.axhline(1.0 / nangle, color="k", ls="--", lw=1, label="uniform")
     ax.set_xlim(-90, 90)

@@ -1,0 +1,299 @@
+"""The study description: a YAML file checked against a schema, with dotted overrides.
+
+In the manner of GalSim's config: nested sections with defaults, a preset
+to start from, ``key.sub=value`` overrides on the command line; unlike it,
+every key is checked (a typo is an error naming the closest valid key).
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import hashlib
+import json
+import os
+
+import yaml
+
+from .. import PerscliError
+
+#: where the public schedule lives beside a clone (tests and the presets use it when present)
+DEFAULT_SCHEDULE = os.path.join("..", "shared", "data", "roman", "Roman_WAS_obseq_11_1_23.fits")
+
+#: the schema: every key with its default; the type of the default is the type required
+#: (None: any of str/number/list; a list default: a list)
+SCHEMA = {
+    "name": "study",
+    "seed": 1,
+    "field": {
+        "ra": 10.0,          # deg, centre of the field
+        "dec": -44.0,
+        "radius": 0.05,      # deg: finals are exposures whose SCA footprint reaches this circle
+    },
+    "filter": "J129",
+    "scas": [1],
+    "exposures": {
+        "source": "schedule",    # schedule | plan
+        "schedule": DEFAULT_SCHEDULE,
+        "after": 0.0,            # MJD: finals start after this
+        "count": 2,              # final exposures per SCA (the earliest that reach the field)
+        "history": 10,           # earlier exposures of the same SCA counted for persistence
+        # plan: a dithered sequence (no schedule needed): every exposure is on the field
+        "plan_start": 61541.97,  # MJD
+        "plan_pa": 30.0,
+        "plan_dither": 30.0,     # arcsec
+    },
+    "bounds": None,              # [xmin, xmax, ymin, ymax]: render a cutout of each SCA (CI-sized studies)
+    "catalog": {
+        "galaxy_density": 40.0,  # per arcmin^2 (the paper)
+        "star_density": 2.5,     # per arcmin^2 (the paper's Galaxia stars)
+        "gaia": [],              # Gaia DR2 chunks: real stars in place of model stars
+        "margin_arcsec": 10.0,   # objects just off an SCA still spill light onto it
+    },
+    "persistence": {
+        "models": ["typical", "pessimistic"],
+        "sources": ["stars"],    # stars (the paper), all, or a fluence threshold in electrons
+    },
+    "render": {
+        "compress": "gzip",      # lossless tiles: frames are most of a study's bytes
+        "set": [],               # detector-model overrides, e.g. ["read_noise.sigma=5"]
+    },
+    "measure": {
+        "joint": True,           # one shape per galaxy from all its final exposures (the paper's pipeline)
+        "min_snr": None,         # predicted-S/N cut (None: measure's default)
+        "stamp": 48,
+    },
+    "correlate": {
+        "min_sep": 1.0,          # arcmin
+        "max_sep": 100.0,
+        "nbins": 20,
+        "npatch": 20,
+        "thresholds": [1e-8, 1e-6, 1e-4],
+    },
+    "budget": {
+        "bands": "dore2018",
+        "modes": "E",
+    },
+}
+
+#: presets: overrides of the schema's defaults
+PRESETS = {
+    # a laptop-sized study: one SCA, its three earliest exposures of the field, each with its 10
+    # earlier exposures; both models, star light persisting (the paper's setting).  SCA 7: of the
+    # schedule's J129 exposures, none puts SCA 1 within 0.05 deg of (10, -44); seven put SCA 7 there
+    "small": {
+        "name": "small",
+        "scas": [7],
+        "exposures": {"count": 3, "history": 10},
+    },
+    # the paper's size: 6.25 deg^2 (a circle of radius 1.41 deg), every J129 exposure reaching it
+    # on all 18 SCAs (~480 exposures x 18 SCAs), 10 earlier exposures each
+    "paper": {
+        "name": "paper",
+        "field": {"radius": 1.41},
+        "scas": list(range(1, 19)),
+        "exposures": {"count": 0, "history": 10},   # count 0: every exposure reaching the field
+        # one measure task per exposure (pooled pairs in correlate): a joint fit over ~8,600 frames
+        # would be one task no cluster could spread
+        "measure": {"joint": False},
+    },
+    # the test suite's: a 512-pixel corner of SCA 1 in a planned sequence (no data needed), two
+    # finals with three earlier exposures each, small dithers and 8x the stars so that ghosts
+    # land on galaxies even on so small an area
+    "ci": {
+        "name": "ci",
+        "scas": [1],
+        "bounds": [1, 512, 1, 512],
+        "exposures": {"source": "plan", "count": 2, "history": 3, "plan_dither": 3.0},
+        "catalog": {"galaxy_density": 40.0, "star_density": 20.0},
+        "correlate": {"min_sep": 0.1, "max_sep": 1.0, "nbins": 4, "npatch": 4},
+    },
+}
+
+
+def _merge(base: dict, over: dict, where: str = "") -> dict:
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        path = f"{where}{key}"
+        if key not in base:
+            close = difflib.get_close_matches(str(key), [str(k) for k in base], n=1)
+            hint = f" (did you mean {where}{close[0]}?)" if close else ""
+            raise PerscliError(f"unknown study setting {path!r}{hint}; valid here: {', '.join(map(str, base))}")
+        if isinstance(base[key], dict):
+            if not isinstance(value, dict):
+                raise PerscliError(f"study setting {path!r} must be a mapping of settings, not {value!r}")
+            out[key] = _merge(base[key], value, path + ".")
+        else:
+            out[key] = _coerce(path, base[key], value)
+    return out
+
+
+def _coerce(path: str, default, value):
+    if default is None or value is None:
+        return value
+    if isinstance(default, bool):
+        if isinstance(value, bool):
+            return value
+        raise PerscliError(f"study setting {path!r} must be true or false, not {value!r}")
+    if isinstance(default, (int, float)) and not isinstance(value, bool):
+        if isinstance(value, (int, float)):
+            return type(default)(value) if not (isinstance(default, int) and value != int(value)) else value
+        raise PerscliError(f"study setting {path!r} must be a number, not {value!r}")
+    if isinstance(default, str):
+        if isinstance(value, str):
+            return value
+        raise PerscliError(f"study setting {path!r} must be a string, not {value!r}")
+    if isinstance(default, list):
+        if isinstance(value, list):
+            return value
+        if isinstance(value, (str, int, float)):
+            return [value]
+        raise PerscliError(f"study setting {path!r} must be a list, not {value!r}")
+    return value
+
+
+def _parse_override(text: str) -> dict:
+    if "=" not in text:
+        raise PerscliError(f"override {text!r} is not KEY=VALUE (e.g. exposures.count=5)")
+    key, raw = text.split("=", 1)
+    value = yaml.safe_load(raw) if raw.strip() else ""
+    out = cur = {}
+    parts = key.strip().split(".")
+    for part in parts[:-1]:
+        cur[part] = {}
+        cur = cur[part]
+    cur[parts[-1]] = value
+    return out
+
+
+def _deep_update(target: dict, new: dict) -> None:
+    for k, v in new.items():
+        if isinstance(v, dict) and isinstance(target.get(k), dict):
+            _deep_update(target[k], v)
+        else:
+            target[k] = v
+
+
+def load_study(path: str | None, *, preset: str | None = None, overrides=()) -> dict:
+    """The study settings: schema defaults, then a preset, then the file, then overrides.
+
+    Parameters
+    ----------
+    path : str or None
+        A YAML study description (relative paths in it are taken relative to
+        its folder), or None for a preset alone.
+    preset : {'small', 'paper', 'ci'}, optional
+    overrides : sequence of str
+        ``key.sub=value`` (YAML values).
+
+    Returns
+    -------
+    dict
+        Every setting, checked.
+
+    Raises
+    ------
+    PerscliError
+        Unknown keys (with the closest valid one), wrong types, bad values.
+    """
+    settings = copy.deepcopy(SCHEMA)
+    if preset is not None:
+        if preset not in PRESETS:
+            raise PerscliError(f"unknown --preset {preset!r}: use one of {', '.join(PRESETS)}")
+        settings = _merge(settings, PRESETS[preset])
+    if path is not None:
+        try:
+            with open(path) as fh:
+                given = yaml.safe_load(fh) or {}
+        except OSError as exc:
+            raise PerscliError(f"{path}: cannot read the study description: {exc.strerror}") from None
+        except yaml.YAMLError as exc:
+            raise PerscliError(f"{path}: not valid YAML: {str(exc).splitlines()[0]}") from None
+        if not isinstance(given, dict):
+            raise PerscliError(f"{path}: a study description is a mapping of settings")
+        preset_in_file = given.pop("preset", None)
+        if preset_in_file is not None and preset is None:
+            if preset_in_file not in PRESETS:
+                raise PerscliError(f"{path}: unknown preset {preset_in_file!r}: use one of {', '.join(PRESETS)}")
+            settings = _merge(settings, PRESETS[preset_in_file])
+        base = os.path.dirname(os.path.abspath(path))
+        settings = _merge(settings, given)
+        _resolve_paths(settings, base, given)
+    updates = {}
+    for text in overrides:
+        _deep_update(updates, _parse_override(text))
+    settings = _merge(settings, updates)
+    check(settings)
+    return settings
+
+
+def _resolve_paths(settings: dict, base: str, given: dict) -> None:
+    # paths written in the file are relative to the file; the default schedule is relative to the clone
+    exp = given.get("exposures", {}) or {}
+    if "schedule" in exp and not os.path.isabs(settings["exposures"]["schedule"]):
+        settings["exposures"]["schedule"] = os.path.normpath(os.path.join(base, settings["exposures"]["schedule"]))
+    if (given.get("catalog", {}) or {}).get("gaia"):
+        settings["catalog"]["gaia"] = [p if os.path.isabs(p) else os.path.normpath(os.path.join(base, p))
+                                       for p in settings["catalog"]["gaia"]]
+
+
+def check(s: dict) -> None:
+    """Refuse settings that cannot make a study (one line naming the setting)."""
+    from ..instrument import ROMAN_FILTERS as FILTERS, ROMAN_N_SCA
+
+    if not (isinstance(s["seed"], int) and 0 <= s["seed"] <= 1000):
+        raise PerscliError(f"seed {s['seed']!r}: an integer from 0 to 1000 (frame seeds derive from it)")
+    f = s["field"]
+    if not (-90 <= f["dec"] <= 90) or not (0 <= f["ra"] < 360):
+        raise PerscliError(f"field ra={f['ra']} dec={f['dec']}: ra must be in [0, 360), dec in [-90, 90] degrees")
+    if not f["radius"] > 0:
+        raise PerscliError(f"field.radius must be > 0 degrees, not {f['radius']}")
+    if s["filter"] not in FILTERS:
+        raise PerscliError(f"filter {s['filter']!r}: use one of {', '.join(FILTERS)}")
+    if not s["scas"] or any(not isinstance(v, int) or not 1 <= v <= ROMAN_N_SCA for v in s["scas"]):
+        raise PerscliError(f"scas {s['scas']!r}: a list of Roman SCAs 1-{ROMAN_N_SCA}")
+    e = s["exposures"]
+    if e["source"] not in ("schedule", "plan"):
+        raise PerscliError(f"exposures.source {e['source']!r}: use schedule or plan")
+    if e["count"] < 0 or e["history"] < 0:
+        raise PerscliError("exposures.count and exposures.history must be >= 0")
+    if e["source"] == "plan" and e["count"] < 1:
+        raise PerscliError("exposures.count must be >= 1 for a planned sequence")
+    if s["bounds"] is not None:
+        b = s["bounds"]
+        if not (isinstance(b, list) and len(b) == 4 and all(isinstance(v, int) for v in b)
+                and 1 <= b[0] < b[1] <= 4088 and 1 <= b[2] < b[3] <= 4088):
+            raise PerscliError(f"bounds {b!r}: [xmin, xmax, ymin, ymax], 1-indexed pixels of the 4088x4088 SCA")
+    p = s["persistence"]
+    # YAML reads 1e5 as a string (it wants 1.0e5): a threshold may be written either way
+    p["sources"] = [_number_or_text(v) for v in p["sources"]]
+    if not p["models"]:
+        raise PerscliError("persistence.models is empty: give typical, pessimistic or model files")
+    for src in p["sources"]:
+        if src not in ("stars", "all") and not (isinstance(src, (int, float)) and src > 0):
+            raise PerscliError(f"persistence.sources: {src!r} is not stars, all or a fluence threshold (electrons > 0)")
+    if s["render"]["compress"] not in ("none", "gzip", "rice"):
+        raise PerscliError(f"render.compress {s['render']['compress']!r}: use none, gzip or rice")
+    c = s["correlate"]
+    if not 0 < c["min_sep"] < c["max_sep"] or c["nbins"] < 1:
+        raise PerscliError("correlate: need 0 < min_sep < max_sep and nbins >= 1")
+
+
+def _number_or_text(value):
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
+
+
+def fingerprint(obj) -> str:
+    """A short stable hash of settings (what a product was made from)."""
+    text = json.dumps(obj, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def dump(settings: dict) -> str:
+    """The settings as YAML (written into the study folder)."""
+    return yaml.safe_dump(settings, sort_keys=False)

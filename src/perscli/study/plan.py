@@ -1,0 +1,248 @@
+"""Expand a study description into its task graph.
+
+Every task names one product (a FITS file, or a folder of figures) in the
+study folder, the tasks it needs, and the parameters that make it; nothing
+here runs anything.  The graph:
+
+- ``pointings``: the final exposures of each SCA (those whose footprint
+  reaches the field) and, for each, its N previous exposures of the same SCA,
+  whatever their filter and wherever they point (the schedule's rows just
+  before it);
+- ``catalog``: one truth catalogue covering exactly the footprints rendered;
+- ``render/ref``: each SCA-exposure once, without persistence: the fluence of
+  a history exposure, and the reference of a final one;
+- ``render/<source>-<model>``: each final again, with persistence from its
+  history, with the same seed as its reference (the two share their noise);
+- ``measure``: shapes on the references and on each persistence variant
+  (jointly over all finals, or per exposure);
+- ``correlate``, ``budget``: De pooled over every final, its xi+/-,
+  statistics and the additive-shear budget, per variant;
+- ``summary``: the paper's numbers beside ours, the figures, the cost.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import PerscliError
+
+
+@dataclass
+class Task:
+    """One node of the graph.
+
+    Attributes
+    ----------
+    key : str
+        Unique name, also the name of its record in ``DIR/.state``.
+    kind : str
+        What makes it: pointings, catalog, render, measure, correlate, budget, summary.
+    output : str
+        Its product, relative to the study folder.
+    params : dict
+        JSON-able settings (with the inputs' relative paths).
+    deps : list of str
+        Keys of the tasks whose products it reads.
+    """
+
+    key: str
+    kind: str
+    output: str
+    params: dict = field(default_factory=dict)
+    deps: list = field(default_factory=list)
+
+
+@dataclass
+class Exposures:
+    """Which SCA-exposures a study renders."""
+
+    finals: dict          # sca -> list of Pointing (time order)
+    history: dict         # (sca, expid) -> list of Pointing, most recent first
+    all: dict             # (sca, expid) -> Pointing: every SCA-exposure rendered
+
+
+def frame_seed(seed: int, sca: int, expid: int) -> int:
+    """The render seed of one SCA-exposure: the same whether it is history or a final's reference.
+
+    ``(seed * 20 + sca) * 100000 + expid``: distinct for every SCA (1-18) and
+    schedule row (< 100000) of a study, below 2**31 for seeds up to 1000, and
+    simple enough to write in a Makefile (examples/persistence-study).
+    """
+    return (int(seed) * 20 + int(sca)) * 100_000 + int(expid)
+
+
+def variant_name(source, model: str) -> str:
+    """'stars-typical', 'all-pessimistic', 'above1e+05-typical' (file-name safe)."""
+    src = source if isinstance(source, str) else f"above{float(source):.0e}"
+    mod = model if "/" not in model and not model.endswith((".yaml", ".yml")) else \
+        model.rsplit("/", 1)[-1].rsplit(".", 1)[0]
+    return f"{src}-{mod}"
+
+
+def select_exposures(s: dict) -> Exposures:
+    """The finals and their histories, from the schedule or a planned sequence.
+
+    Parameters
+    ----------
+    s : dict
+        Study settings (:func:`perscli.study.config.load_study`).
+
+    Returns
+    -------
+    Exposures
+    """
+    from ..scene import pointings as P
+
+    e, f = s["exposures"], s["field"]
+    finals, history, every = {}, {}, {}
+    if e["source"] == "plan":
+        n = e["count"] + e["history"]
+        seq = P.plan_dithers(f["ra"], f["dec"], n, dither=e["plan_dither"], filter=s["filter"],
+                             start=e["plan_start"], pa=e["plan_pa"], seed=s["seed"])
+        for sca in s["scas"]:
+            finals[sca] = [_with_sca(p, sca) for p in seq[e["history"]:]]
+            for k, p in enumerate(seq[e["history"]:], start=e["history"]):
+                history[(sca, p.expid)] = [_with_sca(q, sca) for q in seq[max(0, k - e["history"]):k][::-1]]
+    else:
+        schedule = P.read_schedule(e["schedule"])
+        for sca in s["scas"]:
+            chosen = P.select_covering(schedule, f["ra"], f["dec"], f["radius"], filter=s["filter"],
+                                       after=e["after"] or None, limit=e["count"] or None, sca=sca)
+            if not chosen:
+                raise PerscliError(f"no {s['filter']} exposure of the schedule puts SCA {sca} within "
+                                   f"{f['radius']} deg of ra={f['ra']} dec={f['dec']}: widen field.radius or "
+                                   "choose other scas")
+            finals[sca] = chosen
+            for p in chosen:
+                history[(sca, p.expid)] = [_with_sca(q, sca) for q in
+                                           P.previous_exposures(schedule, p.expid, e["history"])] \
+                    if e["history"] else []
+    for sca, ps in finals.items():
+        for p in ps:
+            every[(sca, p.expid)] = p
+            for q in history[(sca, p.expid)]:
+                every.setdefault((sca, q.expid), q)
+    return Exposures(finals=finals, history=history, all=every)
+
+
+def _with_sca(p, sca: int):
+    import dataclasses
+
+    return dataclasses.replace(p, sca=int(sca))
+
+
+def frame_path(sca: int, expid: int, variant: str = "ref") -> str:
+    return f"frames/sca{sca:02d}/e{expid:06d}_{variant}.fits"
+
+
+def build(s: dict, exposures: Exposures | None = None) -> list:
+    """The task graph of a study, in an order where every task follows its dependencies.
+
+    Parameters
+    ----------
+    s : dict
+        Study settings.
+    exposures : Exposures, optional
+        Already selected (else :func:`select_exposures`).
+
+    Returns
+    -------
+    list of Task
+    """
+    ex = exposures or select_exposures(s)
+    tasks = []
+    final_keys = {(sca, p.expid) for sca, ps in ex.finals.items() for p in ps}
+    tasks.append(Task("pointings", "pointings", "pointings.fits",
+                      params=dict(rows=[_pointing_row(ex, key) for key in sorted(ex.all)])))
+    tasks.append(Task("catalog", "catalog", "truth.fits", deps=["pointings"],
+                      params=dict(catalog=s["catalog"], bounds=s["bounds"], seed=s["seed"],
+                                  field=s["field"])))
+    sources = s["persistence"]["sources"]
+    need_stars = any(src == "stars" for src in sources)
+    need_all = any(src != "stars" for src in sources)
+    # the reference of each SCA-exposure: what later frames need of it (fluence), and for a
+    # final what measure needs (SCI)
+    for (sca, expid), p in sorted(ex.all.items()):
+        is_final = (sca, expid) in final_keys
+        # only what later tasks read: a frame's bytes are most of a study's
+        # (MODEL with SCI: measure takes its noise model from the frame)
+        hdus = (["SCI", "MODEL"] if is_final else []) + (["FLUENCE"] if need_all else []) + \
+            (["STARFLU"] if need_stars else [])
+        tasks.append(Task(f"render/ref/sca{sca:02d}/e{expid:06d}", "render", frame_path(sca, expid),
+                          deps=["catalog"],
+                          params=dict(pointing=_pointing_dict(p), sca=sca, bounds=s["bounds"],
+                                      seed=frame_seed(s["seed"], sca, expid), previous=[], hdus=hdus,
+                                      model="typical", source="all", set=s["render"]["set"],
+                                      compress=s["render"]["compress"], filter=p.filter)))
+    variants = [(src, m) for src in sources for m in s["persistence"]["models"]]
+    for sca, ps in sorted(ex.finals.items()):
+        for p in ps:
+            hist = ex.history[(sca, p.expid)]
+            prev_keys = [f"render/ref/sca{sca:02d}/e{q.expid:06d}" for q in hist]
+            for src, model in variants:
+                name = variant_name(src, model)
+                tasks.append(Task(f"render/{name}/sca{sca:02d}/e{p.expid:06d}", "render",
+                                  frame_path(sca, p.expid, name), deps=["catalog", *prev_keys],
+                                  params=dict(pointing=_pointing_dict(p), sca=sca, bounds=s["bounds"],
+                                              seed=frame_seed(s["seed"], sca, p.expid),
+                                              previous=[frame_path(sca, q.expid) for q in hist],
+                                              hdus=["SCI", "PERSIST", "MODEL"], model=model, source=src,
+                                              set=s["render"]["set"], compress=s["render"]["compress"],
+                                              filter=p.filter)))
+    finals_sorted = [(sca, p.expid) for sca, ps in sorted(ex.finals.items()) for p in ps]
+    m = s["measure"]
+    shape_tasks = {}
+    for name in ["ref"] + [variant_name(src, mod) for src, mod in variants]:
+        frames = [frame_path(sca, expid, name) for sca, expid in finals_sorted]
+        deps = [f"render/{name}/sca{sca:02d}/e{expid:06d}" for sca, expid in finals_sorted]
+        if m["joint"]:
+            key = f"measure/{name}"
+            tasks.append(Task(key, "measure", f"shapes/{name}.fits", deps=["catalog", *deps],
+                              params=dict(frames=frames, joint=True, min_snr=m["min_snr"], stamp=m["stamp"])))
+            shape_tasks[name] = [(key, f"shapes/{name}.fits")]
+        else:
+            shape_tasks[name] = []
+            for (sca, expid), frame, dep in zip(finals_sorted, frames, deps):
+                key = f"measure/{name}/sca{sca:02d}/e{expid:06d}"
+                out = f"shapes/{name}/sca{sca:02d}_e{expid:06d}.fits"
+                tasks.append(Task(key, "measure", out, deps=["catalog", dep],
+                                  params=dict(frames=[frame], joint=False, min_snr=m["min_snr"],
+                                              stamp=m["stamp"])))
+                shape_tasks[name].append((key, out))
+    c, b = s["correlate"], s["budget"]
+    for src, mod in variants:
+        name = variant_name(src, mod)
+        pairs = [[a[1], r[1]] for a, r in zip(shape_tasks[name], shape_tasks["ref"])]
+        deps = [a[0] for a in shape_tasks[name]] + [r[0] for r in shape_tasks["ref"]]
+        tasks.append(Task(f"correlate/{name}", "correlate", f"xi/{name}.fits", deps=deps,
+                          params=dict(pairs=pairs, figures=f"figures/{name}", seed=s["seed"], **c)))
+        tasks.append(Task(f"budget/{name}", "budget", f"budget/{name}.fits", deps=[f"correlate/{name}"],
+                          params=dict(xi=f"xi/{name}.fits", plot=f"figures/{name}/budget.png", **b)))
+    tasks.append(Task("summary", "summary", "summary.json",
+                      deps=[t.key for t in tasks],
+                      params=dict(variants=[variant_name(src, mod) for src, mod in variants],
+                                  finals=[list(k) for k in finals_sorted], name=s["name"])))
+    return tasks
+
+
+def _pointing_dict(p) -> dict:
+    return dict(expid=int(p.expid), mjd=float(p.mjd), exptime=float(p.exptime), ra=float(p.ra), dec=float(p.dec),
+                pa=float(p.pa), filter=str(p.filter), sca=int(p.sca))
+
+
+def _pointing_row(ex: Exposures, key) -> dict:
+    sca, expid = key
+    row = _pointing_dict(ex.all[key])
+    finals = {p.expid for p in ex.finals.get(sca, [])}
+    row["role"] = "final" if expid in finals else "history"
+    return row
+
+
+def counts(tasks) -> dict:
+    """Tasks of each kind (for the cost model and progress)."""
+    out = {}
+    for t in tasks:
+        out[t.kind] = out.get(t.kind, 0) + 1
+    return out

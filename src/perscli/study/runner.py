@@ -1,0 +1,136 @@
+"""Run a study's task graph: serially, on a LocalCluster, or on an existing Dask cluster.
+
+Tasks pass file names, never arrays; each one skips itself when its product
+is already made from the same settings (:func:`perscli.study.tasks.is_done`),
+so a killed run resumes where it stopped, and a worker that dies loses only
+its own task (Dask runs it again elsewhere).  Every product depends only on
+the settings and seeds, so serial and parallel runs write the same bytes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import sys
+import time
+
+from .. import PerscliError
+from .config import fingerprint
+from .tasks import is_done, read_record, run_task
+
+log = logging.getLogger(__name__)
+
+
+def task_dicts(tasks) -> list:
+    """Tasks as dicts with their fingerprints: a task's settings and those of everything it reads."""
+    fps, out = {}, []
+    for t in tasks:
+        d = dataclasses.asdict(t)
+        d["fingerprint"] = fingerprint([t.kind, t.output, t.params, [fps[k] for k in t.deps]])
+        fps[t.key] = d["fingerprint"]
+        out.append(d)
+    return out
+
+
+class Progress:
+    """One line on stderr per finished task: ``study: [k/n] key (seconds)``."""
+
+    def __init__(self, total: int, *, quiet: bool = False, stream=None):
+        self.total, self.done, self.quiet = total, 0, quiet
+        self.stream = stream or sys.stderr
+        self.t0 = time.perf_counter()
+
+    def __call__(self, rec: dict) -> None:
+        self.done += 1
+        if self.quiet:
+            return
+        what = "already made" if rec.get("skipped") else f"{rec['wall_s']:.1f} s"
+        elapsed = time.perf_counter() - self.t0
+        print(f"study: [{self.done}/{self.total}] {rec['key']} ({what}; {elapsed:.0f} s elapsed)",
+              file=self.stream, flush=True)
+
+
+def run_serial(tasks: list, study_dir: str, progress) -> list:
+    """Every task in graph order, in this process."""
+    recs = []
+    for t in tasks:
+        rec = run_task(t, study_dir)
+        progress(rec)
+        recs.append(rec)
+    return recs
+
+
+def run_dask(tasks: list, study_dir: str, progress, *, scheduler: str = "local", workers: int = 2,
+             quiet: bool = False) -> list:
+    """The graph on dask.distributed: a LocalCluster of ``workers`` processes, or ``scheduler``'s address.
+
+    Tasks already made are not even submitted.  Each task is one Dask task
+    whose arguments are its dependencies' futures, so Dask runs it after
+    them; ``retries`` covers a worker lost mid-task.
+    """
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError:  # pragma: no cover - a dependency
+        raise PerscliError("dask.distributed is not installed: pip install distributed, "
+                           "or run with --scheduler serial") from None
+    todo = [t for t in tasks if not is_done(study_dir, t)]
+    for t in tasks:
+        if t not in todo:
+            rec = read_record(study_dir, t["key"])
+            rec["skipped"] = True
+            progress(rec)
+    if not todo:
+        return []
+    cluster = None
+    if scheduler == "local":
+        # one thread per worker process: GalSim, fitsio and perscli's kernels are not all
+        # thread-safe, and each task is a whole frame's work
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               dashboard_address=":0", silence_logs=logging.ERROR)
+        client = Client(cluster)
+    else:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except OSError as exc:
+            raise PerscliError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there ({exc}); "
+                               "start one (dask scheduler) or use --scheduler local") from None
+    try:
+        if not quiet:
+            link = getattr(client, "dashboard_link", None)
+            print(f"study: {len(todo)} tasks on Dask ({scheduler}, "
+                  f"{len(client.scheduler_info().get('workers', {}))} workers)"
+                  + (f"; dashboard {link}" if link else ""), file=sys.stderr, flush=True)
+        futures = {}
+        for t in todo:
+            deps = [futures[k] for k in t["deps"] if k in futures]
+            futures[t["key"]] = client.submit(run_task, t, study_dir, *deps, key=_dask_key(t),
+                                              pure=False, retries=2)
+        recs = []
+        for fut in as_completed(list(futures.values())):
+            try:
+                rec = fut.result()
+            except PerscliError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - a task's own error, reported in one line
+                raise PerscliError(f"study task {fut.key} failed: {exc}") from exc
+            progress(rec)
+            recs.append(rec)
+        return recs
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _dask_key(t: dict) -> str:
+    return f"perscli-{t['key']}-{t['fingerprint'][:8]}"
+
+
+def run(tasks: list, study_dir: str, *, scheduler: str = "local", workers: int = 2, quiet: bool = False) -> list:
+    """Run the graph with ``scheduler`` ('serial', 'local' or a Dask scheduler address)."""
+    os.makedirs(study_dir, exist_ok=True)
+    progress = Progress(len(tasks), quiet=quiet)
+    if scheduler == "serial":
+        return run_serial(tasks, study_dir, progress)
+    return run_dask(tasks, study_dir, progress, scheduler=scheduler, workers=workers, quiet=quiet)

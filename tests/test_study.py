@@ -1,0 +1,223 @@
+"""perscli study: the description, its task graph, and runs that resume and agree across schedulers."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from perscli import PerscliError
+from perscli.cli.main import cli
+from perscli.study.config import load_study
+from perscli.study.plan import build, frame_seed, select_exposures, variant_name
+from perscli.study.runner import task_dicts
+
+SCHEDULE = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "roman",
+                        "Roman_WAS_obseq_11_1_23.fits")
+needs_schedule = pytest.mark.skipif(not os.path.exists(SCHEDULE), reason="../shared/data (Roman schedule) absent")
+
+#: the CI-sized study with a planned sequence: no data needed
+CI = ["exposures.source=plan", "persistence.models=[typical]"]
+
+
+def run(*args, ok=True):
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    if ok:
+        assert result.exit_code == 0, result.output + str(result.exception)
+    return result
+
+
+# -- the description -------------------------------------------------------------------------
+
+def test_typos_are_named_with_the_closest_key(tmp_path):
+    with pytest.raises(PerscliError, match=r"exposures.cout.*did you mean exposures.count"):
+        load_study(None, preset="ci", overrides=["exposures.cout=3"])
+    path = tmp_path / "s.yaml"
+    path.write_text("feild: {ra: 10}\n")
+    with pytest.raises(PerscliError, match="did you mean field"):
+        load_study(str(path))
+    result = run("study", path, "-o", tmp_path / "out", ok=False)
+    assert result.exit_code == 1 and "did you mean field" in result.output
+
+
+def test_types_and_values_are_checked():
+    with pytest.raises(PerscliError, match="must be a number"):
+        load_study(None, preset="ci", overrides=["field.ra=east"])
+    with pytest.raises(PerscliError, match="ra must be in"):
+        load_study(None, preset="ci", overrides=["field.ra=370"])
+    with pytest.raises(PerscliError, match="persistence.sources"):
+        load_study(None, preset="ci", overrides=["persistence.sources=[planets]"])
+    with pytest.raises(PerscliError, match="scas"):
+        load_study(None, preset="ci", overrides=["scas=[19]"])
+
+
+def test_presets_file_and_overrides_stack(tmp_path):
+    path = tmp_path / "s.yaml"
+    path.write_text("preset: ci\nexposures: {count: 3}\npersistence: {sources: [stars, 1.0e5]}\n")
+    s = load_study(str(path), overrides=["exposures.history=2"])
+    assert s["bounds"] == [1, 512, 1, 512]                    # from the preset
+    assert s["exposures"]["count"] == 3                        # from the file
+    assert s["exposures"]["history"] == 2                      # from the command line
+    assert s["persistence"]["sources"] == ["stars", 1.0e5]
+
+
+def test_plan_renders_each_sca_exposure_once_and_shares_seeds():
+    s = load_study(None, preset="ci", overrides=CI + ["exposures.count=3", "exposures.history=2"])
+    tasks = build(s)
+    keys = [t.key for t in tasks]
+    assert len(keys) == len(set(keys))
+    refs = [t for t in tasks if t.key.startswith("render/ref/")]
+    assert len(refs) == 5                                      # 3 finals + 2 earlier: histories overlap
+    pers = [t for t in tasks if t.kind == "render" and not t.key.startswith("render/ref/")]
+    assert len(pers) == 3
+    for t in pers:
+        ref = next(r for r in refs if r.params["pointing"]["expid"] == t.params["pointing"]["expid"])
+        assert t.params["seed"] == ref.params["seed"]          # frames with and without share their noise
+        assert len(t.params["previous"]) <= 2
+        assert all(dep in keys[:keys.index(t.key)] for dep in t.deps)
+    assert frame_seed(1, 1, 5) != frame_seed(1, 2, 5) != frame_seed(2, 1, 5)
+    assert variant_name(1e5, "typical") == "above1e+05-typical"
+
+
+@needs_schedule
+def test_schedule_finals_and_their_histories_of_the_same_sca():
+    s = load_study(None, preset="small", overrides=[f"exposures.schedule={SCHEDULE}"])
+    ex = select_exposures(s)
+    finals = ex.finals[7]
+    assert len(finals) == 3 and all(p.filter.upper() == "J129" for p in finals)
+    for p in finals:
+        hist = ex.history[(7, p.expid)]
+        assert len(hist) == 10
+        # the schedule rows just before it, in time, whatever their filter
+        assert all(q.mjd < p.mjd for q in hist)
+        assert all(q.sca == 7 for q in hist)
+
+
+def test_dry_run_reports_the_graph(tmp_path):
+    result = run("study", "--preset", "ci", "-o", tmp_path / "o", "--dry-run", *sum([["--set", c] for c in CI], []))
+    assert "tasks" in result.output and "render" in result.output
+    assert not (tmp_path / "o").exists()
+
+
+# -- runs ------------------------------------------------------------------------------------
+
+def _products(root):
+    """Every product of a study folder but the run's own records and timings."""
+    out = {}
+    for d, _, files in os.walk(root):
+        for f in files:
+            rel = os.path.relpath(os.path.join(d, f), root)
+            if rel.startswith(".state") or rel in ("cost.json", "study.yaml"):
+                continue
+            out[rel] = os.path.join(d, f)
+    return out
+
+
+def _fits_content(path):
+    import fitsio
+
+    parts = []
+    with fitsio.FITS(path) as f:
+        for hdu in f:
+            hdr = hdu.read_header()
+            cards = [(r["name"], str(r.get("value")), r.get("comment")) for r in hdr.records()
+                     if r["name"] not in ("DATE", "CHECKSUM")]
+            data = hdu.read() if hdu.has_data() else None
+            parts.append((cards, None if data is None else data.tobytes()))
+    return parts
+
+
+def assert_same_products(a, b):
+    pa, pb = _products(a), _products(b)
+    assert sorted(pa) == sorted(pb)
+    for rel in pa:
+        if rel.endswith(".fits"):
+            assert _fits_content(pa[rel]) == _fits_content(pb[rel]), rel
+        else:
+            with open(pa[rel], "rb") as fa, open(pb[rel], "rb") as fb:
+                assert fa.read() == fb.read(), rel
+
+
+@pytest.fixture(scope="module")
+def serial_study(tmp_path_factory):
+    out = tmp_path_factory.mktemp("serial") / "study"
+    args = ["study", "--preset", "ci", "-o", out, "--scheduler", "serial", *sum([["--set", c] for c in CI], [])]
+    run(*args)
+    return out
+
+
+@pytest.mark.slow
+def test_ci_study_makes_every_product(serial_study):
+    out = serial_study
+    summary = json.loads((out / "summary.json").read_text())
+    assert [r["variant"] for r in summary["results"]] == ["stars-typical"]
+    res = summary["results"][0]
+    assert res["n"] > 0 and "frac_ge" in res
+    for rel in ["truth.fits", "pointings.fits", "shapes/ref.fits", "shapes/stars-typical.fits",
+                "xi/stars-typical.fits", "budget/stars-typical.fits", "summary.md",
+                "figures/ghosts_by_magnitude.png", "figures/galaxy_beside_ghost.png", "cost.json"]:
+        assert (out / rel).exists(), rel
+    cost = json.loads((out / "cost.json").read_text())
+    assert cost["render_ref"]["tasks"] == 5 and cost["render_ref"]["bytes"] > 0
+    # a rerun makes nothing
+    result = run("study", "--preset", "ci", "-o", out, "--scheduler", "serial", *sum([["--set", c] for c in CI], []))
+    assert "0 products made" in result.output
+
+
+@pytest.mark.slow
+def test_local_cluster_with_two_workers_gives_the_serial_products(serial_study, tmp_path):
+    out = tmp_path / "dask"
+    run("study", "--preset", "ci", "-o", out, "--scheduler", "local", "--workers", 2,
+        *sum([["--set", c] for c in CI], []))
+    assert_same_products(serial_study, out)
+
+
+@pytest.mark.slow
+def test_a_killed_run_resumes_and_finishes_with_the_same_products(serial_study, tmp_path):
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "perscli", "study", "--preset", "ci", "-o", str(out),
+           "--scheduler", "serial", "-q", *sum([["--set", c] for c in CI], [])]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE)
+    state = out / ".state"
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if state.exists() and len(list(state.glob("render__*.json"))) >= 3:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the study finished before it could be killed"
+    proc.kill()
+    proc.wait()
+    made = {p.name for p in state.glob("*.json")}
+    assert 0 < len(made) < 14
+    result = subprocess.run(cmd, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert_same_products(serial_study, out)
+
+
+def _fits_data(path):
+    import fitsio
+
+    with fitsio.FITS(path) as f:
+        return [(h.read().dtype.str, h.read().tobytes()) if h.has_data() else None for h in f]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
+def test_the_makefile_of_single_commands_agrees_with_the_study(serial_study, tmp_path):
+    # examples/persistence-study composes the same study from catalog, pointings, render, measure,
+    # correlate and budget; with the same settings its products hold the same data
+    here = os.path.join(os.path.dirname(__file__), "..", "examples", "persistence-study")
+    perscli = shutil.which("perscli", path=os.path.dirname(sys.executable)) or "perscli"
+    out = tmp_path / "mk"
+    result = subprocess.run(["make", "-j2", "-C", here, f"OUT={out}", "MODELS=typical", f"PERSCLI={perscli}"],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-2000:]
+    made = [os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs if f.endswith(".fits")]
+    assert len(made) >= 12 and "xi/stars-typical.fits" in made and "shapes/ref.fits" in made
+    for rel in made:
+        assert _fits_data(out / rel) == _fits_data(serial_study / rel), rel
