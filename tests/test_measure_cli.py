@@ -56,13 +56,14 @@ def test_shapes_table_and_pairing(scene):
         combined = hdul["COMBINED"].data
         assert hdul[0].header["METHOD"] == "exp" and hdul[0].header["NFRAMES"] == 2
         assert hdul[0].header["CAT"] == "truth.fits" and "FRM01DS" in hdul[0].header
-    for name in ("id", "frame", "x", "y", "ra", "dec", "g1", "g2", "T", "flux", "g1_err", "g2_err", "s2n", "chi2",
-                 "nfev", "flags"):
+    for name in ("id", "frame", "x", "y", "ra", "dec", "g1", "g2", "T", "flux", "g1_err", "g2_err", "s2n",
+                 "snr_pred", "chi2", "nfev", "flags"):
         assert name in shapes.columns.names
     a, b = shapes[shapes["frame"] == 0], shapes[shapes["frame"] == 1]
-    assert list(a["id"]) == [1, 2, 3, 4, 5, 6]
-    assert a["flags"][5] == 256  # off the cutout
-    gal = ((a["flags"] == 0) & (b["flags"] == 0) & (np.arange(6) < 4))
+    # the galaxies on the cutout: not the star (5), not the galaxy off the cutout (6)
+    assert list(a["id"]) == [1, 2, 3, 4] and list(b["id"]) == [1, 2, 3, 4]
+    assert np.all(a["snr_pred"] > 50) and np.array_equal(a["snr_pred"], b["snr_pred"])
+    gal = (a["flags"] == 0) & (b["flags"] == 0)
     assert gal.sum() >= 3
     # shapes follow the truth (noise, nonlinearity and IPC included); g is in pixel axes, the catalogue's
     # e in sky axes, so compare the rotation-invariant |g|
@@ -74,6 +75,28 @@ def test_shapes_table_and_pairing(scene):
     de = np.hypot(a["g1"] - b["g1"], a["g2"] - b["g2"])[gal]
     assert np.all(np.isfinite(de)) and np.all(de < 0.05)
     assert np.array_equal(combined["id"], a["id"]) and combined["nframes"][0] == 2
+
+
+def test_kinds_and_all_rows(scene):
+    """--kinds all fits the star too; --all-rows lists the object off the cutout, flagged 256 alone."""
+    tmp, truth, e2, _ = scene
+    out = tmp / "every.fits"
+    run("measure", e2, "--catalog", truth, "--kinds", "all", "--all-rows", "-o", out)
+    s = fits.getdata(out, "SHAPES")
+    assert list(s["id"]) == [1, 2, 3, 4, 5, 6]
+    assert s["flags"][5] == 256 and np.isnan(s["g1"][5])
+    assert np.isfinite(s["g1"][4])  # the star, fitted as a (small) galaxy
+    hdr = fits.getheader(out)
+    assert hdr["KINDS"] == "all" and hdr["ALLROWS"] is True and hdr["NSEL"] == 6 and hdr["NON01"] == 5
+    stars = tmp / "stars.fits"
+    run("measure", e2, "--catalog", truth, "--kinds", "star", "-o", stars)
+    assert list(fits.getdata(stars, "SHAPES")["id"]) == [5]
+    # the galaxies' rows of the default run, bit for bit
+    default = tmp / "default.fits"
+    run("measure", e2, "--catalog", truth, "-o", default)
+    d = fits.getdata(default, "SHAPES")
+    for key in ("g1", "g2", "T", "flux", "flags", "nfev"):
+        assert np.array_equal(d[key], s[key][:4]), key
 
 
 def test_identical_frames_give_exactly_zero(scene):

@@ -1,7 +1,10 @@
 """perscli measure when things go wrong, and the inputs that steer it.
 
 Failure handling (blended, edge, faint, empty, masked and off-frame
-positions: flags, no crash, the other objects untouched), weights from
+positions: flags, no crash, the other objects untouched; run with
+``--all-rows --min-snr 0`` so that every catalogue object gets its row, as
+measure wrote them before issue 10), the rows written by default (objects
+on the frame above the predicted-S/N cut), weights from
 WHT/VAR/ERR HDUs, masked and non-finite pixels, x/y against ra/dec
 catalogues, several frames and the COMBINED table, --workers, and the errors
 that stop the command (one line on stderr, exit 1, no output).
@@ -35,7 +38,9 @@ RN = 8.5               # measure's default read noise, e-
 ZPT = 26.0
 BKG = (SKYRATE + DARK) * EXPTIME          # the background the noise model subtracts (same operations)
 VAR = BKG + RN ** 2                        # and its variance per pixel (same operations as noise_model)
-FLAG_EDGE, FLAG_FEW, FLAG_OFF = 2, 16, 256
+FLAG_EDGE, FLAG_FEW, FLAG_OFF, FLAG_CUT = 2, 16, 256, 4096
+#: every catalogue object in the output, fitted whatever its predicted S/N (the failure tests' setting)
+EVERY_ROW = ("--all-rows", "--min-snr", "0")
 FIT_COLUMNS = ("x", "y", "g1", "g2", "T", "flux", "x_err", "y_err", "g1_err", "g2_err", "T_err", "flux_err",
                "s2n", "chi2")
 
@@ -157,7 +162,7 @@ def failure_scene(psf, tmp_path_factory):
     ids = list(OBJECTS)
     cat = write_catalog(tmp / "cat.fits", ids, *zip(*[(OBJECTS[i][0], OBJECTS[i][1], OBJECTS[i][5]) for i in ids]))
     out = tmp / "shapes.fits"
-    measure(frame, cat, out)
+    measure(frame, cat, out, *EVERY_ROW)
     return tmp, frame, cat, shapes(out)
 
 
@@ -194,13 +199,13 @@ def test_each_object_is_independent_of_the_others(failure_scene):
     ids = list(OBJECTS)[::-1]
     rev = write_catalog(tmp / "reversed.fits", ids, *zip(*[(OBJECTS[i][0], OBJECTS[i][1], OBJECTS[i][5])
                                                           for i in ids]))
-    measure(frame, rev, tmp / "reversed_out.fits")
+    measure(frame, rev, tmp / "reversed_out.fits", *EVERY_ROW)
     r = shapes(tmp / "reversed_out.fits")
     assert list(r["id"]) == ids
     for ident in OBJECTS:
         assert_rows_equal(by_id(r, ident), by_id(s, ident))
     alone = write_catalog(tmp / "alone.fits", [1], [25.3], [30.6], [2e4])
-    measure(frame, alone, tmp / "alone_out.fits")
+    measure(frame, alone, tmp / "alone_out.fits", *EVERY_ROW)
     a = shapes(tmp / "alone_out.fits")
     assert len(a) == 1
     assert_rows_equal(a[0], by_id(s, 1))
@@ -209,7 +214,7 @@ def test_each_object_is_independent_of_the_others(failure_scene):
 def test_failure_positions_with_hsm_never_crash(failure_scene):
     tmp, frame, cat, _ = failure_scene
     out = tmp / "hsm.fits"
-    measure(frame, cat, out, "--method", "hsm")
+    measure(frame, cat, out, "--method", "hsm", *EVERY_ROW)
     s = shapes(out)
     flags = dict(zip(np.asarray(s["id"]), np.asarray(s["flags"])))
     assert list(s["id"]) == list(OBJECTS)
@@ -239,7 +244,16 @@ def test_faint_and_empty_positions_are_flagged(psf, failure_scene, tmp_path):
     positions = [(20.0, 20.0), (60.0, 20.0), (100.0, 20.0), (60.0, 60.0), (100.0, 60.0), (20.0, 100.0)]
     frame = write_frame(tmp_path / "empty.fits", draw(psf, [], seed=2))
     cat = write_catalog(tmp_path / "cat.fits", range(1, 7), *zip(*positions), [200.0] * 6)
-    measure(frame, cat, tmp_path / "out.fits")
+    # by default they are not fitted: 200 e- of a 0.3" galaxy on this sky is a predicted S/N of ~1.5
+    measure(frame, cat, tmp_path / "default.fits")
+    assert len(shapes(tmp_path / "default.fits")) == 0
+    assert fits.getheader(tmp_path / "default.fits")["NCUT01"] == 6
+    measure(frame, cat, tmp_path / "listed.fits", "--all-rows")
+    listed = shapes(tmp_path / "listed.fits")
+    assert list(listed["flags"]) == [FLAG_CUT] * 6 and np.all(np.isnan(listed["g1"]))
+    assert np.all((listed["snr_pred"] > 0.5) & (listed["snr_pred"] < 3))
+    # fitted anyway (--min-snr 0), they come back flagged
+    measure(frame, cat, tmp_path / "out.fits", *EVERY_ROW)
     s = shapes(tmp_path / "out.fits")
     assert len(s) == 6
     rows = [(row, x, y) for row, (x, y) in zip(s, positions)]
@@ -454,10 +468,26 @@ def three_frames(psf, tmp_path_factory):
     return tmp, frames, cat
 
 
+def test_several_frames_rows_only_for_objects_on_each_frame(three_frames):
+    """By default the object off every frame has no row, in SHAPES or COMBINED."""
+    tmp, frames, cat = three_frames
+    out = tmp / "default.fits"
+    measure(frames, cat, out)
+    s, comb = shapes(out), shapes(out, "COMBINED")
+    assert list(s["id"]) == [1, 2, 3] * 3 and list(s["frame"]) == [0] * 3 + [1] * 3 + [2] * 3
+    assert list(comb["id"]) == [1, 2, 3]
+    hdr = fits.getheader(out)
+    assert [hdr[f"NON{k:02d}"] for k in (1, 2, 3)] == [3, 3, 3] and hdr["NSEL"] == 4
+    # the same fits as with --all-rows
+    measure(frames, cat, tmp / "every.fits", "--all-rows")
+    every = shapes(tmp / "every.fits")
+    assert_rows_equal(s, every[np.asarray(every["id"]) != 4])
+
+
 def test_several_frames_one_row_per_object_per_frame_and_combined(three_frames):
     tmp, frames, cat = three_frames
     out = tmp / "all.fits"
-    measure(frames, cat, out)
+    measure(frames, cat, out, "--all-rows")
     s, comb = shapes(out), shapes(out, "COMBINED")
     assert len(s) == 12
     assert list(s["frame"]) == [0] * 4 + [1] * 4 + [2] * 4
@@ -466,7 +496,7 @@ def test_several_frames_one_row_per_object_per_frame_and_combined(three_frames):
     assert np.all(flags[:, :2] == 0) and flags[0, 2] == 0 and flags[2, 2] == 0
     assert flags[1, 2] & FLAG_FEW and np.all(flags[:, 3] == FLAG_OFF)
     # every frame's rows are that frame measured alone
-    measure(frames[2], cat, tmp / "only2.fits")
+    measure(frames[2], cat, tmp / "only2.fits", "--all-rows")
     assert_rows_equal(s[8:], shapes(tmp / "only2.fits"))
     assert fits.getheader(out)["NFRAMES"] == 3
     # COMBINED: inverse-variance weighted mean of g over the unflagged frames, computed here from SHAPES

@@ -103,3 +103,21 @@ def test_predicted_snr_matches_the_optimal_snr_of_a_drawn_galaxy(model):
     # no magnitude: no prediction (NaN: never cut)
     nomag = predicted_snr({"hlr": hlr}, [0, 1], facts, roman.pixel_scale, SnrTable(model), np.full(2, 1 / var))
     assert np.all(np.isnan(nomag))
+
+
+def test_stamp_sides_follow_the_catalogue_size():
+    from perscli.measure.shapes import stamp_ladder, stamp_side
+
+    assert stamp_ladder(48) == [16, 24, 32, 40, 48] and stamp_ladder(32) == [16, 24, 32]
+    assert stamp_ladder(50) == [16, 24, 32, 40, 48, 50] and stamp_ladder(16) == [16]
+    cat = {"hlr": np.array([0.1, 0.3, 0.5, 1.0, np.nan])}
+    # half the side >= 4 hlr / 0.11" + 3 pixels; no hlr: 0.3"
+    assert [stamp_side(cat, i, 0.11, stamp_ladder(48)) for i in range(5)] == [16, 32, 48, 48, 32]
+    assert [stamp_side(cat, i, 0.11, stamp_ladder(24)) for i in range(5)] == [16, 24, 24, 24, 24]
+
+
+def test_cli_default_cut_is_the_library_default():
+    from perscli.cli.measure import MIN_SNR_DEFAULT as cli_default
+    from perscli.measure.shapes import MIN_SNR_DEFAULT
+
+    assert cli_default == MIN_SNR_DEFAULT == 5.0

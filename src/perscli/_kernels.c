@@ -13,7 +13,6 @@
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
-#include <complex.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
@@ -302,92 +301,294 @@ datasum(PyObject *self, PyObject *args)
     return PyLong_FromUnsignedLongLong(sum);
 }
 
+/* ---- perscli measure: the exponential mixture through a tabulated PSF -------------------------- */
+
+/* exp(x) for x <= 0 with IEEE add and multiply only, so that the loop calling it vectorises (libm's
+ * exp is a call the compiler cannot unroll into vector lanes, and it was most of a fit's time).
+ * Cody-Waite reduction x = n ln2 + r (|r| <= ln2/2; fdlibm's split of ln2, so n ln2_hi is exact),
+ * a degree-13 Taylor polynomial (truncation 4e-18 relative, below half an ulp) and 2^n written into
+ * the exponent bits (n read back from the bits of x log2e + 1.5 2^52, which rounds to an integer).
+ * Within 2 ulp of libm's exp (tests/test_measure_kernel.py); 0 below -708, where exp < 3e-308.
+ * It is exact in the sense that matters for the fits (NOTES section 4): not a table or a low-order
+ * approximation.  The module is built with -std=c99, which turns FMA contraction off, so the vector
+ * and scalar forms of this function give the same bits. */
+static inline double
+exp_nonpos(double x)
+{
+    const double shifter = 6755399441055744.0;             /* 1.5 * 2^52 */
+    const double log2e = 1.4426950408889634074;
+    const double ln2_hi = 6.93147180369123816490e-01;
+    const double ln2_lo = 1.90821492927058770002e-10;
+    const double xc = x < -708.0 ? -708.0 : x;
+    const double t = xc * log2e + shifter;
+    const double n = t - shifter;
+    const double r = (xc - n * ln2_hi) - n * ln2_lo;
+    double p = 1.0 / 6227020800.0;
+    p = p * r + 1.0 / 479001600.0;
+    p = p * r + 1.0 / 39916800.0;
+    p = p * r + 1.0 / 3628800.0;
+    p = p * r + 1.0 / 362880.0;
+    p = p * r + 1.0 / 40320.0;
+    p = p * r + 1.0 / 5040.0;
+    p = p * r + 1.0 / 720.0;
+    p = p * r + 1.0 / 120.0;
+    p = p * r + 1.0 / 24.0;
+    p = p * r + 1.0 / 6.0;
+    p = p * r + 0.5;
+    p = p * r + 1.0;
+    p = p * r + 1.0;
+    uint64_t tb;
+    memcpy(&tb, &t, 8);
+    const uint64_t eb = (tb - UINT64_C(0x4338000000000000) + 1023u) << 52;
+    double scale;
+    memcpy(&scale, &eb, 8);
+    const double v = p * scale;
+    return x < -708.0 ? 0.0 : v;
+}
+
+static PyObject *
+exp_nonpos_py(PyObject *self, PyObject *args)
+{
+    Py_buffer xb, ob;
+    if (!PyArg_ParseTuple(args, "y*w*", &xb, &ob)) return NULL;
+    if (xb.len != ob.len || xb.len % sizeof(double)) {
+        PyBuffer_Release(&xb); PyBuffer_Release(&ob);
+        PyErr_SetString(PyExc_ValueError, "exp_nonpos: two float64 buffers of the same size");
+        return NULL;
+    }
+    const double *x = (const double *)xb.buf;
+    double *o = (double *)ob.buf;
+    const Py_ssize_t n = xb.len / (Py_ssize_t)sizeof(double);
+    for (Py_ssize_t i = 0; i < n; i++) o[i] = exp_nonpos(x[i] > 0.0 ? 0.0 : x[i]);
+    PyBuffer_Release(&xb); PyBuffer_Release(&ob);
+    Py_RETURN_NONE;
+}
+
+/* Number of Hessian sums gathered per frequency column (see expmix_eval), and of mixture
+ * components (Hogg & Lang's exponential: 6; a constant so that their loop unrolls). */
+#define NHESS 21
+#define NCOMP 6
+
+/* One row of the extended frequency grid: the fold of its columns [cx0, cx0 + half) into the
+ * half-plane row `o` (rfft layout; split: real and imaginary planes of `plane` values per field),
+ * and the Hessian sums per folded column.  Written as one loop over the columns with no branch
+ * and no call, which the compiler vectorises; nfield and hess are constants in each of the three
+ * instances below, so that each is a loop of its own. */
+static inline __attribute__((always_inline)) void
+expmix_row_body(Py_ssize_t half, Py_ssize_t plane, const int nfield, const int hess,
+           const double *restrict kxs, const double *restrict trr, const double *restrict tri,
+           const double *restrict pxs, double ky, double pyr, double pyi,
+           const double *restrict p, const double *restrict f,
+           double A, double B, double C, double flux, const double *restrict dp, const double *restrict ds,
+           const double *restrict vr, const double *restrict vi, const double *restrict wcol,
+           double *restrict o, double *restrict h)
+{
+    const double kyy = ky * ky;
+    /* the planes of o and h never overlap: no dependence between columns */
+#pragma GCC ivdep
+    for (Py_ssize_t j = 0; j < half; j++) {
+        const double kx = kxs[j], kxx = kx * kx, kxy = kx * ky;
+        /* common = PSF x pixel transfer x the phase of the centre */
+        const double pxr = pxs[2 * j], pxi = pxs[2 * j + 1];
+        const double ph_r = pxr * pyr - pxi * pyi, ph_i = pxr * pyi + pxi * pyr;
+        const double cr = trr[j] * ph_r - tri[j] * ph_i, ci = trr[j] * ph_i + tri[j] * ph_r;
+        /* k^T C k with C the unit covariance of the mixture (component i: f_i C) */
+        const double q = A * kxx + 2.0 * B * kxy + C * kyy;
+        double s0 = 0.0, s1 = 0.0, s2 = 0.0;
+        for (int i = 0; i < NCOMP; i++) {
+            const double term = p[i] * exp_nonpos(-0.5 * f[i] * q);
+            s0 += term;
+            s1 += f[i] * term;
+            s2 += f[i] * f[i] * term;
+        }
+        /* split layout: the real and imaginary planes of field f at o + 2 f plane and o + (2 f + 1) plane */
+        const double mr = flux * s0 * cr, mi = flux * s0 * ci;
+        o[j] += mr;
+        o[plane + j] += mi;
+        if (nfield > 1) {
+            /* d/dcx = -i kx M: the position parameters through dp (d centre / d parameter) */
+            const double k0 = kx * dp[0] + ky * dp[2], k1 = kx * dp[1] + ky * dp[3];
+            o[2 * plane + j] += k0 * mi;
+            o[3 * plane + j] -= k0 * mr;
+            o[4 * plane + j] += k1 * mi;
+            o[5 * plane + j] -= k1 * mr;
+            /* d/dC_c = -flux s1 / 2 Q_c common with Q = (kx^2, 2 kx ky, ky^2); shape parameters through ds */
+            const double w = -0.5 * flux * s1;
+            const double q0 = w * (kxx * ds[0] + 2.0 * kxy * ds[3] + kyy * ds[6]);
+            const double q1 = w * (kxx * ds[1] + 2.0 * kxy * ds[4] + kyy * ds[7]);
+            const double q2 = w * (kxx * ds[2] + 2.0 * kxy * ds[5] + kyy * ds[8]);
+            o[6 * plane + j] += q0 * cr;
+            o[7 * plane + j] += q0 * ci;
+            o[8 * plane + j] += q1 * cr;
+            o[9 * plane + j] += q1 * ci;
+            o[10 * plane + j] += q2 * cr;
+            o[11 * plane + j] += q2 * ci;
+            o[12 * plane + j] += s0 * cr;
+            o[13 * plane + j] += s0 * ci;
+        }
+        if (hess) {
+            /* Re[second derivative x conj(V)], V the transform of the weighted residual: R and I are
+             * the real and imaginary parts of common x conj(V), times the column's weight in the
+             * half plane (1 for the DC and Nyquist columns, 2 for the others) */
+            const double R = wcol[j] * (cr * vr[j] + ci * vi[j]);
+            const double Im = wcol[j] * (ci * vr[j] - cr * vi[j]);
+            const double Q0 = kxx, Q1 = 2.0 * kxy, Q2 = kyy;
+            const double s0R = s0 * R, s1I = s1 * Im, s2R = s2 * R, s1R = s1 * R, s0I = s0 * Im;
+            h[0 * half + j] += kxx * s0R;
+            h[1 * half + j] += kxy * s0R;
+            h[2 * half + j] += kyy * s0R;
+            h[3 * half + j] += Q0 * kx * s1I;
+            h[4 * half + j] += Q1 * kx * s1I;
+            h[5 * half + j] += Q2 * kx * s1I;
+            h[6 * half + j] += Q0 * ky * s1I;
+            h[7 * half + j] += Q1 * ky * s1I;
+            h[8 * half + j] += Q2 * ky * s1I;
+            h[9 * half + j] += Q0 * Q0 * s2R;
+            h[10 * half + j] += Q0 * Q1 * s2R;
+            h[11 * half + j] += Q0 * Q2 * s2R;
+            h[12 * half + j] += Q1 * Q1 * s2R;
+            h[13 * half + j] += Q1 * Q2 * s2R;
+            h[14 * half + j] += Q2 * Q2 * s2R;
+            h[15 * half + j] += kx * s0I;
+            h[16 * half + j] += ky * s0I;
+            h[17 * half + j] += Q0 * s1R;
+            h[18 * half + j] += Q1 * s1R;
+            h[19 * half + j] += Q2 * s1R;
+            h[20 * half + j] += s0R;
+        }
+    }
+}
+
+#define EXPMIX_ROW_ARGS Py_ssize_t half, Py_ssize_t plane, const double *restrict kxs, \
+    const double *restrict trr, const double *restrict tri, const double *restrict pxs, double ky, double pyr, \
+    double pyi, const double *restrict p, const double *restrict f, double A, double B, double C, double flux, \
+    const double *restrict dp, const double *restrict ds, const double *restrict vr, const double *restrict vi, \
+    const double *restrict wcol, double *restrict o, double *restrict h
+#define EXPMIX_ROW_PASS kxs, trr, tri, pxs, ky, pyr, pyi, p, f, A, B, C, flux, dp, ds, vr, vi, wcol, o, h
+
+PERSCLI_CLONES static void
+expmix_row_model(EXPMIX_ROW_ARGS) { expmix_row_body(half, plane, 1, 0, EXPMIX_ROW_PASS); }
+
+PERSCLI_CLONES static void
+expmix_row_jac(EXPMIX_ROW_ARGS) { expmix_row_body(half, plane, 7, 0, EXPMIX_ROW_PASS); }
+
+PERSCLI_CLONES static void
+expmix_row_hess(EXPMIX_ROW_ARGS) { expmix_row_body(half, plane, 7, 1, EXPMIX_ROW_PASS); }
+
 /* The exponential mixture through a tabulated PSF, in Fourier space, folded.
  *
- * For every frequency of the extended (alias x L)^2 grid (centred order) whose
- * folded column lies in the half plane [0, L/2], evaluates the mixture's
- * transform times the PSF transfer and the phase of the centre, and adds it
- * (and, with jac, its derivatives in x, y, g1, g2, T, flux) into the folded
- * half-plane spectra out[field, row, col] (rfft layout, L x (L/2 + 1)).  One
- * pass, no temporaries: this is the inner loop of every fit.
+ * For every frequency of the extended (alias x L)^2 grid (centred order) whose folded column lies
+ * in the half plane [0, L/2], evaluates the mixture's transform times the PSF transfer and the
+ * phase of the centre, and adds it into the folded half-plane spectrum spec[0] (rfft layout, L x
+ * (L/2 + 1), complex; `work` holds the same in split real/imaginary planes while it is summed, and
+ * with v the residual's spectrum split likewise: 2 (nfield + 1) planes).  With nfield = 7 it also adds the derivatives with respect to six parameters: two of
+ * position, mapped from the centre (cx, cy) by dp (row-major 2x2, d centre_a / d param_j), three of
+ * shape, mapped from the unit covariance (Cxx, Cxy, Cyy) by ds (row-major 3x3, d C_c / d param_j),
+ * and the flux.  With a residual transform (v: complex L x (L/2 + 1), the rfft2 of the weighted
+ * residual on the same grid) it returns the 21 sums from which the caller builds the second-order
+ * term of the Hessian (sum over pixels of residual x second derivative of the model) by Parseval,
+ * without any inverse transform: entries 0-2 d2/dc dc, 3-8 d2/dc dC, 9-14 d2/dC dC, 15-16 d2/dflux
+ * dc, 17-19 d2/dflux dC, 20 the residual's overlap with the model (all before the factors of flux,
+ * -1/2, 1/4 and 1/L^2 that the caller applies).
  */
 static PyObject *
-expmix_fold(PyObject *self, PyObject *args)
+expmix_eval(PyObject *self, PyObject *args)
 {
-    Py_buffer ob, tb, kb, pxb, pyb, pb, fb;
-    int L, M, jac;
-    double e1, e2, T, flux, d00, d01, d10, d11;
-    if (!PyArg_ParseTuple(args, "w*y*y*y*y*y*y*iip(dddd)(dddd)",
-                          &ob, &tb, &kb, &pxb, &pyb, &pb, &fb, &L, &M, &jac,
-                          &e1, &e2, &T, &flux, &d00, &d01, &d10, &d11))
+    Py_buffer sb, ob, trb, tib, kb, pxb, pyb, pb, fb, wb;
+    PyObject *vobj, *hobj;
+    int L, M, nfield;
+    double A, B, C, flux;
+    double dp[4], ds[9];
+    if (!PyArg_ParseTuple(args, "w*w*y*y*y*y*y*y*y*iii(dddd)(dddd)(ddddddddd)OOy*",
+                          &sb, &ob, &trb, &tib, &kb, &pxb, &pyb, &pb, &fb, &L, &M, &nfield,
+                          &A, &B, &C, &flux, &dp[0], &dp[1], &dp[2], &dp[3],
+                          &ds[0], &ds[1], &ds[2], &ds[3], &ds[4], &ds[5], &ds[6], &ds[7], &ds[8],
+                          &vobj, &hobj, &wb))
         return NULL;
-    const Py_ssize_t big = (Py_ssize_t)L * M, half = L / 2 + 1;
-    const int nfield = jac ? 7 : 1;
+    Py_buffer vb = {0}, hb = {0};
+    int have_v = 0, have_h = 0;
     PyObject *result = NULL;
-    if (tb.len != (Py_ssize_t)sizeof(double complex) * big * big || kb.len != (Py_ssize_t)sizeof(double) * big ||
-        pxb.len != (Py_ssize_t)sizeof(double complex) * big || pyb.len != (Py_ssize_t)sizeof(double complex) * big ||
-        ob.len != (Py_ssize_t)sizeof(double complex) * nfield * L * half || pb.len != fb.len ||
-        pb.len % sizeof(double)) {
-        PyErr_SetString(PyExc_ValueError, "expmix_fold: buffer sizes do not match L, alias and the field count");
-        goto done;
+    const Py_ssize_t big = (Py_ssize_t)L * M, half = L / 2 + 1, plane = (Py_ssize_t)L * half;
+    if (vobj != Py_None) {
+        if (PyObject_GetBuffer(vobj, &vb, PyBUF_C_CONTIGUOUS) < 0) goto done;
+        if (PyObject_GetBuffer(hobj, &hb, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE) < 0) {
+            PyBuffer_Release(&vb); goto done;
+        }
+        have_v = 1;
+        have_h = 1;
+    }
+    if ((nfield != 1 && nfield != 7) || L < 2 || L % 2 || M < 1 ||
+        trb.len != (Py_ssize_t)sizeof(double) * big * big || tib.len != trb.len ||
+        kb.len != (Py_ssize_t)sizeof(double) * big ||
+        pxb.len != (Py_ssize_t)sizeof(double) * 2 * big || pyb.len != pxb.len ||
+        ob.len < (Py_ssize_t)sizeof(double) * 2 * (nfield + (have_v ? 1 : 0)) * plane ||
+        sb.len != (Py_ssize_t)sizeof(double) * 2 * nfield * plane || pb.len != fb.len ||
+        pb.len != (Py_ssize_t)sizeof(double) * NCOMP ||
+        wb.len != (Py_ssize_t)sizeof(double) * half ||
+        (have_v && nfield != 7) ||
+        (have_v && (vb.len != (Py_ssize_t)sizeof(double) * 2 * plane ||
+                    hb.len != (Py_ssize_t)sizeof(double) * NHESS * half))) {
+        PyErr_SetString(PyExc_ValueError, "expmix_eval: buffer sizes do not match L, alias and the field count");
+        goto release;
     }
     {
-        const double complex *tr = (const double complex *)tb.buf;
+        const double *trr = (const double *)trb.buf, *tri = (const double *)tib.buf;
         const double *k = (const double *)kb.buf;
-        const double complex *px = (const double complex *)pxb.buf, *py = (const double complex *)pyb.buf;
-        const double *p = (const double *)pb.buf, *f = (const double *)fb.buf;
-        const int ncomp = (int)(pb.len / sizeof(double));
-        double complex *out = (double complex *)ob.buf;
-        const Py_ssize_t plane = (Py_ssize_t)L * half;
+        const double *px = (const double *)pxb.buf, *py = (const double *)pyb.buf;
+        const double *p = (const double *)pb.buf, *f = (const double *)fb.buf, *wcol = (const double *)wb.buf;
+        double *out = (double *)ob.buf;
+        /* the residual's spectrum (complex, as numpy's rfft2 gives it) split into planes after the
+         * fields' in the work space, so that the loop over columns reads it with unit stride */
+        double *vr = have_v ? out + 2 * nfield * plane : NULL, *vi = have_v ? out + (2 * nfield + 1) * plane : NULL;
+        const double *v = have_v ? (const double *)vb.buf : NULL;
+        double *h = have_h ? (double *)hb.buf : NULL;
         Py_BEGIN_ALLOW_THREADS
-        memset(out, 0, sizeof(double complex) * nfield * plane);
+        memset(out, 0, sizeof(double) * 2 * nfield * plane);
+        if (have_v) {
+            for (Py_ssize_t i = 0; i < plane; i++) {
+                vr[i] = v[2 * i];
+                vi[i] = v[2 * i + 1];
+            }
+        }
+        if (h) memset(h, 0, sizeof(double) * NHESS * half);
         for (Py_ssize_t cy = 0; cy < big; cy++) {
-            const double ky = k[cy], kyy = ky * ky;
             const Py_ssize_t row = cy % L;
-            const double complex pyv = py[cy];
-            for (Py_ssize_t cx = 0; cx < big; cx++) {
-                const Py_ssize_t col = cx % L;
-                if (col >= half) continue;
-                const double complex t = tr[cy * big + cx];
-                if (t == 0.0) continue;
-                const double kx = k[cx], kxx = kx * kx, kxy = kx * ky;
-                const double base = (kxx + kyy) + e1 * (kxx - kyy) + 2.0 * e2 * kxy;
-                const double q = 0.5 * T * base;
-                double s0 = 0.0, s1 = 0.0;
-                for (int i = 0; i < ncomp; i++) {
-                    const double a = -0.5 * f[i] * q;
-                    /* components are ordered by size: once one is below e^-45 (1e-20 of the
-                     * total, far below the fit's 1e-10 tolerance), so are the wider ones */
-                    if (a < -45.0) break;
-                    const double term = p[i] * exp(a);
-                    s0 += term;
-                    s1 += f[i] * term;
-                }
-                const double complex common = t * pyv * px[cx];
-                const double complex g = s0 * common;
-                double complex *o = out + row * half + col;
-                o[0] += flux * g;
-                if (jac) {
-                    const double complex fg = flux * g;
-                    o[plane] += -I * kx * fg;
-                    o[2 * plane] += -I * ky * fg;
-                    const double complex dq = -0.5 * flux * s1 * common;
-                    const double complex de1 = dq * (0.5 * T * (kxx - kyy));
-                    const double complex de2 = dq * (T * kxy);
-                    o[3 * plane] += de1 * d00 + de2 * d10;
-                    o[4 * plane] += de1 * d01 + de2 * d11;
-                    o[5 * plane] += dq * (0.5 * base);
-                    o[6 * plane] += g;
-                }
+            for (Py_ssize_t cx0 = 0; cx0 < big; cx0 += L) {
+                /* the columns of this block that fold into the half plane: [cx0, cx0 + half) */
+                const double *kxs = k + cx0, *rr = trr + cy * big + cx0, *ri = tri + cy * big + cx0;
+                const double *pxs = px + 2 * cx0, ky = k[cy], pyr = py[2 * cy], pyi = py[2 * cy + 1];
+                double *o = out + row * half;
+                if (have_v)
+                    expmix_row_hess(half, plane, kxs, rr, ri, pxs, ky, pyr, pyi, p, f, A, B, C, flux, dp, ds,
+                                    vr + row * half, vi + row * half, wcol, o, h);
+                else if (nfield == 7)
+                    expmix_row_jac(half, plane, kxs, rr, ri, pxs, ky, pyr, pyi, p, f, A, B, C, flux, dp, ds,
+                                   NULL, NULL, wcol, o, h);
+                else
+                    expmix_row_model(half, plane, kxs, rr, ri, pxs, ky, pyr, pyi, p, f, A, B, C, flux, dp, ds,
+                                     NULL, NULL, wcol, o, h);
+            }
+        }
+        /* the split planes into the interleaved complex spectra numpy's irfft2 reads */
+        double *spec = (double *)sb.buf;
+        for (int fld = 0; fld < nfield; fld++) {
+            const double *re = out + 2 * fld * plane, *im = out + (2 * fld + 1) * plane;
+            double *dst = spec + 2 * fld * plane;
+            for (Py_ssize_t i = 0; i < plane; i++) {
+                dst[2 * i] = re[i];
+                dst[2 * i + 1] = im[i];
             }
         }
         Py_END_ALLOW_THREADS
     }
     result = Py_None;
     Py_INCREF(result);
+release:
+    if (have_v) { PyBuffer_Release(&vb); PyBuffer_Release(&hb); }
 done:
-    PyBuffer_Release(&ob); PyBuffer_Release(&tb); PyBuffer_Release(&kb); PyBuffer_Release(&pxb);
-    PyBuffer_Release(&pyb); PyBuffer_Release(&pb); PyBuffer_Release(&fb);
+    PyBuffer_Release(&sb); PyBuffer_Release(&ob); PyBuffer_Release(&trb); PyBuffer_Release(&tib); PyBuffer_Release(&kb);
+    PyBuffer_Release(&pxb); PyBuffer_Release(&pyb); PyBuffer_Release(&pb); PyBuffer_Release(&fb);
+    PyBuffer_Release(&wb);
     return result;
 }
 
@@ -398,10 +599,13 @@ static PyMethodDef methods[] = {
      "For each pixel i in [start, stop) of x (float32/float64, any byte order):\n"
      "F = law(scale * x[i]); acc[k, i] += T[k] * F (or max).  Non-finite x count as 0.\n"
      "datasum is the FITS ones'-complement sum of x's words read big-endian."},
-    {"expmix_fold", expmix_fold, METH_VARARGS,
-     "expmix_fold(out, transfer, k, phase_x, phase_y, p, f, L, alias, jac, (e1, e2, T, flux),\n"
-     "            (de1/dg1, de1/dg2, de2/dg1, de2/dg2)): folded half-plane spectra of the exponential\n"
-     "mixture through the PSF transfer (and its 6 derivatives with jac)."},
+    {"expmix_eval", expmix_eval, METH_VARARGS,
+     "expmix_eval(spec, work, tr_re, tr_im, k, phase_x, phase_y, p, f, L, alias, nfield, (Cxx, Cxy, Cyy, flux),\n"
+     "            dpos (4), dshape (9), v, hess, wcol): folded half-plane spectra of the\n"
+     "exponential mixture through the PSF transfer (and 6 parameter derivatives with nfield=7); with\n"
+     "v (the weighted residual's rfft2, complex) the 21 sums of the Hessian's second-order term into hess."},
+    {"exp_nonpos", exp_nonpos_py, METH_VARARGS,
+     "exp_nonpos(x, out): out = exp(min(x, 0)) with the fitter's vectorisable exp (float64 buffers)."},
     {"datasum", datasum, METH_VARARGS,
      "datasum(buffer) -> int: FITS DATASUM of raw (on-disk) data bytes."},
     {NULL, NULL, 0, NULL}

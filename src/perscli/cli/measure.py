@@ -9,6 +9,9 @@ import click
 from .helpers import check_outputs, progress_reporter, report_errors
 from .options import output_opt, overwrite_opt, verbosity_opts, workers_opt
 
+#: perscli.measure.shapes.MIN_SNR_DEFAULT, written out so that --help does not import the fitter
+MIN_SNR_DEFAULT = 5.0
+
 log = logging.getLogger("perscli")
 
 
@@ -22,7 +25,10 @@ log = logging.getLogger("perscli")
                    "with PIXSCALE (arcsec), sampled 2x or finer.")
 @click.option("--method", type=click.Choice(["exp", "hsm"]), default="exp", show_default=True,
               help="exp: exponential-mixture fit (exact PSF, analytic Jacobian); hsm: GalSim REGAUSS.")
-@click.option("--stamp", type=int, default=48, show_default=True, metavar="PIXELS", help="Stamp side.")
+@click.option("--stamp", type=int, default=48, show_default=True, metavar="PIXELS",
+              help="Largest stamp side.  An exp fit uses the smallest of 16, 24, 32, ... up to it that holds "
+                   "4 catalogue half-light radii + 3 pixels each side of the centre (smaller galaxies, smaller "
+                   "FFTs, fewer neighbours); --method hsm uses this side.")
 @click.option("--sky", type=float, default=None, metavar="LEVEL",
               help="Background per pixel in the frame's units [default: SKYRATE x EXPTIME + dark].")
 @click.option("--read-noise", type=click.FloatRange(min=0), default=None, metavar="E",
@@ -30,19 +36,44 @@ log = logging.getLogger("perscli")
                    "read_noise.sigma of the frame's detector model (MODEL table), else Roman's 8.5].")
 @click.option("--blend-radius", type=click.FloatRange(min=0), default=4.0, show_default=True, metavar="PIXELS",
               help="Flag objects with another catalogue object this close (0: never).")
+@click.option("--kinds", default=None, metavar="galaxy|LIST|all",
+              help="Catalogue kinds to fit (its kind column: galaxy, star), comma-separated, or all "
+                   "[default: galaxy; every row of a catalogue without a kind column].")
+@click.option("--min-snr", type=float, default=MIN_SNR_DEFAULT, show_default=True, metavar="X",
+              help="Fit only objects whose S/N predicted from the catalogue (magnitude through ZPT_AB, hlr, "
+                   "PSF, sky + dark + read noise; never the pixels) is at least X; 0: no cut.  Objects "
+                   "without a magnitude are always fitted.")
+@click.option("--all-rows", is_flag=True,
+              help="Also write rows, without a fit, for selected objects off the frame (flag 256) and below "
+                   "--min-snr (flag 4096).")
+@click.option("--joint", is_flag=True,
+              help="One fit per galaxy over all the FRAMEs it falls on (one filter; WCS and EXPTIME needed), "
+                   "with g, T, flux and position on the sky: a JOINT table.")
 @output_opt
 @overwrite_opt
 @workers_opt("processes fitting the objects (the output does not depend on N)")
 @verbosity_opts
 @report_errors
-def measure(frames, catalog, psf, method, stamp, sky, read_noise, blend_radius, output, overwrite, workers):
-    """Measure the shapes of the catalogue's objects on each FRAME.
+def measure(frames, catalog, psf, method, stamp, sky, read_noise, blend_radius, kinds, min_snr, all_rows, joint,
+            output, overwrite, workers):
+    """Measure the shapes of the catalogue's galaxies on each FRAME, or jointly over all of them.
+
+    Which objects: the catalogue rows of --kinds (the galaxies, by the truth
+    catalogue's kind column; every row of a catalogue without one) whose
+    position falls on the frame, and whose S/N predicted from the catalogue
+    alone is at least --min-snr (default 5: below it the fitted S/N is ~3
+    and the shape is noise).  The prediction uses the magnitude in the frame's
+    FILTER through ZPT_AB, the catalogue hlr, the PSF and the noise model,
+    never the pixels, so frames with and without persistence fit the same
+    objects.
 
     The exponential profile is the 6-Gaussian mixture of Hogg & Lang, with
     parameters (x, y, g1, g2, T, flux); it is convolved with the PSF exactly,
     in Fourier space (the PSF's transform times the pixel response, folded
-    above Nyquist), and fitted by Levenberg-Marquardt with the analytic
-    Jacobian in float64 to 1e-10.  The start (catalogue position, round, the
+    above Nyquist), and fitted by a damped Newton method (Levenberg-Marquardt
+    on the full Hessian: the analytic Jacobian and the residual's
+    second-order term, from the same compiled pass) in float64 to 1e-10, in
+    about 10 model evaluations.  The start (catalogue position, round, the
     catalogue's size and flux) and the weights (WHT/VAR/ERR HDU, else the sky
     from the header, and the dark current, read noise and gain of the detector
     model that rendered the frame, or Roman's) never depend on its pixel noise,
@@ -50,27 +81,42 @@ def measure(frames, catalog, psf, method, stamp, sky, read_noise, blend_radius, 
     that pattern's alone (linear down to ~1e-10).  Only when the catalogue has
     no magnitude for the frame's FILTER is the start flux solved from the data.
 
-    Output: a SHAPES table, one row per object per frame (frame = its index):
-    id, frame, x, y (FITS pixels), ra, dec, g1, g2, T (pixel^2), flux, their
-    errors, s2n, chi2, nfev and flags (1 no convergence, 2 stamp off the frame
+    Output: a SHAPES table, one row per object fitted per frame (frame = its
+    index): id, frame, x, y (FITS pixels), ra, dec, g1, g2 (the frame's pixel
+    axes), T (pixel^2), flux, their errors, s2n (fitted), snr_pred
+    (predicted), chi2, nfev and flags (1 no convergence, 2 stamp off the frame
     edge, 4 T <= 0, 8 flux <= 0, 16 too few pixels, 32 |g| reached 1, 64 no
-    errors, 128 HSM failed, 256 object off the frame, 512 a catalogue neighbour
-    within --blend-radius, 1024 centre moved > 3 pixels from the catalogue
-    position, 2048 S/N below 5); with several frames a
-    COMBINED table: per object the inverse-variance weighted mean g over the
-    frames where its fit has no flag.
+    errors, 128 HSM failed, 256 object off the frame, 512 a catalogue
+    neighbour within --blend-radius, 1024 centre moved > 3 pixels from the
+    catalogue position, 2048 S/N below 5, 4096 predicted S/N below
+    --min-snr; rows with 256 or 4096 are written only with --all-rows); with
+    several frames a COMBINED table: per object the inverse-variance weighted
+    mean g over the frames where its fit has no flag.
+
+    With --joint: a JOINT table instead, one row per galaxy fitted on all
+    the frames it falls on at once (each frame with its own PSF for its SCA
+    and its own WCS): id, ra, dec (fitted), g1, g2 on the sky (u West, v
+    North: +g1 elongated East-West, +g2 North-West/South-East; the axes of
+    the truth catalogue's e1, e2), T (arcsec^2), flux (e-/s), errors (ra_err,
+    dec_err in arcsec), s2n, snr_pred (combined: sqrt of the sum of squares),
+    nframes, chi2, nfev, flags (as above; 2 if any frame's stamp runs off its
+    edge).
 
     \b
     Examples:
       perscli measure exp3.fits --catalog truth.fits -o shapes.fits
       perscli measure exp3.fits exp3_nopersist.fits --catalog truth.fits -o both.fits
       perscli measure frame.fits --catalog cat.fits --psf psf_x4.fits --method hsm -o hsm.fits
+      perscli measure e1.fits e2.fits e3.fits --catalog truth.fits --joint -o joint.fits
+      perscli measure exp3.fits --catalog truth.fits --kinds all --min-snr 0 --all-rows -o everything.fits
     """
     from ..measure.shapes import measure_files
 
     check_outputs(output, inputs=[catalog, *frames, psf], overwrite=overwrite)
     summary = measure_files(frames, catalog, output, psf=psf, method=method, stamp=stamp, sky=sky,
                             read_noise=read_noise, blend_radius=blend_radius, workers=workers, overwrite=overwrite,
-                            progress=progress_reporter("objects"))
-    log.info("%s: %d rows (%d without flags) from %d frame(s)", "stdout" if output == "-" else output,
-             summary["rows"], summary["good"], summary["frames"])
+                            progress=progress_reporter("galaxies" if joint else "objects"), kinds=kinds,
+                            min_snr=min_snr, all_rows=all_rows, joint=joint)
+    log.info("%s: %d rows (%d without flags) from %d frame(s); %d fitted, %d below --min-snr",
+             "stdout" if output == "-" else output, summary["rows"], summary["good"], summary["frames"],
+             summary["fitted"], summary["cut"])

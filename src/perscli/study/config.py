@@ -56,6 +56,9 @@ SCHEMA = {
     },
     "render": {
         "compress": "gzip",      # lossless tiles: frames are most of a study's bytes
+        # the persistence image of each final (PERSIST): 44 of a final's 58 MB compressed, and
+        # nothing downstream reads it; the paper preset would pass 1 TB with it
+        "write_persist": False,
         "set": [],               # detector-model overrides, e.g. ["read_noise.sigma=5"]
     },
     "measure": {

@@ -188,7 +188,8 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
                                   params=dict(pointing=_pointing_dict(p), sca=sca, bounds=s["bounds"],
                                               seed=frame_seed(s["seed"], sca, p.expid),
                                               previous=[frame_path(sca, q.expid) for q in hist],
-                                              hdus=["SCI", "PERSIST", "MODEL"], model=model, source=src,
+                                              hdus=["SCI", "MODEL"] + (["PERSIST"] if s["render"]["write_persist"] else []),
+                                              model=model, source=src,
                                               set=s["render"]["set"], compress=s["render"]["compress"],
                                               filter=p.filter)))
     finals_sorted = [(sca, p.expid) for sca, ps in sorted(ex.finals.items()) for p in ps]

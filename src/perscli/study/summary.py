@@ -69,13 +69,19 @@ def variant_results(study_dir: str, name: str) -> dict:
         out["frac_ge"] = {f"{t:.0e}": _num(f) for t, f in zip(thr, frac)}
         out["n_ge"] = {f"{t:.0e}": int(n) for t, n in zip(thr, nge)}
     theta = _table(xi_path, "THETA_DE")
-    if theta:
-        keep = {k: theta[k] for k in theta if k.startswith(("chi2", "dof", "p_", "pvalue", "de_lo", "de_hi"))}
-        rows = {}
-        for k, v in keep.items():
-            vals = np.unique(np.asarray(v).ravel())
-            rows[k] = [_num(x) for x in vals[:8]]
-        out["theta_uniformity"] = rows
+    if theta and "de_lo" in theta:
+        # one row per angle bin and |De| bin: the test against uniform, once per |De| bin
+        bins = []
+        for k in range(len(theta["de_lo"])):
+            key = (float(theta["de_lo"][k]), float(theta["de_hi"][k]))
+            if bins and (bins[-1]["de_lo"], bins[-1]["de_hi"]) == key:
+                continue
+            row = {"de_lo": key[0], "de_hi": key[1]}
+            for col in ("n_eff", "chi2_uniform", "dof_uniform", "p_uniform"):
+                if col in theta:
+                    row[col] = _num(theta[col][k])
+            bins.append(row)
+        out["theta_uniformity"] = bins
     xi = _table(xi_path, "XI")
     b_path = os.path.join(study_dir, "budget", f"{name}.fits")
     if os.path.exists(b_path):
@@ -125,6 +131,13 @@ def markdown(summary: dict) -> str:
         f = r.get("frac_ge", {})
         lines.append(f"| {r['variant']} | {r.get('n', 0):,} | {_pct(f.get('1e-08'))} | {_pct(f.get('1e-04'))} | "
                      f"{_pm(r, 'de1')} | {_pm(r, 'de2')} | {_g(r.get('xi_over_budget_median'))} |")
+    lines += ["", "Position angle of De against uniform (p-values per |De| bin, the test's variance under "
+              "uniform angles):", ""]
+    for r in summary["results"]:
+        bins = r.get("theta_uniformity") or []
+        text = ", ".join(f"[{b['de_lo']:.0e}, {b['de_hi']:.0e}): "
+                         + (f"p = {_g(b.get('p_uniform'))}" if b.get("n_eff") else "no objects") for b in bins)
+        lines.append(f"- {r['variant']}: {text or 'n/a'}")
     lines += ["", "Budget verdicts:", ""]
     lines += [f"- {r['variant']}: {r.get('budget_verdict', 'n/a')}" for r in summary["results"]]
     lines += ["", "In frames rounded to whole DN, |De| >= 1e-8 means in effect that at least one pixel of the "
