@@ -341,3 +341,20 @@ def test_twenty_pairs_of_2000_stay_fast(tmp_path):
     assert summary["n"] == 40_000 and summary["npatch"] == 20 and summary["var_method"] == "jackknife"
     # ~0.5 s on a 2-core VM (reading 40 tables, TreeCorr on 40k objects, the angle bootstrap)
     assert elapsed < 30, elapsed
+
+
+
+def test_figures_are_readable_by_others_like_every_output(three, tmp_path):
+    # mkstemp's 0600 must not leak into the figures (issue 11: correlate wrote PNGs with mode 0600)
+    import os
+    import stat
+
+    out = tmp_path / "xi.fits"
+    args = sum([["--pair", p[0], p[1]] for p in three[1]], [])
+    old = os.umask(0o022)
+    try:
+        run(*args, "--plots", tmp_path / "figs", "--plot", tmp_path / "xi.png", "-o", out)
+    finally:
+        os.umask(old)
+    for png in [tmp_path / "xi.png", *(tmp_path / "figs").glob("*.png")]:
+        assert stat.S_IMODE(os.stat(png).st_mode) == 0o644, png

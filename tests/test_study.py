@@ -163,7 +163,8 @@ def test_ci_study_makes_every_product(serial_study):
                 "figures/ghosts_by_magnitude.png", "figures/galaxy_beside_ghost.png", "cost.json"]:
         assert (out / rel).exists(), rel
     cost = json.loads((out / "cost.json").read_text())
-    assert cost["render_ref"]["tasks"] == 5 and cost["render_ref"]["bytes"] > 0
+    assert cost["render_ref_final"]["tasks"] == 2 and cost["render_ref_history"]["tasks"] == 3
+    assert cost["render_ref_history"]["bytes"] > 0 and cost["render_persist"]["tasks"] == 2
     # a rerun makes nothing
     result = run("study", "--preset", "ci", "-o", out, "--scheduler", "serial", *sum([["--set", c] for c in CI], []))
     assert "0 products made" in result.output

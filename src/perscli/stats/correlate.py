@@ -1467,6 +1467,12 @@ def _pairs_hdu(records: list, g_axes: str):
     return hdu
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _png_targets(plot, plots_dir, overwrite):
     """{kind: path} of the figures to write, checked before any work."""
     targets = {}
@@ -1609,6 +1615,8 @@ def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=
                 fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".png",
                                            dir=os.path.dirname(os.path.abspath(path)))
                 os.close(fd)
+                # mkstemp makes the file 0600: figures are as readable as any other output
+                os.chmod(tmp, 0o666 & ~_umask())
                 temps[tmp] = path
                 figures[key.removeprefix("dir:")](tmp)
         write_hdus(hdul, dest, overwrite=overwrite)

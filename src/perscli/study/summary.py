@@ -168,7 +168,7 @@ def cost(study_dir: str) -> dict:
     for path in sorted(glob.glob(os.path.join(study_dir, STATE, "*.json"))):
         with open(path) as fh:
             rec = json.load(fh)
-        kind = rec["kind"] if rec["kind"] != "render" else ("render_ref" if "/ref/" in rec["key"] else "render_persist")
+        kind = _cost_kind(rec["kind"], rec["key"], rec.get("hdus", []))
         d = per.setdefault(kind, {"tasks": 0, "cpu_s": 0.0, "bytes": 0, "galaxies": 0})
         d["tasks"] += 1
         d["cpu_s"] += rec.get("cpu_s", 0.0)
@@ -181,6 +181,16 @@ def cost(study_dir: str) -> dict:
         if d["galaxies"]:
             d["cpu_s_per_galaxy"] = d["cpu_s"] / d["galaxies"]
     return per
+
+
+def _cost_kind(kind: str, key: str, hdus) -> str:
+    # renders differ by what they write: a history frame only its fluence, a final's reference
+    # also SCI, a final with persistence SCI alone
+    if kind != "render":
+        return kind
+    if "/ref/" not in key:
+        return "render_persist"
+    return "render_ref_final" if "SCI" in hdus else "render_ref_history"
 
 
 def _write_text(path: str, text: str) -> None:
@@ -209,8 +219,7 @@ def project(tasks, measured: dict) -> dict:
     """
     need = {}
     for t in tasks:
-        kind = t["kind"] if t["kind"] != "render" else ("render_ref" if t["key"].startswith("render/ref/")
-                                                       else "render_persist")
+        kind = _cost_kind(t["kind"], t["key"], t["params"].get("hdus", []))
         units = len(t["params"].get("frames", [])) if kind == "measure" else 1
         need[kind] = need.get(kind, 0) + max(1, units)
     cpu = bytes_ = 0.0

@@ -132,7 +132,7 @@ def _render(study_dir, p, out):
     summary = render_file(os.path.join(study_dir, "truth.fits"), exposure, out, model=model, seed=p["seed"],
                           previous=previous, overwrite=True, compress=p["compress"],
                           persistence_source=p["source"], hdus=tuple(p["hdus"]))
-    return {"objects": int(summary.get("drawn", summary.get("objects", 0)) or 0)}
+    return {"objects": int(summary.get("drawn", summary.get("objects", 0)) or 0), "hdus": list(p["hdus"])}
 
 
 def _measure(study_dir, p, out):
