@@ -648,6 +648,19 @@ def _check_min_snr(min_snr):
     return value
 
 
+def _gather(results, fitted, out_rows, float_columns, int_columns) -> dict:
+    """Output columns for ``out_rows``: NaN and 0 where nothing was fitted, each fit's values at its row."""
+    n = len(out_rows)
+    cols = {k: np.full(n, np.nan) for k in float_columns}
+    cols.update({k: np.zeros(n, dtype=np.int32) for k in int_columns})
+    where = {int(r): k for k, r in enumerate(out_rows)}
+    for r, row in zip(fitted, results):
+        k = where[int(r)]
+        for key, value in row.items():
+            cols[key][k] = value[0]
+    return cols
+
+
 def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, read_noise=None,
                   blend_radius=4.0, progress=None, workers: int = 1, kinds=None, min_snr=MIN_SNR_DEFAULT,
                   all_rows: bool = False, models=None) -> dict:
@@ -731,14 +744,7 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
                        psf_image=psf_image)
     results = run(measure_object, todo, context=ctx, workers=workers, progress=progress)
     out_rows = rows_sel if all_rows else todo
-    n = len(out_rows)
-    cols = {k: np.full(n, np.nan) for k in _FLOAT_COLUMNS}
-    cols.update({k: np.zeros(n, dtype=np.int32) for k in _INT_COLUMNS})
-    where = {int(r): k for k, r in enumerate(out_rows)}
-    for r, row in zip(todo, results):
-        k = where[int(r)]
-        for key, value in row.items():
-            cols[key][k] = value[0]
+    cols = _gather(results, todo, out_rows, _FLOAT_COLUMNS, _INT_COLUMNS)
     if all_rows:
         fitted = np.isin(out_rows, todo)
         on_all = on_frame(x[out_rows], y[out_rows], data.shape)
@@ -1007,14 +1013,7 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
                        rate_frame=rate_frame, stamp=stamp, pixel_scale=pixel_scale)
     results = run(measure_joint_object, todo, context=ctx, workers=workers, progress=progress)
     out = np.arange(len(rows)) if all_rows else todo
-    n = len(out)
-    cols = {k: np.full(n, np.nan) for k in _JOINT_FLOAT}
-    cols.update({k: np.zeros(n, dtype=np.int32) for k in _JOINT_INT})
-    where = {int(j): k for k, j in enumerate(out)}
-    for j, row in zip(todo, results):
-        k = where[int(j)]
-        for key, value in row.items():
-            cols[key][k] = value[0]
+    cols = _gather(results, todo, out, _JOINT_FLOAT, _JOINT_INT)
     if all_rows:
         fitted = np.isin(out, todo)
         cols["ra"][~fitted] = cat["ra"][rows[out[~fitted]]]
