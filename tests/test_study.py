@@ -222,3 +222,19 @@ def test_the_makefile_of_single_commands_agrees_with_the_study(serial_study, tmp
     assert len(made) >= 12 and "xi/stars-typical.fits" in made and "shapes/ref.fits" in made
     for rel in made:
         assert _fits_data(out / rel) == _fits_data(serial_study / rel), rel
+
+
+def test_persistence_models_by_name_or_file_are_checked_before_anything_runs(tmp_path):
+    model = tmp_path / "strong.yaml"
+    model.write_text("base: typical\nA: 0.03\n")
+    study = tmp_path / "s.yaml"
+    study.write_text("preset: ci\npersistence: {models: [typical, strong.yaml]}\n")  # relative to the file
+    s = load_study(str(study))
+    assert s["persistence"]["models"][1] == str(model)
+    tasks = build(s)
+    strong = [t for t in tasks if t.key.startswith("render/stars-strong/")]
+    assert strong and "persistence.A=0.03" in strong[0].params["model"]
+    with pytest.raises(PerscliError, match="unknown persistence model 'nomodel'"):
+        load_study(None, preset="ci", overrides=["persistence.models=[nomodel]"])
+    with pytest.raises(PerscliError, match="read_noise"):
+        load_study(None, preset="ci", overrides=["render.set=[read_noise.sigma=-3]"])

@@ -235,6 +235,11 @@ def _resolve_paths(settings: dict, base: str, given: dict) -> None:
     exp = given.get("exposures", {}) or {}
     if "schedule" in exp and not os.path.isabs(settings["exposures"]["schedule"]):
         settings["exposures"]["schedule"] = os.path.normpath(os.path.join(base, settings["exposures"]["schedule"]))
+    models = (given.get("persistence", {}) or {}).get("models") or []
+    settings["persistence"]["models"] = [
+        os.path.normpath(os.path.join(base, m)) if m in models and isinstance(m, str)
+        and m not in ("typical", "pessimistic") and not os.path.isabs(m) else m
+        for m in settings["persistence"]["models"]]
     if (given.get("catalog", {}) or {}).get("gaia"):
         settings["catalog"]["gaia"] = [p if os.path.isabs(p) else os.path.normpath(os.path.join(base, p))
                                        for p in settings["catalog"]["gaia"]]
@@ -272,6 +277,12 @@ def check(s: dict) -> None:
     p["sources"] = [_number_or_text(v) for v in p["sources"]]
     if not p["models"]:
         raise PerscliError("persistence.models is empty: give typical, pessimistic or model files")
+    # every model and detector setting is checked now, not hours later in a render
+    from ..detector.effects import load_detector_model
+    from .plan import model_settings
+
+    for m in p["models"]:
+        load_detector_model("roman", [*model_settings(str(m)), *s["render"]["set"]])
     for src in p["sources"]:
         if src not in ("stars", "all") and not (isinstance(src, (int, float)) and src > 0):
             raise PerscliError(f"persistence.sources: {src!r} is not stars, all or a fluence threshold (electrons > 0)")

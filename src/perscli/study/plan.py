@@ -81,6 +81,32 @@ def variant_name(source, model: str) -> str:
     return f"{src}-{mod}"
 
 
+def model_settings(model: str) -> list:
+    """Detector-model overrides that make the persistence effect follow ``model``.
+
+    Parameters
+    ----------
+    model : str
+        'typical' or 'pessimistic' (the paper's Table 1), or a persistence
+        model file (YAML, as ``perscli apply-persistence --model`` reads it).
+
+    Returns
+    -------
+    list of str
+        ``persistence.KEY=VALUE`` settings for
+        :func:`perscli.detector.effects.load_detector_model`.
+    """
+    if model in ("typical", "pessimistic"):
+        return [f"persistence.base={model}"]
+    from ..detector.persistence import load_model
+
+    pm = load_model(model)
+    if pm.kind == "linear":
+        return ["persistence.kind=linear",
+                "persistence.coefficients=[" + ", ".join(repr(float(c)) for c in pm.coefficients) + "]"]
+    return [f"persistence.{k}={float(getattr(pm, k))!r}" for k in ("A", "x0", "dx", "alpha", "gamma", "half_well")]
+
+
 def select_exposures(s: dict) -> Exposures:
     """The finals and their histories, from the schedule or a planned sequence.
 
@@ -174,7 +200,7 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
                           deps=["catalog"],
                           params=dict(pointing=_pointing_dict(p), sca=sca, bounds=s["bounds"],
                                       seed=frame_seed(s["seed"], sca, expid), previous=[], hdus=hdus,
-                                      model="typical", source="all", set=s["render"]["set"],
+                                      model=model_settings("typical"), source="all", set=s["render"]["set"],
                                       compress=s["render"]["compress"], filter=p.filter)))
     variants = [(src, m) for src in sources for m in s["persistence"]["models"]]
     for sca, ps in sorted(ex.finals.items()):
@@ -189,7 +215,7 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
                                               seed=frame_seed(s["seed"], sca, p.expid),
                                               previous=[frame_path(sca, q.expid) for q in hist],
                                               hdus=["SCI", "MODEL"] + (["PERSIST"] if s["render"]["write_persist"] else []),
-                                              model=model, source=src,
+                                              model=model_settings(model), source=src,
                                               set=s["render"]["set"], compress=s["render"]["compress"],
                                               filter=p.filter)))
     finals_sorted = [(sca, p.expid) for sca, ps in sorted(ex.finals.items()) for p in ps]

@@ -127,7 +127,7 @@ def _render(study_dir, p, out):
     exposure = Exposure(ra=pt["ra"], dec=pt["dec"], pa=pt["pa"], sca=p["sca"], filter=pt["filter"],
                         mjd=pt["mjd"], exptime=pt["exptime"],
                         bounds=tuple(p["bounds"]) if p["bounds"] else None, expid=pt["expid"])
-    model = load_detector_model("roman", [f"persistence.base={p['model']}", *p["set"]])
+    model = load_detector_model("roman", [*p["model"], *p["set"]])
     previous = [os.path.join(study_dir, q) for q in p["previous"]]
     summary = render_file(os.path.join(study_dir, "truth.fits"), exposure, out, model=model, seed=p["seed"],
                           previous=previous, overwrite=True, compress=p["compress"],
