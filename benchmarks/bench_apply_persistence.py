@@ -206,8 +206,11 @@ def run_child(cmd: list) -> tuple[float, float, str]:
     return float(wall), int(maxrss_kib) * 1024.0, err
 
 
+#: ``python -c _PROFILE OUT.prof ARGS...``: perscli ARGS under cProfile, the statistics in OUT.prof
+#: (shared with bench_measure.py, whose --before run uses another interpreter)
 _PROFILE = r"""
 import cProfile, sys
+out = sys.argv[1]
 sys.argv = ["perscli", *sys.argv[2:]]
 from perscli.cli.main import main
 prof = cProfile.Profile()
@@ -216,7 +219,7 @@ try:
 except SystemExit:
     pass
 finally:
-    prof.dump_stats(PROFILE_OUT)
+    prof.dump_stats(out)
 """
 
 #: (label, function name, file name ending) whose cumulative time the profile reports
@@ -237,8 +240,7 @@ def profile_perscli(cmd_args: list, workdir: Path) -> tuple[list, float, str]:
     import pstats
 
     out = workdir / "perscli.prof"
-    code = _PROFILE.replace("PROFILE_OUT", repr(str(out)))
-    subprocess.run([sys.executable, "-c", code, "perscli", *cmd_args], check=True,
+    subprocess.run([sys.executable, "-c", _PROFILE, str(out), *cmd_args], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     stats = pstats.Stats(str(out))
     total = stats.total_tt

@@ -74,7 +74,8 @@ from perscli.instrument import ROMAN_EXPTIME, ROMAN_PIXEL_SCALE  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from bench_apply_persistence import machine, perscli_command, versions, write_section  # noqa: E402
+from bench_apply_persistence import (  # noqa: E402  (helpers shared with the other benchmarks)
+    _PROFILE, git_commit, machine, perscli_command, versions, write_section)
 
 SECTION = "measure"
 N_DEFAULT = 300
@@ -377,19 +378,6 @@ def thread_info() -> str:
                                          f"num_threads={d.get('num_threads')}" for d in info)
 
 
-def git_commit() -> str:
-    import subprocess
-
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True,
-                              check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], cwd=HERE.parent, capture_output=True,
-                               text=True, check=True).stdout.strip()
-        return head + (" + uncommitted changes in src/" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "?"
-
-
 def quantiles(a, qs=(0, 10, 50, 90, 100)):
     return [float(np.percentile(a, q)) for q in qs]
 
@@ -474,20 +462,6 @@ def shapes_summary(path: Path, truth: Path) -> dict:
                 nfev=nfev[fitted], flag_counts=sorted(counts.items(), key=lambda kv: -kv[1]),
                 bytes=path.stat().st_size)
 
-
-_PROFILE = r"""
-import cProfile, sys
-out = sys.argv[1]
-sys.argv = ["perscli", *sys.argv[2:]]
-from perscli.cli.main import main
-prof = cProfile.Profile()
-try:
-    prof.runcall(main)
-except SystemExit:
-    pass
-finally:
-    prof.dump_stats(out)
-"""
 
 #: (label, function, file ending, how to combine several matches) whose cumulative time the real-frame
 #: profile reports, in order ('max': the matches are nested, e.g. both evaluate methods of fit.py)
