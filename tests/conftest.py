@@ -57,3 +57,10 @@ def fluence_grid(shape=(16, 16), seed=1):
     flat = x.reshape(-1)
     flat[:6] = [-100.0, 0.0, 1.0, 4.99e4, 5.0e4, 5.01e4]
     return x
+
+
+@pytest.fixture(autouse=True)
+def _checksums_back_on():
+    """--no-checksum switches verification off for the process (and its workers): not for the next test."""
+    yield
+    os.environ.pop("PERSCLI_NO_CHECKSUM", None)

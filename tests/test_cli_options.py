@@ -230,3 +230,83 @@ def test_sample_model_file_is_never_replaced(tmp_path):
     shutil.copy(SAMPLE_DATA / "roman_detector.yaml", model)
     truth = _file(tmp_path / "truth.fits")
     refused(tmp_path, ["render", truth, *POINTING, "--model", model, "-o", model], inputs=[truth, model])
+
+
+# -- coordinates: one definition, range-checked everywhere ---------------------------------------
+
+#: a valid command line of each command that takes coordinates (nothing is read: the options fail first)
+COORDINATE_COMMANDS = {
+    "catalog": ["catalog", "--ra", "10", "--dec", "-44"],
+    "pointings --plan": ["pointings", "--plan", "--n", "2", "--ra", "10", "--dec", "-44"],
+    "pointings --schedule": ["pointings", "--schedule", "sched.fits", "--radius", "1", "--ra", "10", "--dec", "-44"],
+    "render": ["render", "truth.fits", "--seed", "1", "--filter", "J129", "--sca", "7", "--ra", "10", "--dec", "-44",
+               "--pa", "30", "--mjd", "61541.97"],
+}
+
+
+def _with(args, option, value):
+    args = list(args)
+    if option in args:
+        args[args.index(option) + 1] = value
+    else:
+        args += [option, value]
+    return args
+
+
+@pytest.mark.parametrize("command", sorted(COORDINATE_COMMANDS))
+@pytest.mark.parametrize("option, value", [("--ra", "370"), ("--ra", "-0.5"), ("--ra", "nan"), ("--dec", "91"),
+                                           ("--dec", "-90.01"), ("--dec", "nan")])
+def test_positions_out_of_range_are_usage_errors(tmp_path, command, option, value):
+    result = invoke(*_with(COORDINATE_COMMANDS[command], option, value), "-o", tmp_path / "out.fits")
+    assert result.exit_code == 2, (command, option, value, result.output)
+    assert f"Invalid value for '{option}'" in result.stderr and "Usage:" in result.stderr
+    assert listing(tmp_path) == []
+
+
+@pytest.mark.parametrize("command, option, value, needle", [
+    ("render", "--pa", "400", "-360.0<=x<=360.0"),
+    ("pointings --plan", "--pa", "-361", "-360.0<=x<=360.0"),
+    ("render", "--mjd", "2461541.47", "a Julian Date? MJD = JD - 2400000.5 = 61540.97000"),
+    ("render", "--mjd", "-1", "0.0<=x<=100000.0"),
+    ("pointings --plan", "--start", "nan", "is not a number"),
+    ("pointings --schedule", "--after", "615419.7", "0.0<=x<=100000.0"),
+])
+def test_angles_and_dates_out_of_range_are_usage_errors(tmp_path, command, option, value, needle):
+    result = invoke(*_with(COORDINATE_COMMANDS[command], option, value), "-o", tmp_path / "out.fits")
+    assert result.exit_code == 2, result.output
+    assert f"Invalid value for '{option}'" in result.stderr and needle in result.stderr
+    assert listing(tmp_path) == []
+
+
+def test_ra_370_suggests_the_same_direction(tmp_path):
+    result = invoke(*_with(COORDINATE_COMMANDS["catalog"], "--ra", "370"), "-o", tmp_path / "out.fits")
+    assert "the same direction as 10" in result.stderr
+
+
+def test_coordinate_options_are_defined_once():
+    from perscli.cli import options
+    from perscli.scene import DEC_RANGE, MJD_RANGE, PA_RANGE, RA_RANGE
+
+    types = {"ra": options.RA_TYPE, "dec": options.DEC_TYPE, "pa": options.PA_TYPE, "mjd": options.MJD_TYPE,
+             "start": options.MJD_TYPE, "after": options.MJD_TYPE}
+    seen = set()
+    for cmd in cli.commands.values():
+        for p in cmd.params:
+            if p.name in types:
+                assert p.type is types[p.name], (cmd.name, p.name)
+                seen.add((cmd.name, p.name))
+    assert {("catalog", "ra"), ("catalog", "dec"), ("pointings", "ra"), ("pointings", "dec"), ("pointings", "pa"),
+            ("pointings", "start"), ("pointings", "after"), ("render", "ra"), ("render", "dec"), ("render", "pa"),
+            ("render", "mjd")} <= seen
+    # the command line and the library agree on the ranges
+    for kind, rng in ((options.RA_TYPE, RA_RANGE), (options.DEC_TYPE, DEC_RANGE), (options.PA_TYPE, PA_RANGE),
+                      (options.MJD_TYPE, MJD_RANGE)):
+        assert (kind.min, kind.max) == rng
+
+
+def test_plan_reference_date_in_the_help_is_the_librarys():
+    from perscli.cli.pointings import PLAN_REFERENCE_MJD as shown
+    from perscli.scene.pointings import PLAN_REFERENCE_MJD
+
+    assert shown == PLAN_REFERENCE_MJD
+    assert str(PLAN_REFERENCE_MJD) in invoke("pointings", "--help").stdout.replace("\n", " ")

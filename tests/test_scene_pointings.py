@@ -583,6 +583,15 @@ def test_usage_errors_of_before_and_footprints(tmp_path, args, needle):
 
 
 def test_plan_on_a_date_roman_cannot_observe_is_one_line(tmp_path):
-    # the default --start (MJD 60000) is too close to the Sun for RA 10, Dec -44: footprints say so
+    # MJD 60000 is too close to the Sun for RA 10, Dec -44: the plan says so before any footprint is asked for
     expect_one_line_error(tmp_path, ["pointings"], ["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7,
-                                                    "--footprints"], "Roman cannot point at", "--start")
+                                                    "--start", 60000, "--footprints"], "Roman cannot take", "--start")
+
+
+def test_plan_with_footprints_at_the_default_start(tmp_path):
+    # the first new-user path: no --start, no --pa; the footprints are GalSim's for the chosen date and PA
+    out = tmp_path / "plan.fits"
+    result = invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "--footprints", "-o", out)
+    assert result.exit_code == 0, result.stderr
+    for p, row in zip(read_pointings(str(out)), fits.getdata(out, "POINTINGS")):
+        assert np.array_equal(sca_footprint(p)[0], row["corner_ra"])

@@ -7,7 +7,7 @@ import logging
 import click
 
 from .helpers import check_outputs, report_errors
-from .options import output_opt, overwrite_opt, plot_opt, verbosity_opts
+from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
 
@@ -31,6 +31,8 @@ BAND_NAMES = ("dore2018", "troxel2021", "hirata")
 @click.option("--nbins", type=click.IntRange(min=1), default=None, metavar="N",
               help="Without XI: number of log-spaced separations [default: 50].")
 @plot_opt("xi+ with error bars against the budget (log theta, symlog xi+, linear range shaded)")
+@columns_opt("XI", "meanr=theta,xip=xi_plus,sigma_xip=sigma")
+@no_checksum_opt
 @click.option("--check", is_flag=True, default=False,
               help="Exit with status 1 (after writing the outputs) if any bin exceeds the budget.")
 @output_opt
@@ -38,7 +40,7 @@ BAND_NAMES = ("dore2018", "troxel2021", "hirata")
 @verbosity_opts
 @click.pass_context
 @report_errors
-def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, check, output, overwrite):
+def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, columns, check, output, overwrite):
     """The Roman additive shear budget as xi+(theta), and a measured xi+ against it.
 
     The HLIS requirement (Dore et al. 2018) allows an additive shear rms per
@@ -89,7 +91,7 @@ def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, check, outp
     lo, hi = theta_range if theta_range is not None else DEFAULT_GRID[:2]
     grid = (lo, hi, nbins if nbins is not None else DEFAULT_GRID[2])
     result = budget_file(output, xi, bands=bands, modes=modes.upper(), n_sigma=n_sigma, grid=grid, plot=plot,
-                         overwrite=overwrite)
+                         overwrite=overwrite, columns=columns)
     where = "stdout" if output == "-" else output
     if result.xip is None:
         log.info("%s: budget (%s, %s) at %d separations, %.3g to %.3g arcmin", where, result.bands, result.modes,

@@ -8,20 +8,14 @@ import click
 
 from ..instrument import ROMAN_N_SCA, ROMAN_SCA_SIZE
 from .helpers import check_outputs, report_errors
-from .options import output_opt, overwrite_opt, seed_opt, verbosity_opts
+from .options import columns_opt, dec_opt, no_checksum_opt, output_opt, overwrite_opt, ra_opt, seed_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
 
-# --ra/--dec as in every command (perscli.cli.options), but --footprints needs neither
-ra_opt = click.option("--ra", type=float, default=None, metavar="DEG",
-                      help="Field centre: right ascension in degrees (ICRS).")
-dec_opt = click.option("--dec", type=click.FloatRange(-90, 90), default=None, metavar="DEG",
-                       help="Field centre: declination in degrees (ICRS).")
-
 
 @click.command("catalog", short_help="Draw a truth catalog of galaxies and stars for a field.")
-@ra_opt
-@dec_opt
+@ra_opt("Centre of the square field: right ascension")
+@dec_opt("Centre of the square field: declination")
 @click.option("--size", type=click.FloatRange(min=0, max=3600, min_open=True, max_open=True), default=None,
               metavar="ARCMIN", help="Side of the square field on the tangent plane  [default: 10].")
 @click.option("--footprints", "footprints", metavar="POINTINGS.fits", default=None,
@@ -29,7 +23,7 @@ dec_opt = click.option("--dec", type=click.FloatRange(-90, 90), default=None, me
                    "(perscli pointings), each grown by --margin.")
 @click.option("--sca", type=click.IntRange(0, ROMAN_N_SCA), default=0, show_default=True, metavar="N",
               help=f"--footprints: the detector (1-{ROMAN_N_SCA}); 0: each row's own sca.")
-@click.option("--margin", type=click.FloatRange(min=0), default=None, metavar="ARCSEC",
+@click.option("--margin", type=click.FloatRange(min=0, max=3600), default=None, metavar="ARCSEC",
               help="--footprints: grow each footprint by this much, so that objects just off a detector still "
                    "spill light onto it  [default: 30].")
 @click.option("--bounds", type=int, nargs=4, default=None, metavar="XMIN XMAX YMIN YMAX",
@@ -42,14 +36,16 @@ dec_opt = click.option("--dec", type=click.FloatRange(-90, 90), default=None, me
 @click.option("--gaia", "gaia", multiple=True, metavar="FILE",
               help="Gaia DR2 reference-catalog chunk (LSST format; '-' for standard input): its stars in the "
                    "field replace the model stars. Repeatable.")
+@columns_opt("the --gaia files", "id=source_id,coord_ra=ra_rad,coord_dec=dec_rad")
+@no_checksum_opt
 @seed_opt
 @output_opt
 @overwrite_opt
 @verbosity_opts
 @click.pass_context
 @report_errors
-def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density, star_density, gaia, seed, output,
-            overwrite):
+def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density, star_density, gaia, columns, seed,
+            output, overwrite):
     """Draw a truth catalog of galaxies and stars for a square field or detector footprints.
 
     The field is a square of --size arcmin on the tangent plane at (--ra,
@@ -79,13 +75,20 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density,
     and the seed (with --footprints also a table FOOTPRNT of their corners).
     The same seed gives the same catalog.
 
+    A square field at the pointing of an exposure is not where its SCAs
+    look (they lie up to 0.45 degrees from the centre of the focal plane):
+    --footprints draws the catalogue where they land, and perscli render
+    --dry-run shows how much of a catalogue a frame covers.
+
     \b
     Examples:
-      perscli catalog --ra 10 --dec -44 -o truth.fits
-      perscli catalog --ra 10 --dec -44 --size 150 --seed 7 -o field.fits
-      perscli catalog --ra 10 --dec -44 --gaia 145649.fits --gaia 145650.fits -o truth.fits
-      perscli catalog --ra 10 --dec -44 --galaxy-density 0 -o - | gzip > stars.fits.gz
-      perscli catalog --footprints sca7.fits --sca 7 --margin 30 --gaia 145649.fits -o truth.fits
+      perscli catalog --ra 10 --dec -44 -o cat.fits
+      perscli catalog --ra 10 --dec -44 --size 150 --seed 7 --galaxy-density 1 -o cat_wide.fits
+      perscli catalog --ra 10 --dec -44 --gaia 145649.fits --gaia 145650.fits -o cat_gaia.fits
+      perscli catalog --ra 10 --dec -44 --galaxy-density 0 -o - | gzip > cat_stars.fits.gz
+      perscli pointings --plan --ra 10 --dec -44 --n 2 --sca 7 -o cat_plan.fits
+      perscli catalog --footprints cat_plan.fits --margin 30 --gaia 145649.fits --gaia 145650.fits -o cat_sca7.fits
+      perscli catalog --footprints cat_plan.fits --sca 1 --bounds 1 128 1 128 -o cat_sca1_cut.fits
     """
     from click.core import ParameterSource
 
@@ -110,10 +113,12 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density,
         table = make_truth_catalog_file(output, footprints=footprints, sca=sca, bounds=bounds,
                                         margin_arcsec=DEFAULT_MARGIN_ARCSEC if margin is None else margin,
                                         overwrite=overwrite, galaxy_density=galaxy_density,
-                                        star_density=star_density, gaia=gaia or None, seed=seed)
+                                        star_density=star_density, gaia=gaia or None, seed=seed,
+                                        columns=columns)
     else:
         table = make_truth_catalog_file(output, ra, dec, size, overwrite=overwrite, galaxy_density=galaxy_density,
-                                        star_density=star_density, gaia=gaia or None, seed=seed)
+                                        star_density=star_density, gaia=gaia or None, seed=seed,
+                                        columns=columns)
     log.info("%s: %d galaxies and %d %s stars in %.6g arcmin^2",
              "stdout" if output == "-" else output, table.meta["NGAL"], table.meta["NSTAR"],
              table.meta["STARSRC"], table.meta["FIELDAR"])

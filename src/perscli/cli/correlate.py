@@ -8,7 +8,8 @@ import click
 from click.core import ParameterSource
 
 from .helpers import check_outputs, report_errors
-from .options import output_opt, overwrite_opt, plot_opt, seed_opt, verbosity_opts, workers_opt
+from .options import (columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, seed_opt, verbosity_opts,
+                      workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -76,6 +77,8 @@ def _numbers(ctx, param, value):
               show_default=True, metavar="E0,E1,...", help="|De| bin edges of the position-angle distribution.")
 @click.option("--nboot", type=click.IntRange(min=2), default=200, show_default=True, metavar="N",
               help="Bootstrap resamples for the errors of the position-angle distribution.")
+@columns_opt("the SHAPES tables", "ra=ALPHA_J2000,dec=DELTA_J2000,g1=E1,g2=E2")
+@no_checksum_opt
 @seed_opt
 @plot_opt("xi+/- with its errors")
 @click.option("--plots", "plots_dir", metavar="DIR", default=None,
@@ -88,7 +91,7 @@ def _numbers(ctx, param, value):
 @report_errors
 def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, positions, pixel_scale, min_sep,
               max_sep, nbins, sep_units, bin_slop, npatch, patch_centers, var_method, cross_patch_weight, thresholds,
-              theta_bins, nboot, seed, plot, plots_dir, output, overwrite, workers):
+              theta_bins, nboot, columns, seed, plot, plots_dir, output, overwrite, workers):
     """Correlation function xi+/- and statistics of the shape changes De.
 
     De is the change of each object's shape between two measurements:
@@ -190,7 +193,7 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
         nbins=nbins, sep_units=sep_units, bin_slop=bin_slop, npatch=npatch, patch_centers=patch_centers,
         cross_patch_weight=cross_patch_weight, var_method=var_method, thresholds=thresholds,
         theta_edges=theta_bins, nboot=nboot, seed=seed, workers=workers, plot=plot, plots_dir=plots_dir,
-        overwrite=overwrite)
+        overwrite=overwrite, columns=columns)
     stats = summary["stats"]
     fracs = ", ".join(f">= {t:g}: {f:.3g}" for t, f in zip(stats["threshold"], stats["frac_ge"]))
     errors = (f"jackknife over {summary['npatch']} patches" if summary["var_method"] == "jackknife"

@@ -19,19 +19,27 @@ option            meaning                                         used by
 --units           override BUNIT of the inputs                    apply-persistence
 --gain            override GAIN/CCDGAIN (e-/DN)                   apply-persistence
 --exptime         exposure time for inputs that lack EXPTIME      apply-persistence
---ra, --dec       field centre (degrees)                          catalog, pointings
+--ra, --dec       a position: RA in [0, 360], Dec in [-90, 90]    catalog, pointings, render
+                  degrees (ICRS); refused outside, never wrapped
+--pa              position angle, degrees in [-360, 360]          pointings, render
+--mjd, --start,   a date, MJD 0 to 100000 (1858 to 2132)          render (--mjd), pointings (--start,
+--after                                                           --after)
 --filter          Roman filter name (R062 ... K213, W146)         pointings
 --sca             Roman detector 1-18 (0: none chosen)            pointings
---no-checksum     do not verify CHECKSUM/DATASUM of inputs        apply-persistence, render (and the group)
+--no-checksum     do not verify CHECKSUM/DATASUM of inputs        every command that reads FITS (and the group)
+--columns         a table's column names (NAME=COL,...)           render, measure, catalog, pointings, correlate,
+                                                                  budget
 --compress        lossless tile compression of the output         apply-persistence, render
 ================  ==============================================  ===========================================
 
 No output may replace an input: every file a command reads (FITS inputs,
 --pointings, --psf, --catalog, --previous, --patch-centers, --schedule,
 --gaia, model files) is passed to :func:`perscli.io.output.check_output`
-with each output (-o and --plot), which refuses the command with one line and
-exit status 1.
+with each output (-o, --plot, and render --dry-run's --regions), which refuses
+the command with one line and exit status 1.
 """
+
+import math
 
 import click
 
@@ -84,12 +92,73 @@ def plot_opt(what: str, metavar: str = "PNG"):
     return click.option("--plot", metavar=metavar, default=None, callback=_png,
                         help=f"Also draw {what} into this PNG file.")
 
-ra_opt = click.option(
-    "--ra", type=float, required=True, metavar="DEG", help="Field centre: right ascension in degrees (ICRS).")
+class _Range(click.FloatRange):
+    """A closed range of floats that also refuses 'nan' (click's FloatRange lets NaN through).
 
-dec_opt = click.option(
-    "--dec", type=click.FloatRange(-90, 90), required=True, metavar="DEG",
-    help="Field centre: declination in degrees (ICRS).")
+    ``hint(value)`` may add a suggestion to the message of a value out of range.
+    """
+
+    def __init__(self, low: float, high: float, hint=None):
+        super().__init__(low, high)
+        self.hint = hint
+
+    def convert(self, value, param, ctx):
+        try:
+            rv = super().convert(value, param, ctx)
+        except click.BadParameter as exc:
+            number = _float(value)
+            extra = self.hint(number) if self.hint and number is not None and math.isfinite(number) else ""
+            if extra:
+                raise click.BadParameter(f"{exc.message.rstrip('.')}{extra}.", ctx, param) from None
+            raise
+        if math.isnan(rv):
+            self.fail(f"{value!r} is not a number in the range {self._describe_range()}.", param, ctx)
+        return rv
+
+
+def _float(value):
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
+
+
+def _ra_hint(value: float) -> str:
+    return f" (the same direction as {value % 360.0:g}: give that)"
+
+
+def _mjd_hint(value: float) -> str:
+    return f" (a Julian Date? MJD = JD - 2400000.5 = {value - 2400000.5:.5f})" if value > 2400000.5 else ""
+
+
+# the ranges of perscli.scene (RA_RANGE, DEC_RANGE, PA_RANGE, MJD_RANGE), written here again so that --help does
+# not import numpy; tests/test_cli_options.py checks that they agree
+RA_TYPE = _Range(0.0, 360.0, hint=_ra_hint)
+DEC_TYPE = _Range(-90.0, 90.0)
+PA_TYPE = _Range(-360.0, 360.0)
+MJD_TYPE = _Range(0.0, 100000.0, hint=_mjd_hint)
+
+
+def ra_opt(help: str = "Field centre: right ascension", *, required: bool = False):
+    """``--ra DEG``: a right ascension in [0, 360] degrees; ``help`` says what position it is."""
+    return click.option("--ra", type=RA_TYPE, default=None, required=required, metavar="DEG",
+                        help=f"{help}, degrees (ICRS).")
+
+
+def dec_opt(help: str = "Field centre: declination", *, required: bool = False):
+    """``--dec DEG``: a declination in [-90, 90] degrees; ``help`` says what position it is."""
+    return click.option("--dec", type=DEC_TYPE, default=None, required=required, metavar="DEG",
+                        help=f"{help}, degrees (ICRS).")
+
+
+def pa_opt(help: str):
+    """``--pa DEG``: an observatory position angle (GalSim's convention) in [-360, 360] degrees."""
+    return click.option("--pa", type=PA_TYPE, default=None, metavar="DEG", help=help)
+
+
+def mjd_opt(name: str, help: str):
+    """A date option (``--mjd``, ``--start``, ``--after``): an MJD in [0, 100000] (1858-11-17 to 2132-09-01)."""
+    return click.option(name, type=MJD_TYPE, default=None, metavar="MJD", help=help)
 
 _SEED_HELP = "Random seed, written into the output: the same seed gives the same output."
 
@@ -155,3 +224,31 @@ compress_opt = click.option(
     "--compress", type=click.Choice(["none", "gzip", "rice"]), default="none", show_default=True,
     help="Tile-compress the output's images, losslessly: gzip (GZIP_2, any data) or rice (integer data "
          "only). An output named *.fits.gz is gzip-compressed as a whole instead.")
+
+
+def _columns(ctx, param, value):
+    from ..io.tables import parse_column_mapping
+
+    try:
+        return parse_column_mapping(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+def columns_opt(what: str, example: str = "ra=ALPHA_J2000,dec=DELTA_J2000", name: str = "--columns"):
+    """``--columns NAME=COLUMN,...``: read a table whose columns another tool named.
+
+    Parameters
+    ----------
+    what : str
+        The table the mapping applies to ('the catalogue', '--schedule').
+    example : str
+        An example mapping for the help.
+    name : str
+        The option's name, for a command reading two kinds of table
+        (pointings: ``--columns`` for the catalogue, ``--schedule-columns``).
+    """
+    return click.option(
+        name, name.lstrip("-").replace("-", "_"), multiple=True, metavar="NAME=COL,...", callback=_columns,
+        help=f"Column names of {what} when they differ from perscli's: NAME=COL pairs, comma-separated or "
+             f"repeated (e.g. {example}); NAME is the column perscli reads, COL the file's.")

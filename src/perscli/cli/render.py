@@ -6,10 +6,11 @@ import logging
 
 import click
 
+from .. import PerscliError
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
 from .helpers import check_outputs, progress_reporter, report_errors
-from .options import (model_opt, compress_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, required_seed_opt,
-                      verbosity_opts, workers_opt)
+from .options import (columns_opt, compress_opt, dec_opt, mjd_opt, model_opt, no_checksum_opt, output_opt, overwrite_opt, pa_opt,
+                      plot_opt, ra_opt, required_seed_opt, verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -33,10 +34,10 @@ def _list_effects(ctx, param, value):
                    "filter) to take the exposure from; see --row.")
 @click.option("--row", type=click.IntRange(min=0), default=0, show_default=True, metavar="N",
               help="Row of --pointings (0 is the first; for a schedule, its row number).")
-@click.option("--ra", type=float, metavar="DEG", help="Pointing centre of the focal plane, right ascension.")
-@click.option("--dec", type=float, metavar="DEG", help="Pointing centre of the focal plane, declination.")
-@click.option("--pa", type=float, metavar="DEG", help="Observatory position angle (GalSim's convention).")
-@click.option("--mjd", type=float, metavar="MJD", help="Start of the exposure.")
+@ra_opt("Pointing centre of the focal plane (instead of --pointings, or overriding it): right ascension")
+@dec_opt("Pointing centre of the focal plane: declination")
+@pa_opt("Observatory position angle, degrees (GalSim's convention).")
+@mjd_opt("--mjd", "Start of the exposure; Roman must be able to point there then (54 to 126 degrees from the Sun).")
 @click.option("--exptime", type=click.FloatRange(min=0, min_open=True), metavar="SECONDS",
               help=f"Exposure time [default: {ROMAN_EXPTIME:g}, or the pointing's].")
 @click.option("--filter", "filter_name", metavar="NAME", help=f"Roman filter: {' '.join(ROMAN_FILTERS)}.")
@@ -61,6 +62,15 @@ def _list_effects(ctx, param, value):
               help="The HDUs to write, among SCI,IDEAL,FLUENCE,STARFLU,PERSIST,MODEL (STARFLU: the stars' "
                    "fluence, for later frames rendered with --persistence-source stars)  "
                    "[default: SCI,IDEAL,FLUENCE,PERSIST,MODEL]")
+@click.option("--dry-run", "dry_run", is_flag=True, default=False,
+              help="Draw nothing, write no frame or figure (no -o or --seed needed): print where the frame lands (its "
+                   "corners on the sky, its size) and how many stars and galaxies of TRUTH.fits land on it.")
+@click.option("--regions", metavar="FILE.reg", default=None,
+              help="With --dry-run: also write a ds9 region file (fk5) of the frame's outline and of the objects "
+                   "drawn on it.")
+@click.option("--strict", is_flag=True, default=False,
+              help="No object of TRUTH.fits on the frame is an error (exit 1, nothing written), not a warning.")
+@columns_opt("TRUTH.fits", "ra=ALPHA_J2000,dec=DELTA_J2000,id=NUMBER")
 @required_seed_opt
 @plot_opt("the frame and its persistence")
 @click.option("--list-effects", is_flag=True, expose_value=False, is_eager=True, callback=_list_effects,
@@ -73,14 +83,15 @@ def _list_effects(ctx, param, value):
 @verbosity_opts
 @report_errors
 def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds, model_spec, settings,
-           previous, persistence_source, hdus, seed, plot, output, compress, overwrite, workers):
+           previous, persistence_source, hdus, dry_run, regions, strict, columns, seed, plot, output, compress, overwrite,
+           workers):
     """Draw a Roman SCA exposure of TRUTH.fits through a detector model.
 
     Optics from GalSim's Roman module: the SCA's WCS for the pointing, its PSF
     for the filter (at the SCA centre and the filter's effective wavelength),
-    the filter's AB zeropoint and the zodiacal plus thermal sky.  Stamps grow
-    with flux so that bright stars keep their diffraction spikes, the source of
-    their persistence ghosts.  The detector chain (sky, Poisson noise,
+    the filter's AB zeropoint and the zodiacal (on the exposure's date) plus
+    thermal sky.  Stamps grow with flux so that bright stars keep their
+    diffraction spikes, the source of their persistence ghosts.  The detector chain (sky, Poisson noise,
     reciprocity failure, dark current, persistence, saturation at the full
     well, nonlinearity, IPC, read noise, gain, quantisation) follows the model
     (--list-effects prints every parameter); each effect has its own random
@@ -101,35 +112,85 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     A frame rendered once with FLUENCE and STARFLU serves as the history of
     later frames for any source.
 
+    The exposure (pointing, PA, date, filter) comes from a row of
+    --pointings or from --ra --dec --pa --mjd --filter; Roman must be able
+    to point there on that date (GalSim: 54 to 126 degrees from the Sun),
+    or render stops with one line naming the first date it can.  The SCA
+    lies up to 0.45 degrees from the pointing, not at it: --dry-run prints
+    where the frame lands and how many objects of TRUTH.fits it covers,
+    drawing nothing; a frame on which no object lands is warned about
+    (naming where the frame and the catalogue are), and refused with
+    --strict.  perscli pointings --footprints --catalog counts the objects
+    on every row, and perscli catalog --footprints draws a catalogue where
+    the SCA lands.
+
     \b
     Examples:
-      perscli render truth.fits --ra 10 --dec -44 --pa 30 --mjd 61541.97 --filter J129 --sca 7 --seed 1 -o e1.fits
-      perscli render truth.fits --pointings seq.fits --row 1 --sca 7 --seed 2 --previous e1.fits -o e2.fits
-      perscli render truth.fits --pointings seq.fits --row 1 --sca 7 --seed 2 --set persistence=off -o e2_nop.fits
-      perscli render truth.fits --pointings seq.fits --sca 7 --bounds 1 512 1 512 --seed 1 -o cutout.fits
-      perscli render truth.fits --pointings seq.fits --row 2 --sca 7 --seed 3 --model e2.fits -o e3.fits
-      perscli render truth.fits --pointings seq.fits --row 0 --sca 7 --seed 1 --hdus SCI,FLUENCE,STARFLU -o h0.fits
-      perscli render truth.fits --pointings seq.fits --row 1 --sca 7 --seed 2 --previous h0.fits \\
+      perscli pointings --plan --ra 10 --dec -44 --n 3 --sca 7 -o seq.fits
+      perscli catalog --footprints seq.fits --bounds 1 128 1 128 -o seq_truth.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 128 1 128 --dry-run --regions seq0.reg
+      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 128 1 128 --seed 1 --strict -o e0.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 128 1 128 --seed 2 --previous e0.fits \\
+          -o e1.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 128 1 128 --seed 2 --set persistence=off \\
+          -o e1_nop.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 2 --bounds 1 128 1 128 --seed 3 --model e1.fits \\
+          -o e2.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 128 1 128 --seed 1 \\
+          --hdus SCI,FLUENCE,STARFLU --compress gzip -o h0.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 128 1 128 --seed 2 --previous h0.fits \\
           --persistence-source stars --hdus SCI,PERSIST -o e1_stars.fits
+      perscli catalog --ra 9.5 --dec -44.06 --size 10 -o sca7_truth.fits
+      perscli render sca7_truth.fits --ra 10 --dec -44 --pa 30 --mjd 61541.97 --filter J129 --sca 7 \\
+          --bounds 1 128 1 128 --model roman_detector.yaml --set read_noise.sigma=5 --seed 4 --plot explicit.png \\
+          -o explicit.fits
       perscli render --list-effects
     """
     from ..detector.effects import load_detector_model
-    from ..render.run import render_file
+    from ..render.run import footprint_report, format_footprint, render_file, write_regions
 
+    if regions is not None and not dry_run:
+        raise click.UsageError("--regions is written by --dry-run: add --dry-run (or drop --regions)")
+    if not dry_run:
+        if output is None:
+            raise click.UsageError("Missing option '-o' / '--output' (only --dry-run writes no frame).")
+        if seed is None:
+            raise click.UsageError("Missing option '--seed' (only --dry-run draws nothing).")
+    if dry_run:
+        if regions is not None:
+            check_outputs(regions, inputs=[truth, pointings_file, model_spec, *previous], overwrite=overwrite)
+        exposure = _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds)
+        load_detector_model(model_spec, settings)          # a dry run checks what the run would check
+        report = footprint_report(truth, exposure, columns=columns)
+        if len(report["drawn"]) == 0:
+            from ..render.run import no_objects_message
+
+            message = no_objects_message(report, dry_run=True)
+            if strict:
+                raise PerscliError("--strict: " + message)
+            log.warning("%s", message)
+        source = f"{pointings_file} row {row}" if pointings_file is not None else ""
+        if regions is not None:
+            write_regions(report, regions, overwrite=overwrite)
+        click.echo(format_footprint(report, source=source), nl=False)
+        if output is not None:
+            log.info("--dry-run: %s not written", output)
+        return
     check_outputs(output, inputs=[truth, pointings_file, model_spec, *previous], plot=plot, overwrite=overwrite)
     exposure = _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds)
     model = load_detector_model(model_spec, settings)
     summary = render_file(truth, exposure, output, model=model, seed=seed, previous=previous,
                           overwrite=overwrite, workers=workers, progress=progress_reporter("objects"), plot=plot,
-                          compress=compress, persistence_source=persistence_source, hdus=hdus)
+                          compress=compress, persistence_source=persistence_source, hdus=hdus, strict=strict,
+                          columns=columns)
     log.info("%s: %d objects, sky %.3f e-/pixel/s, units %s, persistence max %.3g e-",
              "stdout" if output == "-" else output, summary["objects"], summary["sky_rate"], summary["unit"],
              summary["persistence_max"])
 
 
 def _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds):
-    from .. import PerscliError
     from ..render.exposure import Exposure
+    from ..scene import check_filter
 
     explicit = {"--ra": ra, "--dec": dec, "--pa": pa, "--mjd": mjd, "--filter": filter_name}
     if pointings_file is not None:
@@ -153,6 +214,13 @@ def _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, 
     if sca is None:
         raise click.UsageError(f"give --sca N (1-{ROMAN_N_SCA}): the pointing does not name a detector")
     return Exposure(ra=values["--ra"], dec=values["--dec"], pa=values["--pa"], sca=sca,
-                    filter=values["--filter"], mjd=values["--mjd"],
+                    filter=check_filter(values["--filter"]), mjd=values["--mjd"],
                     exptime=exptime if exptime is not None else ROMAN_EXPTIME,
                     bounds=tuple(bounds) if bounds else None, expid=expid)
+
+
+# --dry-run draws and writes nothing: -o and --seed are required only without it, which the body checks (usage
+# errors, exit 2, with click's own words)
+for _param in render.params:
+    if _param.name in ("output", "seed"):
+        _param.required = False

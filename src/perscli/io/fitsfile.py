@@ -59,8 +59,11 @@ _BITPIX_DTYPES = {8: ">u1", 16: ">i2", 32: ">i4", 64: ">i8", -32: ">f4", -64: ">
 _GZIP_MAGIC = b"\x1f\x8b"
 _CHUNK = 1 << 22
 
-CHECKSUM_HINT = ("re-copy the file; if it was edited on purpose, give --no-checksum or update its "
-                 "checksums with astropy's `fitscheck --force FILE`")
+#: what a checksum mismatch means and what to do: most often a file edited by a tool that kept the
+#: old CHECKSUM/DATASUM cards (astropy does, unless told checksum=True), less often a damaged copy
+CHECKSUM_HINT = ("the checksums are stale (the file changed after they were written, e.g. edited with a tool "
+                 "that kept the old cards) or the file is corrupt: if it was edited on purpose, update them "
+                 "with astropy's `fitscheck --force FILE` or give --no-checksum; otherwise re-copy it")
 
 
 def checksums_enabled() -> bool:
@@ -680,12 +683,11 @@ class HDU:
                 raise PerscliError(f"{where}: DATASUM = {stated!r} is not a checksum; {CHECKSUM_HINT}")
             if int(stated) != datasum:
                 raise PerscliError(f"{where}: the data do not match their DATASUM ({stated}, computed "
-                                   f"{datasum}): corrupt or stale; {CHECKSUM_HINT}")
+                                   f"{datasum}): {CHECKSUM_HINT}")
         if "CHECKSUM" in stored:
             total = ones_complement_add(_kernels.datasum(raw), datasum)
             if total != 0xFFFFFFFF:
-                raise PerscliError(f"{where}: the header and data do not match their CHECKSUM: corrupt or "
-                                   f"stale; {CHECKSUM_HINT}")
+                raise PerscliError(f"{where}: the header and data do not match their CHECKSUM: {CHECKSUM_HINT}")
         self.verified = True
         return datasum
 
@@ -707,7 +709,7 @@ class HDU:
             return
         if ones_complement_add(_kernels.datasum(raw), int(stated)) != 0xFFFFFFFF:
             raise PerscliError(f"{self.file.label}: {self.label}: the header does not match its CHECKSUM: "
-                               f"corrupt or stale; {CHECKSUM_HINT}")
+                               f"{CHECKSUM_HINT}")
 
     # -- reading images ----------------------------------------------------------------------------
     def stream_rows(self, r0: int, r1: int, plane: int = 0, *, scratch: bool = False) -> np.ndarray:

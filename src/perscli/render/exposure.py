@@ -5,7 +5,11 @@ pointing (``galsim.roman.getWCS``, with the observatory position angle), the
 PSF of that SCA and filter (``galsim.roman.getPSF`` at the SCA centre and the
 filter's effective wavelength: it varies from SCA to SCA and filter to filter,
 not across one SCA), the filter's AB zeropoint and the zodiacal sky of
-``galsim.roman.getSkyLevel`` plus the thermal background.  Objects are drawn
+``galsim.roman.getSkyLevel`` (at the exposure's date: the zodiacal light
+depends on where the Sun is) plus the thermal background.  Every error of
+the exposure's geometry (a coordinate out of range, a position Roman cannot
+observe on that date, an object GalSim's WCS cannot place) is a one-line
+:class:`~perscli.PerscliError` naming the fix.  Objects are drawn
 by :class:`perscli.render.draw.StampDrawer`; the detector chain of
 :mod:`perscli.detector.effects` turns the expected electrons into a frame.
 """
@@ -14,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -67,13 +72,17 @@ class Exposure:
     expid: int = -1
 
     def __post_init__(self):
+        from ..scene import check_mjd, check_pa, check_position
+
         if self.filter not in FILTERS:
             raise PerscliError(f"unknown filter {self.filter!r}: use one of {', '.join(FILTERS)}")
         if not 1 <= int(self.sca) <= ROMAN_N_SCA:
             raise PerscliError(f"--sca {self.sca} is not a Roman SCA: use 1 to {ROMAN_N_SCA}")
-        if not (math.isfinite(self.ra) and -90 <= self.dec <= 90 and math.isfinite(self.pa)):
-            raise PerscliError(f"pointing ra={self.ra} dec={self.dec} pa={self.pa} is not valid (degrees)")
-        if not self.exptime > 0:
+        what = "pointing" if self.expid < 0 else f"pointing of exposure {self.expid}"
+        self.ra, self.dec = check_position(self.ra, self.dec, what)
+        self.pa = check_pa(self.pa, f"{what}: position angle")
+        self.mjd = check_mjd(self.mjd, f"{what}: start")
+        if not (math.isfinite(self.exptime) and self.exptime > 0):
             raise PerscliError(f"exposure time {self.exptime} s must be positive")
         if self.bounds is not None:
             xmin, xmax, ymin, ymax = (int(v) for v in self.bounds)
@@ -120,7 +129,11 @@ class Exposure:
 
 
 class Optics:
-    """WCS, PSF, zeropoint and sky of one exposure (the GalSim Roman objects)."""
+    """WCS, PSF, zeropoint and sky of one exposure (the GalSim Roman objects).
+
+    The PSF is made when first asked for (``psf_world``, ``psf_pixels``):
+    where objects land (``perscli render --dry-run``) needs only the WCS.
+    """
 
     def __init__(self, exposure: Exposure):
         import galsim
@@ -134,38 +147,79 @@ class Optics:
         self.wcs = sca_wcs(exposure, exposure.sca)
         self.zeropoint = self.bandpass.zeropoint
         self.electrons_per_unit_flux = roman.collecting_area * exposure.exptime
-        self.psf_world = roman.getPSF(exposure.sca, exposure.filter,
-                                      wavelength=self.bandpass.effective_wavelength)
-        self.psf_pixels = galsim.PixelScale(roman.pixel_scale).toImage(self.psf_world)
         self.centre = galsim.PositionD(SCA_SIZE / 2 + 0.5, SCA_SIZE / 2 + 0.5)
         self.world_centre = self.wcs.toWorld(self.centre)
+
+    @functools.cached_property
+    def psf_world(self):
+        """GalSim's Roman PSF of the SCA and filter, at the filter's effective wavelength (sky units)."""
+        import galsim.roman as roman
+
+        return roman.getPSF(self.exposure.sca, self.exposure.filter, wavelength=self.bandpass.effective_wavelength)
+
+    @functools.cached_property
+    def psf_pixels(self):
+        """The PSF in pixel units (0.11" pixels)."""
+        import galsim
+        import galsim.roman as roman
+
+        return galsim.PixelScale(roman.pixel_scale).toImage(self.psf_world)
 
     def electrons(self, mag) -> np.ndarray:
         """Expected electrons over the exposure for AB magnitudes in this filter."""
         return 10.0 ** (-0.4 * (np.asarray(mag, dtype=np.float64) - self.zeropoint)) * self.electrons_per_unit_flux
 
     def sky_rate(self) -> float:
-        """Zodiacal (at the SCA centre) plus thermal background, e-/pixel/s."""
+        """Zodiacal (at the SCA centre, on the exposure's date) plus thermal background, e-/pixel/s.
+
+        Raises
+        ------
+        PerscliError
+            GalSim's sky table has no value there (too close to the Sun).
+        """
+        import galsim
         import galsim.roman as roman
 
-        zodi = roman.getSkyLevel(self.bandpass, world_pos=self.world_centre, exptime=1.0)
+        try:
+            # the date places the Sun; without it GalSim puts the Sun at the vernal equinox
+            zodi = roman.getSkyLevel(self.bandpass, world_pos=self.world_centre, exptime=1.0,
+                                     date=self.exposure.date)
+        except galsim.GalSimError as exc:
+            e = self.exposure
+            raise PerscliError(f"GalSim's Roman sky level at SCA {e.sca} (ra={self.world_centre.ra.deg:.5f} "
+                               f"dec={self.world_centre.dec.deg:.5f}) on MJD {e.mjd:.5f}: "
+                               f"{str(exc).splitlines()[0]}; choose another date (--mjd)") from None
         return float(zodi * self.wcs.pixelArea(self.centre) + roman.thermal_backgrounds[self.exposure.filter])
 
     def positions(self, ra_deg, dec_deg):
-        """Image positions (x, y) of sky positions, GalSim convention (pixel centres at integers)."""
-        if np.size(ra_deg) == 0:
-            return np.empty(0), np.empty(0)
-        x, y = self.wcs.radecToxy(np.radians(ra_deg), np.radians(dec_deg), units="radians")
-        return np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+        """Image positions (x, y) of sky positions, GalSim convention (pixel centres at integers).
+
+        NaN for positions too far from the SCA to land on it
+        (:func:`perscli.scene.pointings.sky_to_pixels`).
+        """
+        from ..scene.pointings import sky_to_pixels
+
+        return sky_to_pixels(self.wcs, ra_deg, dec_deg)
 
 
 # -- the catalogue --------------------------------------------------------------------------------
 
 REQUIRED = ("id", "ra", "dec", "kind", "hlr", "e1", "e2")
+#: what read_truth may read (for --columns)
+TRUTH_READS = REQUIRED + ("mag_*",)
 
 
-def read_truth(path: str, filter_name: str):
+def read_truth(path: str, filter_name: str, *, columns=None):
     """The columns of a truth catalogue needed to draw ``filter_name``, as numpy arrays.
+
+    Parameters
+    ----------
+    path : str
+        The catalogue (``perscli catalog``'s columns, or others mapped by ``columns``).
+    filter_name : str
+        Roman filter: the magnitude column is ``mag_<filter_name>``.
+    columns : dict, optional
+        Column mapping {perscli name: file column} (``--columns``).
 
     Raises
     ------
@@ -174,7 +228,7 @@ def read_truth(path: str, filter_name: str):
     """
     from ..io.tables import read_table
 
-    table = read_table(path, what="truth catalogue (perscli catalog)")
+    table = read_table(path, what="truth catalogue (perscli catalog)", columns=columns or {}, known=TRUTH_READS)
     mag = f"mag_{filter_name}"
     needed = REQUIRED + (mag,)
     kinds = {"id": "integer", "kind": "text"}
@@ -190,6 +244,9 @@ def read_truth(path: str, filter_name: str):
         if np.any(bad):
             raise PerscliError(f"{label}: column {mag if c == 'mag' else c} has {int(bad.sum())} non-finite "
                                f"value(s) (first at id {cols['id'][bad][0]}); fix or drop those rows")
+    from ..scene import check_positions
+
+    check_positions(label, cols["ra"], cols["dec"])
     unknown = set(np.unique(cols["kind"]).tolist()) - {"star", "galaxy"}
     if unknown:
         raise PerscliError(f"{label}: column kind has {sorted(unknown)}; expected 'star' or 'galaxy'")
@@ -252,7 +309,8 @@ def draw_one(context: DrawContext, job):
     return index, stamp, ix - n // 2, iy - n // 2
 
 
-def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, stars: bool = False):
+def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, stars: bool = False,
+                 optics: Optics | None = None, plan=None):
     """Expected electrons from the catalogue's objects on the exposure's pixels.
 
     Stamps are drawn by :func:`draw_one` through :func:`perscli.executor.imap`
@@ -272,6 +330,10 @@ def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, s
     stars : bool
         Also return the image of the stars alone (the same stamps, added to
         a second image in the same order).
+    optics : Optics, optional
+        The exposure's optics, when already made.
+    plan : tuple, optional
+        :func:`plan_objects` of these columns and optics, when already made.
 
     Returns
     -------
@@ -280,11 +342,11 @@ def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, s
         the optics (WCS, PSF, zeropoint, sky) used, and with ``stars`` the
         stars' image.
     """
-    optics = Optics(exposure)
+    optics = optics if optics is not None else Optics(exposure)
     xmin, xmax, ymin, ymax = exposure.full_bounds
     image = np.zeros((ymax - ymin + 1, xmax - xmin + 1))
     star_image = np.zeros_like(image) if stars else None
-    todo, x, y, flux, sizes = plan_objects(cols, optics, exposure.full_bounds)
+    todo, x, y, flux, sizes = plan if plan is not None else plan_objects(cols, optics, exposure.full_bounds)
     jobs = [(int(i), float(x[i]), float(y[i]), float(flux[i]), int(sizes[i]), cols["kind"][i],
              float(cols["hlr"][i]), float(cols["e1"][i]), float(cols["e2"][i])) for i in todo]
     if jobs:

@@ -14,6 +14,13 @@ min(x, cap), cap = the saturation full well by default.  A frame rendered
 once with FLUENCE and STARFLU is therefore the history of later frames for
 every source, and the persistence is applied when the later frame is
 rendered (:func:`persisting_fluence`).
+
+Where the frame lands (:func:`footprint_report`, ``perscli render
+--dry-run``): its corners on the sky, its size, and which objects of the
+catalogue it covers, without drawing anything.  A frame on which no object
+of the catalogue lands is almost always a mistake (the wrong SCA or row, or
+a catalogue drawn elsewhere): :func:`render_file` warns, naming where the
+frame and the catalogue are, and refuses it with ``strict``.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ from .. import PerscliError
 from ..detector.effects import DetectorModel, model_table, run_chain
 from ..io.fitsfile import OutHDU, format_card
 from ..io.output import add_provenance, check_output, write_hdus
-from .exposure import Exposure, draw_sources, read_truth
+from .exposure import Exposure, Optics, draw_sources, plan_objects, read_truth
 
 log = logging.getLogger(__name__)
 
@@ -243,10 +250,167 @@ def persisting_fluence(fluence: np.ndarray, scale: float = 1.0, *, threshold: fl
     return out
 
 
+# -- where the frame lands ------------------------------------------------------------------------
+
+def footprint_report(truth: str, exposure: Exposure, *, cols=None, optics: Optics | None = None,
+                     columns=None) -> dict:
+    """Where an exposure's frame lands on the sky and which catalogue objects it covers; nothing is drawn.
+
+    Parameters
+    ----------
+    truth : str
+        The truth catalogue (``perscli catalog``), read and checked as
+        :func:`render_file` reads it.
+    exposure : Exposure
+        With its ``bounds`` (the frame: a cutout or the whole SCA).
+    cols, optics : optional
+        :func:`read_truth` of ``truth`` and the exposure's :class:`Optics`, when already made.
+
+    Returns
+    -------
+    dict
+        ``bounds``; ``corners``: [(x, y, ra, dec)] of the frame's outer pixel
+        edges (xmin-0.5, ymin-0.5), (xmax+0.5, ymin-0.5), (xmax+0.5, ymax+0.5),
+        (xmin-0.5, ymax+0.5) through GalSim's WCS; ``centre``: (x, y, ra, dec)
+        of the frame's centre; ``size_arcsec``: its width and height along x
+        and y; ``catalog``: the catalogue's (ra, dec, radius) extent, its
+        number of objects and of stars and galaxies; ``on_frame``: indices
+        (into the catalogue) of the objects whose centre lands on the frame,
+        with ``x``, ``y`` their pixel positions; ``drawn``: indices of the
+        objects whose stamps reach the frame (what render draws, NOBJ);
+        ``separation``: degrees from the frame's centre to the catalogue's.
+    """
+    import galsim
+
+    from ..scene import separation, sky_extent
+    from ..scene.pointings import objects_on_sca
+
+    cols = cols if cols is not None else read_truth(truth, exposure.filter, columns=columns)
+    optics = optics if optics is not None else Optics(exposure)
+    xmin, xmax, ymin, ymax = exposure.full_bounds
+    xs = [xmin - 0.5, xmax + 0.5, xmax + 0.5, xmin - 0.5]
+    ys = [ymin - 0.5, ymin - 0.5, ymax + 0.5, ymax + 0.5]
+    cra, cdec = optics.wcs.xyToradec(np.array(xs), np.array(ys), units="deg")
+    xc, yc = (xmin + xmax) / 2.0, (ymin + ymax) / 2.0
+    centre = optics.wcs.toWorld(galsim.PositionD(xc, yc))
+    centre = (xc, yc, centre.ra / galsim.degrees % 360.0, centre.dec / galsim.degrees)
+    x, y = optics.positions(cols["ra"], cols["dec"])
+    on = np.flatnonzero(objects_on_sca(x, y, exposure.full_bounds))
+    drawn = plan_objects(cols, optics, exposure.full_bounds)[0]
+    extent = sky_extent(cols["ra"], cols["dec"])
+    width = float(separation(cra[0], cdec[0], cra[1], cdec[1])) * 3600.0
+    height = float(separation(cra[1], cdec[1], cra[2], cdec[2])) * 3600.0
+    is_star = cols["kind"] == "star"
+    return {
+        "truth": truth, "exposure": exposure, "bounds": (xmin, xmax, ymin, ymax),
+        "corners": [(xs[i], ys[i], float(cra[i]) % 360.0, float(cdec[i])) for i in range(4)],
+        "centre": centre, "size_arcsec": (width, height),
+        "catalog": {"ra": extent[0], "dec": extent[1], "radius": extent[2], "n": len(cols["ra"]),
+                    "stars": int(np.count_nonzero(is_star)), "galaxies": int(np.count_nonzero(~is_star))},
+        "on_frame": on, "x": x, "y": y, "drawn": drawn,
+        "on_stars": int(np.count_nonzero(is_star[on])), "on_galaxies": int(np.count_nonzero(~is_star[on])),
+        "separation": float(separation(centre[2], centre[3], extent[0], extent[1])) if len(cols["ra"]) else np.nan,
+        "cols": cols,
+    }
+
+
+def _count(n: int, one: str, many: str) -> str:
+    return f"{n} {one if n == 1 else many}"
+
+
+def format_footprint(report: dict, *, source: str = "") -> str:
+    """The text of a :func:`footprint_report`, as ``perscli render --dry-run`` prints it (lines of 'key value').
+
+    ``source`` says where the exposure came from (e.g. 'plan.fits row 0').
+    """
+    e = report["exposure"]
+    xmin, xmax, ymin, ymax = report["bounds"]
+    cat = report["catalog"]
+    xc, yc, rc, dc = report["centre"]
+    when = e.date.strftime("%Y-%m-%d %H:%M:%S")
+    lines = [
+        f"exposure    {source + ', ' if source else ''}expid {e.expid}: MJD {e.mjd:.6f} ({when} UTC), "
+        f"{e.filter}, {e.exptime:g} s",
+        f"pointing    ra {e.ra:.6f} dec {e.dec:+.6f} pa {e.pa:.3f} (centre of the focal plane; degrees)",
+        f"SCA {e.sca:<7d} frame x {xmin}..{xmax}, y {ymin}..{ymax}: {xmax - xmin + 1} x {ymax - ymin + 1} pixels "
+        f"({report['size_arcsec'][0]:.1f}\" x {report['size_arcsec'][1]:.1f}\")",
+        f"centre      {f'({xc:g}, {yc:g})':<16s} ra {rc:.6f} dec {dc:+.6f}",
+    ]
+    for k, (x, y, ra, dec) in enumerate(report["corners"]):
+        label = "corners" if k == 0 else ""
+        lines.append(f"{label:<11s} {f'({x:g}, {y:g})':<16s} ra {ra:.6f} dec {dec:+.6f}")
+    name = os.path.basename(str(report["truth"])) if report["truth"] != "-" else "stdin"
+    if cat["n"]:
+        kinds = f"{_count(cat['stars'], 'star', 'stars')}, {_count(cat['galaxies'], 'galaxy', 'galaxies')}"
+        lines.append(f"catalogue   {name}: {_count(cat['n'], 'object', 'objects')} ({kinds}) within "
+                     f"{cat['radius']:.4f} deg of ra {cat['ra']:.6f} dec {cat['dec']:+.6f}; the frame's centre is "
+                     f"{report['separation']:.4f} deg from it")
+    else:
+        lines.append(f"catalogue   {name}: no objects")
+    on, drawn = report["on_frame"], report["drawn"]
+    lines.append(f"on frame    {_count(len(on), 'object', 'objects')} centred on the frame ("
+                 f"{_count(report['on_stars'], 'star', 'stars')}, "
+                 f"{_count(report['on_galaxies'], 'galaxy', 'galaxies')}); {len(drawn)} drawn (their stamps "
+                 "reach the frame)")
+    return "\n".join(lines) + "\n"
+
+
+def write_regions(report: dict, dest: str, *, overwrite: bool = False, stdout=None) -> int:
+    """A ds9 region file (fk5, degrees) of the frame's outline and the objects drawn on it.
+
+    The outline is a polygon through the frame's corners; each object whose
+    stamp reaches the frame is a circle of its half-light radius (galaxies)
+    or a cross (stars), tagged with its kind.  Returns the number of objects.
+    """
+    from ..io.output import atomic_output
+
+    e, cols = report["exposure"], report["cols"]
+    xmin, xmax, ymin, ymax = report["bounds"]
+    corners = ",".join(f"{ra:.8f},{dec:+.8f}" for _, _, ra, dec in report["corners"])
+    lines = ["# Region file format: DS9 version 4.1",
+             f"# perscli render --dry-run: SCA {e.sca} frame x {xmin}..{xmax} y {ymin}..{ymax}, expid {e.expid}, "
+             f"MJD {e.mjd:.6f}, {e.filter}; objects of {report['truth']} drawn on it",
+             'global color=green font="helvetica 10 normal roman"',
+             "fk5",
+             f"polygon({corners}) # color=cyan text={{SCA {e.sca}}}"]
+    for i in report["drawn"]:
+        ra, dec = float(cols["ra"][i]), float(cols["dec"][i])
+        if cols["kind"][i] == "star":
+            lines.append(f"point({ra:.8f},{dec:+.8f}) # point=cross color=yellow tag={{star}} text={{{cols['id'][i]}}}")
+        else:
+            radius = max(float(cols["hlr"][i]), 0.1)
+            lines.append(f'circle({ra:.8f},{dec:+.8f},{radius:.3f}") # tag={{galaxy}}')
+    with atomic_output(dest, overwrite=overwrite, stdout=stdout) as fh:
+        fh.write(("\n".join(lines) + "\n").encode())
+    return len(report["drawn"])
+
+
+def no_objects_message(report: dict, *, dry_run: bool = False) -> str:
+    """One line: no object of the catalogue lands on the frame, where the frame and the catalogue are, and the fix.
+
+    ``dry_run``: the line is for ``--dry-run`` itself, which needs no pointer to it.
+    """
+    e, cat = report["exposure"], report["catalog"]
+    xmin, xmax, ymin, ymax = report["bounds"]
+    _, _, rc, dc = report["centre"]
+    name = "stdin" if report["truth"] == "-" else report["truth"]
+    frame = "cutout" if e.bounds else "SCA"
+    where = (f"SCA {e.sca} (x {xmin}..{xmax}, y {ymin}..{ymax}) points at ra {rc:.4f} dec {dc:+.4f}")
+    if cat["n"]:
+        what = (f"no object of {name} lands on this {frame}: {where}, {report['separation']:.3f} deg from the "
+                f"catalogue, which lies within {cat['radius']:.3f} deg of ra {cat['ra']:.4f} dec {cat['dec']:+.4f}")
+    else:
+        what = f"{name} holds no object: {where}"
+    see = "" if dry_run else "see `perscli render ... --dry-run`, "
+    return (what + f"; {see}choose a row and SCA that cover the catalogue "
+            "(`perscli pointings ... --sca N --footprints --catalog CAT`) or draw a catalogue there "
+            "(`perscli catalog --footprints POINTINGS --sca N`)")
+
+
 def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, seed: int,
                 previous=(), overwrite: bool = False, workers: int = 1, progress=None,
                 plot: str | None = None, compress: str = "none", persistence_source=None,
-                hdus=None) -> dict:
+                hdus=None, strict: bool = False, columns=None) -> dict:
     """Render ``exposure`` of the truth catalogue ``truth`` and write ``dest``.
 
     Parameters
@@ -283,12 +447,23 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         :data:`DEFAULT_HDUS`); written in that order, PERSIST only when
         earlier exposures were given.  A frame that is to be the history of
         later ones needs FLUENCE, and STARFLU for the 'stars' source.
+    strict : bool
+        No object of the catalogue drawn on the frame is an error (before
+        anything is drawn or written) rather than a warning.
+    columns : dict, optional
+        Column mapping of the truth catalogue (``--columns``; :func:`read_truth`).
 
     Returns
     -------
     dict
         Summary: objects drawn, sky rate, units, persistence maximum, the HDUs
         written and the persistence source.
+
+    Raises
+    ------
+    PerscliError
+        Bad inputs, an exposure GalSim cannot make (one line naming the fix),
+        or with ``strict`` a frame without objects.  Nothing is written.
     """
     from ..detector.effects import Persistence
 
@@ -300,7 +475,14 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
     hdus = check_hdus(hdus)
     model = with_persistence_source(model, persistence_source)
     source, threshold, cap = Persistence.fluence_input(model)
-    cols = read_truth(truth, exposure.filter)
+    cols = read_truth(truth, exposure.filter, columns=columns)
+    optics = Optics(exposure)
+    plan = plan_objects(cols, optics, exposure.full_bounds)
+    if len(plan[0]) == 0:
+        message = no_objects_message(footprint_report(truth, exposure, cols=cols, optics=optics))
+        if strict:
+            raise PerscliError("--strict: " + message)
+        log.warning("%s; --strict makes this an error", message)
     previous = list(previous)
     if previous and not model.enabled("persistence"):
         log.warning("--previous given but the persistence effect is off in the detector model: ignored")
@@ -308,7 +490,8 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
     try:
         for name in previous if model.enabled("persistence") else []:
             opened.append(open_history(name, source))
-        drawn = draw_sources(cols, exposure, workers=workers, progress=progress, stars="STARFLU" in hdus)
+        drawn = draw_sources(cols, exposure, workers=workers, progress=progress, stars="STARFLU" in hdus,
+                             optics=optics, plan=plan)
         sources, nobj, optics = drawn[:3]
         star_light = drawn[3] if len(drawn) > 3 else None
         xmin, xmax, ymin, ymax = exposure.full_bounds

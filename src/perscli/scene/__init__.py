@@ -12,15 +12,34 @@
 
 Both read FITS binary tables (Gaia chunks, schedules) through
 :func:`perscli.io.tables.read_table`.
+
+Coordinates are checked here, once, for every command and library entry
+point (:func:`check_position`, :func:`check_pa`, :func:`check_mjd`): RA in
+[0, 360] degrees, Dec in [-90, 90], position angles in [-360, 360] and dates
+MJD 0 to 100000 (1858-11-17 to 2132-09-01, which refuses a Julian Date or a
+mistyped digit).  A value outside is refused, never wrapped: RA 370 is more
+often a typo than a wish for RA 10.
 """
 
 from __future__ import annotations
 
 
+import math
+
 import numpy as np
 
 from .. import PerscliError
 from ..instrument import ROMAN_FILTERS
+
+#: [deg] the accepted ranges of coordinates (perscli.cli.options declares the same ones for the command line)
+RA_RANGE = (0.0, 360.0)
+DEC_RANGE = (-90.0, 90.0)
+PA_RANGE = (-360.0, 360.0)
+#: [MJD] the accepted dates: 1858-11-17 to 2132-09-01
+MJD_RANGE = (0.0, 100000.0)
+
+#: the MJD epoch
+MJD_ZERO = "1858-11-17"
 
 #: Effective wavelengths in microns, used only by the simple colour model of
 #: :func:`perscli.scene.catalog.filter_magnitudes`.
@@ -40,6 +59,119 @@ def check_filter(name: str) -> str:
     if canonical not in ROMAN_FILTERS:
         raise PerscliError(f"unknown filter '{name}': valid are {', '.join(ROMAN_FILTERS)}")
     return canonical
+
+
+def _number(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def check_position(ra, dec, what: str = "position") -> tuple:
+    """``(ra, dec)`` as floats, checked: RA in [0, 360], Dec in [-90, 90] degrees.
+
+    Parameters
+    ----------
+    ra, dec
+        Degrees.
+    what : str
+        What the position is, for the message ('field centre', 'pointing').
+
+    Raises
+    ------
+    PerscliError
+        A value outside its range or not a number (one line naming it).
+    """
+    ra, dec = _number(ra), _number(dec)
+    if not RA_RANGE[0] <= ra <= RA_RANGE[1]:
+        hint = f" (the same direction as RA {ra % 360.0:g})" if math.isfinite(ra) else ""
+        raise PerscliError(f"{what}: RA {ra:g} is not in [0, 360] degrees{hint}")
+    if not DEC_RANGE[0] <= dec <= DEC_RANGE[1]:
+        raise PerscliError(f"{what}: Dec {dec:g} is not in [-90, 90] degrees")
+    return ra, dec
+
+
+def check_positions(label: str, ra, dec) -> None:
+    """Refuse a table whose positions lie outside RA [0, 360], Dec [-90, 90] degrees (or are not numbers).
+
+    Raises
+    ------
+    PerscliError
+        One line naming ``label``, how many rows and the first.
+    """
+    ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = ~((ra >= RA_RANGE[0]) & (ra <= RA_RANGE[1]) & (dec >= DEC_RANGE[0]) & (dec <= DEC_RANGE[1]))
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise PerscliError(f"{label}: {int(bad.sum())} row(s) with RA outside [0, 360] or Dec outside [-90, 90] "
+                           f"degrees (first: row {i}, ra={ra[i]:g} dec={dec[i]:g}); fix or drop them")
+
+
+def check_pa(pa, what: str = "position angle") -> float:
+    """A position angle in degrees, checked to lie in [-360, 360].
+
+    Raises
+    ------
+    PerscliError
+        Outside that range or not a number.
+    """
+    pa = _number(pa)
+    if not PA_RANGE[0] <= pa <= PA_RANGE[1]:
+        raise PerscliError(f"{what} {pa:g}: give degrees in [-360, 360]")
+    return pa
+
+
+def check_mjd(mjd, what: str = "date") -> float:
+    """A date (MJD), checked to lie in :data:`MJD_RANGE`.
+
+    Raises
+    ------
+    PerscliError
+        Outside it (a Julian Date gets a hint: MJD = JD - 2400000.5) or not a number.
+    """
+    mjd = _number(mjd)
+    if not MJD_RANGE[0] <= mjd <= MJD_RANGE[1]:
+        hint = f" (a Julian Date? MJD = JD - 2400000.5 = {mjd - 2400000.5:.5f})" if mjd > 2400000.5 else ""
+        raise PerscliError(f"{what} MJD {mjd:g} is not in [{MJD_RANGE[0]:g}, {MJD_RANGE[1]:g}] "
+                           f"(1858-11-17 to 2132-09-01){hint}")
+    return mjd
+
+
+def mjd_datetime(mjd: float):
+    """The UTC ``datetime.datetime`` of an MJD (what GalSim's Roman module takes as a date)."""
+    import datetime as _dt
+
+    return _dt.datetime(1858, 11, 17) + _dt.timedelta(days=float(mjd))
+
+
+def sky_extent(ra, dec) -> tuple:
+    """Where a set of positions is: their centre and the radius that holds them all.
+
+    Parameters
+    ----------
+    ra, dec : array_like
+        Degrees.
+
+    Returns
+    -------
+    (ra, dec, radius) : tuple of float
+        The direction of the mean unit vector (degrees; RA in [0, 360)) and the
+        largest great-circle distance from it (degrees); NaNs for no positions.
+    """
+    ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
+    if ra.size == 0:
+        return math.nan, math.nan, math.nan
+    v = unit_vector(ra, dec).reshape(-1, 3).sum(axis=0)
+    norm = np.linalg.norm(v)
+    if norm == 0:
+        # balanced over the whole sphere: any centre holds them within 180 degrees
+        return 0.0, 0.0, 180.0
+    v = v / norm
+    ra0 = float(np.degrees(np.arctan2(v[1], v[0])) % 360.0)
+    dec0 = float(np.degrees(np.arcsin(np.clip(v[2], -1.0, 1.0))))
+    return ra0, dec0, float(np.max(separation(ra0, dec0, ra, dec)))
 
 
 # -- sky geometry -------------------------------------------------------------------------------

@@ -163,9 +163,9 @@ class Field:
     size: float = 10.0
 
     def __post_init__(self):
-        if not (math.isfinite(self.ra) and math.isfinite(self.dec) and -90.0 <= self.dec <= 90.0):
-            raise PerscliError(f"field centre ({self.ra}, {self.dec}): give RA in degrees and Dec in "
-                               "[-90, 90] degrees")
+        from . import check_position
+
+        check_position(self.ra, self.dec, "field centre")
         if not (0.0 < self.size < 3600.0):
             raise PerscliError(f"field size {self.size} arcmin: must be more than 0 and less than 3600 "
                                "(60 degrees)")
@@ -362,7 +362,7 @@ class GaiaStars:
     median_bp_rp: float = DEFAULT_BP_RP
 
 
-def read_gaia_stars(paths, fld, *, stdin=None) -> GaiaStars:
+def read_gaia_stars(paths, fld, *, stdin=None, columns=None) -> GaiaStars:
     """The stars of Gaia DR2 reference-catalog chunks that lie inside ``fld``.
 
     Parameters
@@ -371,6 +371,9 @@ def read_gaia_stars(paths, fld, *, stdin=None) -> GaiaStars:
         FITS files (LSST reference-catalog format), '-' for standard input.
     fld : Field or FootprintUnion
         Only stars inside it (its ``contains``) are kept.
+    columns : dict, optional
+        Column mapping {perscli name: file column} (names of :data:`GAIA_COLUMNS`)
+        for a chunk whose columns are named otherwise; units are not converted.
 
     Raises
     ------
@@ -381,7 +384,8 @@ def read_gaia_stars(paths, fld, *, stdin=None) -> GaiaStars:
     chunks = {k: [] for k in GAIA_COLUMNS}
     inputs = []
     for name in paths:
-        table = read_table(name, what="Gaia reference catalog", stdin=stdin)
+        table = read_table(name, what="Gaia reference catalog", stdin=stdin, columns=columns or {},
+                           known=GAIA_COLUMNS)
         for col in GAIA_COLUMNS:
             values = table.column(col, kind="integer" if col == "id" else "number", needed=GAIA_COLUMNS)
             unit = table.unit(col)
@@ -477,7 +481,7 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
                        footprints=None, margin_arcsec: float = DEFAULT_MARGIN_ARCSEC,
                        galaxy_density: float = 40.0, star_density: float = 2.5, gaia=None, seed: int = 1,
                        galaxy_model: GalaxyModel = GalaxyModel(), star_model: StarModel = StarModel(),
-                       stdin=None):
+                       stdin=None, columns=None):
     """A truth catalog of galaxies and stars for a square field or for detector footprints.
 
     Parameters
@@ -506,6 +510,8 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         Population parameters (defaults: the module docstring).
     stdin : binary file, optional
         Stream for a Gaia file given as '-'.
+    columns : dict, optional
+        Column mapping of the Gaia files (:func:`read_gaia_stars`).
 
     Returns
     -------
@@ -537,6 +543,10 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
             raise PerscliError("give a square field (ra, dec, size) or footprints, not both")
         if (ra is None) != (dec is None):
             raise PerscliError("with footprints, give both ra and dec (the tangent point) or neither")
+        if ra is not None:
+            from . import check_position
+
+            ra, dec = check_position(ra, dec, "tangent point")
         fld = FootprintUnion(footprints, margin_arcsec, centre=None if ra is None else (ra, dec))
         meta = {"REGION": "footprints", "FIELDRA": fld.ra, "FIELDDEC": fld.dec, "NFOOT": len(fld),
                 "FOOTMARG": float(margin_arcsec), "FIELDAR": round(fld.area, 6),
@@ -554,7 +564,7 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         "GALDENS": float(galaxy_density), "NGAL": len(galaxies["ra"]),
     })
     if gaia:
-        gaia_stars = read_gaia_stars(list(gaia), fld, stdin=stdin)
+        gaia_stars = read_gaia_stars(list(gaia), fld, stdin=stdin, columns=columns)
         stars = gaia_stars.columns
         meta.update({"STARSRC": "gaia", "NSTAR": len(stars["ra"])})
     else:

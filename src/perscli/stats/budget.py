@@ -236,7 +236,11 @@ class XiTable:
     shot_bins: tuple = ()
 
 
-def read_xi(path: str, *, stdin=None) -> XiTable:
+#: what read_xi reads (for --columns)
+XI_READS = ("meanr", "r_nom", "xip", "sigma_xip", "weight", "npairs")
+
+
+def read_xi(path: str, *, stdin=None, columns=None) -> XiTable:
     """Read xi+ from a ``perscli correlate`` output (TreeCorr GG column names).
 
     The first binary table (EXTNAME 'XI') is read: the separation from meanr
@@ -244,6 +248,16 @@ def read_xi(path: str, *, stdin=None) -> XiTable:
     SEP_UNIT (or TreeCorr's SEP_UNITS, or the column's TUNIT; arcmin when none
     is given); xip and sigma_xip.  Bins with weight (or npairs) 0 hold no
     pairs and are marked empty: they may hold NaN and are not compared.
+
+    Parameters
+    ----------
+    path : str
+        The table ('-' for standard input).
+    stdin : binary file, optional
+        Stream read for '-'.
+    columns : dict, optional
+        Column mapping {perscli name: table column} for a table written by
+        another tool; the names are those of :data:`XI_READS`.
 
     Raises
     ------
@@ -255,14 +269,15 @@ def read_xi(path: str, *, stdin=None) -> XiTable:
     from ..io.tables import read_table
 
     what = "correlation table (perscli correlate output)"
-    table = read_table(path, what=what, stdin=stdin)
+    table = read_table(path, what=what, stdin=stdin, columns=columns or {}, known=XI_READS)
     where = f"{table.label}: HDU {table.index}"
     names = {n.lower() for n in table.names}
     if len(table) == 0:
         raise PerscliError(f"{where} has no rows: the correlation has no separation bins")
     if "meanr" not in names and "r_nom" not in names:
         raise PerscliError(f"{where} has no column 'meanr' or 'r_nom'; a {what} needs the columns "
-                           f"{', '.join(XI_COLUMNS)}: check that this is a {what}")
+                           f"{', '.join(XI_COLUMNS)}: check that this is a {what}, or name its columns with "
+                           "--columns meanr=COLUMN,xip=COLUMN,sigma_xip=COLUMN")
     xip = table.column("xip", needed=XI_COLUMNS).astype(float)
     sigma = table.column("sigma_xip", needed=XI_COLUMNS).astype(float)
     nominal = table.column("r_nom").astype(float) if "r_nom" in names else None
@@ -637,7 +652,7 @@ def budget_figure(result: Comparison, *, linthresh: float | None = None) -> byte
 
 def budget_file(dest: str, xi_path: str | None = None, *, bands: str = "dore2018", modes: str = "E",
                 n_sigma: float = 2.0, grid=DEFAULT_GRID, plot: str | None = None, overwrite: bool = False,
-                stdin=None, stdout=None) -> Comparison:
+                stdin=None, stdout=None, columns=None) -> Comparison:
     """Check the outputs, compute the budget (and the comparison), write the table and the figure.
 
     Parameters
@@ -653,6 +668,8 @@ def budget_file(dest: str, xi_path: str | None = None, *, bands: str = "dore2018
         PNG path for :func:`budget_figure`.
     overwrite : bool
         Replace existing outputs.
+    columns : dict, optional
+        Column mapping of the xi table (:func:`read_xi`).
 
     Returns
     -------
@@ -673,7 +690,7 @@ def budget_file(dest: str, xi_path: str | None = None, *, bands: str = "dore2018
     amplitudes(bands)
     _modes_factor(modes)
     if xi_path:
-        xi = read_xi(xi_path, stdin=stdin)
+        xi = read_xi(xi_path, stdin=stdin, columns=columns)
         result = compare(xi, bands=bands, modes=modes, n_sigma=n_sigma)
         provenance = [("XI", xi_path, xi.datasum)]
     else:

@@ -287,7 +287,7 @@ def _finite_rows(columns: dict, keep: np.ndarray, what: str) -> np.ndarray:
 
 
 def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=False, positions="auto",
-                       pixel_scale=ROMAN_PIXEL_SCALE, stdin=None, orientation=False) -> ShapeChanges:
+                       pixel_scale=ROMAN_PIXEL_SCALE, stdin=None, orientation=False, columns=None) -> ShapeChanges:
     """De from one or two SHAPES tables.
 
     Parameters
@@ -313,6 +313,9 @@ def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=Fal
         Arcsec per pixel for x/y in pixels (Roman: 0.11).
     stdin : binary file, optional
         Stream read for '-' (default ``sys.stdin.buffer``).
+    columns : dict, optional
+        Column mapping {perscli name: table column} for tables written by
+        another tool (:func:`perscli.io.tables.parse_column_mapping`).
     orientation : bool
         Two measurements with g in pixel axes: also fit how B's pixel axes
         sit on the sky (:attr:`ShapeChanges.orientation`), from x, y and
@@ -340,7 +343,8 @@ def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=Fal
         raise PerscliError(f"{catalogs[0]}: one SHAPES table needs --frames A B (two frames of it) or "
                            "--de1 COL --de2 COL (its De columns)")
     with contextlib.ExitStack() as stack:
-        tables = [stack.enter_context(open_table(name, what=WHAT, stdin=stdin)) for name in catalogs]
+        tables = [stack.enter_context(open_table(name, what=WHAT, stdin=stdin, columns=columns or {}))
+                  for name in catalogs]
         inputs = [(f"SHAPE{'AB'[k]}" if len(tables) == 2 else "SHAPES", t.name, t.datasum)
                   for k, t in enumerate(tables)]
         if de_columns is not None:
@@ -576,7 +580,7 @@ def _check_pairs(pairs, frames) -> list:
 
 
 def load_pairs(pairs, *, frames=None, common_ids=False, positions="auto", pixel_scale=ROMAN_PIXEL_SCALE,
-               stdin=None) -> ShapeChanges:
+               stdin=None, columns=None) -> ShapeChanges:
     """The De of many pairs (each final exposure against its reference), pooled into one catalogue.
 
     Each pair gives De = g(A) - g(B) exactly as :func:`load_shape_changes`
@@ -607,6 +611,8 @@ def load_pairs(pairs, *, frames=None, common_ids=False, positions="auto", pixel_
         Arcsec per pixel for x/y (one pair with ``positions='xy'`` only).
     stdin : binary file, optional
         Stream read for a name '-' (at most one).
+    columns : dict, optional
+        Column mapping, as for :func:`load_shape_changes`.
 
     Returns
     -------
@@ -633,7 +639,7 @@ def load_pairs(pairs, *, frames=None, common_ids=False, positions="auto", pixel_
     for k, (a, b) in enumerate(pairs):
         try:
             sc = load_shape_changes([a, b], frames=frames, common_ids=common_ids, positions=positions,
-                                    pixel_scale=pixel_scale, stdin=stdin, orientation=many)
+                                    pixel_scale=pixel_scale, stdin=stdin, orientation=many, columns=columns)
         except NoObjects as exc:
             if not many:
                 raise PerscliError(f"pair 1 of 1: {exc}") from None
@@ -1501,7 +1507,8 @@ def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=
                     positions="auto", pixel_scale=ROMAN_PIXEL_SCALE, min_sep=1.0, max_sep=100.0, nbins=20,
                     sep_units="arcmin", bin_slop=None, npatch=20, patch_centers=None, cross_patch_weight="match",
                     var_method="auto", thresholds=DEFAULT_THRESHOLDS, theta_edges=DEFAULT_THETA_EDGES, nboot=200,
-                    seed=1, workers=1, plot=None, plots_dir=None, overwrite=False, stdin=None) -> dict:
+                    seed=1, workers=1, plot=None, plots_dir=None, overwrite=False, stdin=None,
+                    columns=None) -> dict:
     """``perscli correlate`` as a function: xi+/- of De, its covariance and the De statistics.
 
     Writes ``dest`` (FITS; '-' for standard output) with the HDUs XI
@@ -1524,7 +1531,7 @@ def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=
     var_method : {'auto', 'jackknife', 'shot'}
         Covariance of xi (:func:`correlate_de`): 'auto' falls back to shot
         noise, with a warning, when a jackknife is impossible.
-    frames, de_columns, common_ids, positions, pixel_scale
+    frames, de_columns, common_ids, positions, pixel_scale, columns
         See :func:`load_shape_changes`.
     min_sep, max_sep, nbins, sep_units, bin_slop, npatch, patch_centers, cross_patch_weight, seed, workers
         See :func:`correlate_de` (``patch_centers`` is a file here).
@@ -1577,10 +1584,10 @@ def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=
 
     if pairs is not None:
         sc = load_pairs(pairs, frames=frames, common_ids=common_ids, positions=positions, pixel_scale=pixel_scale,
-                        stdin=stdin)
+                        stdin=stdin, columns=columns)
     else:
         sc = load_shape_changes(catalogs, frames=frames, de_columns=de_columns, common_ids=common_ids,
-                                positions=positions, pixel_scale=pixel_scale, stdin=stdin)
+                                positions=positions, pixel_scale=pixel_scale, stdin=stdin, columns=columns)
     centers = read_patch_centers(patch_centers, sc.coords) if patch_centers is not None else None
     log.info("%s: %d objects (%d matched, %d flagged, %d not finite)", sc.source, len(sc), sc.counts["matched"],
              sc.counts["flagged"], sc.counts["nonfinite"])
