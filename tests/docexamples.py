@@ -32,6 +32,11 @@ NOT_RUN = {
     "--scheduler tcp://HOST:8786": "needs a running Dask scheduler at HOST",
 }
 
+#: inputs in the repository that name a shared input inside them
+REQUIRES = {
+    "examples/small.yaml": "Roman_WAS_obseq_11_1_23.fits",
+}
+
 _OUTPUT_FLAGS = ("-o", "--output", "--plot", "--plots", "--write-psf", "--regions")
 
 
@@ -176,8 +181,15 @@ def shared_files(shared: Path) -> dict:
 
 
 def prepare_folder(folder: Path, shared: Path, bindir: Path) -> None:
-    """The sample data, the examples folder, the shared inputs (links) and a .venv/bin/perscli link."""
+    """The sample data, the examples folder, the shared inputs (links) and a .venv/bin/perscli link.
+
+    ``folder`` stands for a clone: ``../shared`` beside it is linked to the
+    shared folder (as examples/small.yaml names its schedule relative to itself).
+    """
     folder.mkdir(parents=True, exist_ok=True)
+    beside = folder.parent / "shared"
+    if shared.is_dir() and not beside.exists():
+        os.symlink(shared.parent, beside)
     for p in (ROOT / "sample_data").iterdir():
         if p.is_file():
             shutil.copy(p, folder / p.name)
@@ -217,6 +229,7 @@ def run_examples(examples, folder: Path, *, shared: Path, bindir: Path | None = 
     for ex in examples:
         toks = ex.tokens()
         names = {Path(t).name for t in toks} | {t for t in toks}
+        names |= {need for path, need in REQUIRES.items() if path in toks}
         skip = next((f"{reason}" for key, reason in NOT_RUN.items() if key in ex.command), None)
         if skip is None:
             missing = sorted(n for n in names if n in known and n not in present)

@@ -282,3 +282,70 @@ def test_output_checksums_summed_block_by_block_verify_with_astropy(frame_writer
                 assert hdu.header["DATASUM"] and hdu.header["CHECKSUM"]
                 if hdu.data is not None:
                     hdu.data  # noqa: B018 -- read, so that the data checksum is verified
+
+
+# -- the WFC3 conventions on any frames, frames of different areas, flags in any units ------------------
+
+def test_time_model_middle_lookback_and_their_note(frame_writer, tmp_path):
+    f_old, f_new = np.full((4, 4), 8e4), np.full((4, 4), 3e4)
+    old = frame_writer("old.fits", f_old, start=T0)                       # ends 20 h before cur starts
+    new = frame_writer("new.fits", f_new, start=T0 + 19 * 3600 / DAY)     # ends about 1 h before
+    start = T0 + (20 * 3600 + 139.8) / DAY
+    cur = frame_writer("c.fits", np.zeros((4, 4)), start=start)
+    out, all_ = tmp_path / "o.fits", tmp_path / "all.fits"
+    result = run("apply-persistence", cur, old, new, "--time-model", "middle", "--lookback", "16", "--mode",
+                 "predict", "-v", "-o", out)
+    assert "old.fits ended 20.0 h before" in result.stderr and "16 h look-back: ignored" in result.stderr
+    params = PRESETS["typical"]
+    window = 139.8
+    gap = (start - (T0 + (19 * 3600 + 139.8) / DAY)) * DAY
+    expected = paper_F(f_new, **params) * window * 1000.0 / (gap + window / 2)
+    np.testing.assert_allclose(sci(out), expected, rtol=1e-6)
+    assert fits.getval(out, "PSNPREV") == 1 and fits.getval(out, "PSLOOKB") == 16.0
+    run("apply-persistence", cur, old, new, "--time-model", "middle", "--mode", "predict", "-o", all_)
+    assert np.all(sci(all_) > sci(out))  # no look-back by default for the paper's models: both count
+
+
+def test_a_cutout_gives_persistence_only_to_the_pixels_it_covers(frame_writer, tmp_path):
+    # frames without LTV lie where LTV = 0 puts them; a section of one carries its own LTV
+    rng = np.random.default_rng(12)
+    fluence = 10 ** rng.uniform(2, 5.5, (40, 50))
+    prev = frame_writer("p.fits", fluence, start=T0)
+    cur = frame_writer("c.fits", np.zeros((40, 50)), start=T0 + 169.8 / DAY)
+    whole, part, moved = (tmp_path / f"{n}.fits" for n in ("whole", "part", "moved"))
+    run("apply-persistence", cur, prev, "--mode", "predict", "-o", whole)
+    run("apply-persistence", cur, f"{prev}[SCI][11:30,6:25]", "--mode", "predict", "-o", part)
+    expected = np.zeros((40, 50))
+    expected[5:25, 10:30] = sci(whole)[5:25, 10:30]
+    np.testing.assert_array_equal(sci(part), expected)
+    # the current frame a cutout, the earlier one whole: the cutout's own pixels, from the earlier frame's
+    run("apply-persistence", f"{cur}[SCI][11:30,6:25]", prev, "--mode", "predict", "-o", moved)
+    np.testing.assert_array_equal(sci(moved), sci(whole)[5:25, 10:30])
+    # frames of different shapes, neither placed by LTV: refused
+    small = frame_writer("small.fits", fluence[:20], start=T0)
+    result = run("apply-persistence", cur, small, "-o", tmp_path / "x.fits", ok=False)
+    assert result.exit_code == 1 and "neither has LTV1/LTV2" in result.stderr
+    assert not (tmp_path / "x.fits").exists()
+
+
+def test_flag_threshold_is_in_electrons_per_second_whatever_the_units(frame_writer, tmp_path):
+    fluence = fluence_grid(seed=4)
+    prev = frame_writer("p.fits", fluence, start=T0)
+    start = T0 + 169.8 / DAY
+    outs = {}
+    for bunit, gain in (("electron", None), ("DN", 2.0), ("DN/s", 2.0)):
+        extra = {"GAIN": gain} if gain else {}
+        cur = frame_writer(f"c_{bunit[-1]}.fits", np.ones((16, 16)), start=start, exptime=139.8, bunit=bunit,
+                           **extra)
+        outs[bunit] = tmp_path / f"flag_{bunit[-1]}.fits"
+        run("apply-persistence", cur, prev, "--mode", "subtract", "--flag-above", "0.05", "--dq-bit", "32",
+            "-o", outs[bunit])
+    window = ((start + 139.8 / DAY) - start) * DAY
+    gap = (start - (T0 + 139.8 / DAY)) * DAY
+    charge = quad_charge(fluence, PRESETS["typical"], gap, gap + window, 1.0)
+    expected = np.where(charge / window > 0.05, 32, 0)
+    assert 0 < np.count_nonzero(expected) < expected.size
+    for bunit, out in outs.items():
+        with fits.open(out) as hdul:
+            np.testing.assert_array_equal(hdul["DQ"].data, expected, err_msg=bunit)
+            assert [h.name for h in hdul] == ["PRIMARY", "SCI", "DQ"]

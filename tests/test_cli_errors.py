@@ -66,7 +66,12 @@ def expect_usage_error(tmp_path, args, *needles):
     result = invoke("apply-persistence", *args)
     assert result.exit_code == 2, (result.exit_code, result.output)
     assert result.stdout == ""
-    assert "Usage:" in result.stderr
+    # one line, naming the command and where its help is (tests/test_shell.py checks every kind of usage error)
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("perscli apply-persistence: error: ")
+    assert lines[0].endswith(" (see 'perscli apply-persistence -h')")
+    assert "Usage:" not in result.stderr
     for needle in needles:
         assert needle in result.stderr
     assert listing(tmp_path) == before
@@ -239,8 +244,9 @@ def test_mismatched_shapes(tmp_path, good):
 
 def test_mismatched_subarray_offsets(tmp_path, good):
     cur = frame_file(tmp_path / "cur2.fits", start=T0 + 300.0 / DAY, extra={"LTV1": 0.0, "LTV2": 0.0})
-    shifted = frame_file(tmp_path / "shifted.fits", start=T0, extra={"LTV1": -5.0, "LTV2": 0.0})
-    expect_error(tmp_path, [cur, shifted], shifted, "LTV1/LTV2", "not the same pixels")
+    # a frame placed by LTV1/LTV2 beside the current one, sharing no detector pixel
+    apart = frame_file(tmp_path / "apart.fits", start=T0, extra={"LTV1": -40.0, "LTV2": 0.0})
+    expect_error(tmp_path, [cur, apart], apart, "LTV1/LTV2", "no pixel in common")
 
 
 # -- model and parameters ----------------------------------------------------------------------

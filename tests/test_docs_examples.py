@@ -58,15 +58,17 @@ def test_the_harness_fails_a_broken_example_and_a_clobbered_output(tmp_path):
 def test_readme_examples_run(tmp_path):
     examples = docs.readme_examples()
     assert len(examples) >= 30
-    docs.prepare_folder(tmp_path, SHARED_DATA, docs.script_dir())
-    outcomes = docs.run_examples(examples, tmp_path, shared=SHARED_DATA)
+    folder = tmp_path / "clone"
+    docs.prepare_folder(folder, SHARED_DATA, docs.script_dir())
+    outcomes = docs.run_examples(examples, folder, shared=SHARED_DATA)
     print(docs.report(outcomes))
     _check(outcomes)
 
 
 def test_help_examples_run(tmp_path):
     examples = help_examples_in_order()
-    docs.prepare_folder(tmp_path, SHARED_DATA, docs.script_dir())
-    outcomes = docs.run_examples(examples, tmp_path, shared=SHARED_DATA)
+    folder = tmp_path / "clone"
+    docs.prepare_folder(folder, SHARED_DATA, docs.script_dir())
+    outcomes = docs.run_examples(examples, folder, shared=SHARED_DATA)
     print(docs.report(outcomes))
     _check(outcomes)

@@ -445,6 +445,67 @@ def test_fluence_of_a_wfc3_rate_ramp_multiplies_each_read_by_its_samptime(tmp_pa
     np.testing.assert_allclose(array * scale, 600.0, rtol=1e-12)
 
 
+def test_fluence_of_a_calibrated_ima_is_its_last_read(tmp_path, opened):
+    # calwf3's ZOFFCORR has subtracted the zeroth read from every read: the last read is the signal,
+    # in electrons as it is, in e-/s times its SAMPTIME; a raw-like ramp without it is last - zeroth
+    reads = [np.full(SHAPE, 40.0), np.full(SHAPE, 240.0), np.full(SHAPE, 640.0)]
+    times = [0.0, 5.0, 13.0]
+    for zoff, unit, values, expected in (("COMPLETE", "ELECTRONS", reads, 640.0),
+                                         ("PERFORM", "ELECTRONS", reads, 600.0),
+                                         ("COMPLETE", "ELECTRONS/S", [r / max(t, 1.0) for r, t in zip(reads, times)],
+                                          640.0)):
+        path = wfc3_ramp_file(tmp_path / f"ima_{zoff}_{unit[-1]}.fits", values, times, {"BUNIT": unit},
+                              primary_keywords={"ZOFFCORR": zoff})
+        array, scale = opened(path).fluence()
+        np.testing.assert_allclose(array * scale, expected, rtol=1e-12, err_msg=f"{zoff} {unit}")
+
+
+def test_fluence_of_an_flt_is_rate_times_exptime(tmp_path, opened):
+    path = frame_file(tmp_path / "flt.fits", np.full(SHAPE, 2.5), bunit="ELECTRONS/S", exptime=302.9)
+    array, scale = opened(path).fluence()
+    np.testing.assert_allclose(array * scale, 2.5 * 302.9, rtol=1e-6)
+
+
+# -- placement on the detector -----------------------------------------------------------------
+
+WFC3_IR = {"INSTRUME": "WFC3", "DETECTOR": "IR"}
+
+
+@pytest.mark.parametrize("size, ltv, offset, border", [
+    (138, (-438.0, -438.0), (438.0, 438.0), 5),     # raw/ima SQ128SUB, reference pixels around
+    (128, (-443.0, -443.0), (443.0, 443.0), 0),     # its flt: trimmed, LTV moved by 5
+    (1024, None, (-5.0, -5.0), 5),                  # raw/ima full frame without LTV: 5 (reference pixels)
+    (1014, None, (0.0, 0.0), 0),                    # flt full frame without LTV: 0, as in the archive
+    (100, None, None, 0),                           # any other size: unknown
+])
+def test_wfc3_ir_placement(tmp_path, opened, size, ltv, offset, border):
+    extra = {"BUNIT": "ELECTRONS/S"}
+    if ltv is not None:
+        extra.update(LTV1=ltv[0], LTV2=ltv[1])
+    path = image_file(tmp_path / "f.fits", np.zeros((size, size), np.float32), extra, primary_keywords=WFC3_IR)
+    frame = opened(path)
+    placement = frame.placement()
+    assert frame.reference_border == border
+    assert placement.offset == offset
+    assert placement.science == (border, size - border, border, size - border)
+
+
+def test_placement_of_other_frames_and_of_sections(tmp_path, opened):
+    # a non-WFC3 frame of a WFC3 raw size has no reference border; LTV from the header (x, y)
+    path = image_file(tmp_path / "sim.fits", np.zeros((138, 120), np.float32),
+                      {"BUNIT": "electron", "LTV1": -10.0, "LTV2": 3.0})
+    placement = opened(path).placement()
+    assert placement.offset == (-3.0, 10.0) and placement.science == (0, 138, 0, 120)
+    # a section of a WFC3 raw subarray: LTV moves with it, and the border stays where it was
+    raw = image_file(tmp_path / "raw.fits", np.zeros((138, 138), np.float32),
+                     {"BUNIT": "COUNTS", "LTV1": -438.0, "LTV2": -438.0}, primary_keywords=WFC3_IR)
+    cut = opened(f"{raw}[1][3:40,101:138]").placement()      # FITS x 3-40, y 101-138
+    assert cut.offset == (438.0 + 100, 438.0 + 2)
+    assert cut.science == (0, 38 - 5, 3, 38)
+    binned = image_file(tmp_path / "bin.fits", np.zeros((8, 8), np.float32), {"BUNIT": "electron", "LTM1_1": 0.5})
+    assert opened(binned).placement().scale == (1.0, 0.5)
+
+
 # -- DATASUM -----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int16, np.int32, np.uint16, np.uint8])

@@ -186,3 +186,77 @@ def test_galsim_linear_coefficients_are_galsims():
     np.testing.assert_allclose(
         [getattr(PersistenceModel(), k) for k in ("A", "x0", "dx", "alpha", "gamma", "half_well")],
         galsim_roman.persistence_fermi_parameters, rtol=1e-15)
+
+
+# -- the wfc3 preset and the WFC3 pipeline's conventions --------------------------------------------------
+
+def test_wfc3_preset_is_stsci_s_fermi_law_with_the_pipeline_s_conventions():
+    model = load_model("wfc3")
+    # NOTES.md section 1: norm 0.3, alpha 0.174, gamma 1.0, x0 9.0e4, dx 2.0e4; no linear branch
+    assert (model.A, model.x0, model.dx, model.alpha, model.gamma, model.half_well) == (
+        0.3, 9.0e4, 2.0e4, 0.174, 1.0, 0.0)
+    assert (model.time_model, model.combine, model.max_previous, model.lookback) == ("middle", "max", 0, 16.0)
+    x = np.array([-5.0, 0.0, 1.0, 1.0e3, 4.0e4, 9.0e4, 2.0e5, 1.0e7])
+    long = np.where(x > 0, 0.3 / (np.exp(-(x - 9.0e4) / 2.0e4) + 1.0) * (np.clip(x, 0, None) / 9.0e4) ** 0.174, 0)
+    np.testing.assert_allclose(model.F(x), long, rtol=1e-14, atol=0)
+    assert model.F([9.0e4])[0] == pytest.approx(0.15)  # half the normalisation at the Fermi step
+    # the compiled kernel has no linear branch either (half_well = 0), on every path
+    for dtype in ("<f8", ">f4"):
+        for combine, planes in (("sum", [2.0]), ("max", [2.0]), ("sum", [1.0, 2.0])):
+            acc = np.zeros((len(planes), x.size))
+            accumulate(x.astype(dtype), acc, planes, model, combine=combine)
+            np.testing.assert_allclose(acc, np.outer(planes, model.F(x.astype(dtype).astype(float))),
+                                       rtol=1e-12, atol=0)
+    # the other presets keep the paper's conventions
+    assert (load_model("typical").time_model, load_model("typical").lookback) == ("exact", 0.0)
+
+
+def test_wfc3_settings_can_be_overridden_and_come_with_base_wfc3(tmp_path):
+    model = load_model("wfc3", ["lookback=0", "combine=sum", "time_model=exact"])
+    assert (model.lookback, model.combine, model.time_model, model.A) == (0.0, "sum", "exact", 0.3)
+    path = tmp_path / "mine.yaml"
+    path.write_text("base: wfc3\nA: 0.25\nlookback: 24\n")
+    model = load_model(str(path))
+    assert (model.A, model.x0, model.lookback, model.combine, model.time_model) == (0.25, 9.0e4, 24.0, "max",
+                                                                                     "middle")
+    for bad in ("lookback=-1", "lookback=nan", "lookback=soon", "half_well=-1"):
+        with pytest.raises(PerscliError, match=bad.split("=")[0]):
+            load_model("wfc3", [bad])
+
+
+def test_middle_time_factor_is_the_rate_at_mid_window_times_the_window():
+    from perscli.detector.persistence import exposure_time_factors, middle_time_factor
+
+    gap, windows = 600.0, np.array([0.0, 7.0, 50.0, 300.0])
+    np.testing.assert_allclose(middle_time_factor(gap, windows, 1.0),
+                               [0.0, 7.0 * 1000 / 603.5, 50.0 * 1000 / 625.0, 300.0 * 1000 / 750.0], rtol=1e-14)
+    np.testing.assert_allclose(middle_time_factor(gap, windows[1:], 1.3),
+                               windows[1:] * ((gap + windows[1:] / 2) / 1000.0) ** -1.3, rtol=1e-14)
+    # the rate is convex in t: its value at mid-window underestimates the integral, by less for longer gaps
+    for g in (30.0, 600.0, 36000.0):
+        exact = float(time_factor(g, g + 300.0, 1.0))
+        mid = float(middle_time_factor(g, 300.0, 1.0)[0])
+        assert mid < exact and (exact - mid) / exact < {30.0: 0.35, 600.0: 0.02, 36000.0: 1e-5}[g]
+    model = load_model("wfc3")
+    assert exposure_time_factors(gap, windows, 0, model) == list(middle_time_factor(gap, windows, 1.0))
+    # no divergence at zero delay for the middle convention, unlike the exact integral
+    assert exposure_time_factors(0.0, [100.0], 0, model) == [100.0 * 1000 / 50.0]
+
+
+def test_lookback_orders_and_drops_old_exposures():
+    from perscli.detector.persistence import beyond_lookback, order_earlier
+
+    model = load_model("wfc3")
+    # ends in MJD: 20 h, 15 h and 1 h before the start
+    start = 60000.0
+    ends = [start - 20 / 24, start - 15 / 24, start - 1 / 24]
+    assert beyond_lookback(ends, start, model, unit_seconds=86400.0) == [0]
+    keep, left = order_earlier(ends, start, model, unit_seconds=86400.0)
+    assert (keep, left) == ([2, 1], [0])
+    # the same in seconds
+    keep, _ = order_earlier([(e - start) * 86400 for e in ends], 0.0, model)
+    assert keep == [2, 1]
+    # no limit, and max_previous still applies after the look-back
+    assert order_earlier(ends, start, load_model("wfc3", ["lookback=0"]), unit_seconds=86400.0)[0] == [2, 1, 0]
+    capped = load_model("wfc3", ["max_previous=1"])
+    assert order_earlier(ends, start, capped, unit_seconds=86400.0) == ([2], [0, 1])

@@ -12,29 +12,60 @@ from .options import (compress_opt, exptime_opt, gain_opt, model_opt, no_checksu
 
 log = logging.getLogger("perscli")
 
+# the defaults of perscli.detector.apply (DEFAULT_MODEL_ERROR, DEFAULT_DQ_BIT), written here again so that
+# --help does not import numpy; tests/test_wfc3_persistence.py checks that they agree
+MODEL_ERROR = 0.3
+DQ_BIT = 1024
+
+
+def _power_of_two(ctx, param, value):
+    if value is not None and (value < 1 or value & (value - 1)):
+        raise click.BadParameter(f"{value} is not one DQ flag: give a power of two (e.g. 1024)")
+    return value
+
 
 @click.command("apply-persistence", short_help="Add, subtract or predict the persistence of earlier exposures.")
 @click.argument("current", metavar="CURRENT")
 @click.argument("previous", nargs=-1, required=True, metavar="PREVIOUS...")
 @output_opt
 @model_opt("typical", "NAME|MODEL.yaml|FRAME.fits",
-           "the persistence law: typical or pessimistic (the paper's Table 1), galsim-linear (GalSim's 8 "
-           "coefficients), a YAML file (persistence parameters, or a detector model as render takes), or a "
-           "frame perscli rendered (the persistence of the model that made it)")
+           "the persistence law: typical or pessimistic (the paper's Table 1), wfc3 (STScI's HST WFC3-IR "
+           "parameters, with the WFC3 pipeline's --time-model middle --combine max --max-previous 0 "
+           "--lookback 16), galsim-linear (GalSim's 8 coefficients), a YAML file (persistence parameters, or "
+           "a detector model as render takes), or a frame perscli rendered (the persistence of the model that "
+           "made it)")
 @click.option("--param", "params", multiple=True, metavar="KEY=VALUE",
               help="Override a model parameter (A, x0, dx, alpha, gamma, half_well) or setting (time_model, "
-                   "combine, max_previous). Repeatable.")
+                   "combine, max_previous, lookback). Repeatable.")
 @click.option("--mode", type=click.Choice(["add", "subtract", "predict"]), default="add", show_default=True,
               help="Add persistence, subtract it (a correction), or write the persistence alone.")
-@click.option("--time-model", type=click.Choice(["exact", "galsim"]), default=None,
+@click.option("--time-model", type=click.Choice(["exact", "middle", "galsim"]), default=None,
               help="exact: integral of the rate over the exposure from the real timestamps; "
+                   "middle: the rate at the middle of the exposure (of each read's window for a ramp) times "
+                   "its length, as STScI's WFC3 pipeline; "
                    "galsim: galsim.roman.applyPersistence(method='fermi')'s mid-exposure rate "
-                   "[default: the model's time_model, exact].")
+                   "[default: the model's time_model; exact, wfc3: middle].")
 @click.option("--combine", type=click.Choice(["sum", "max"]), default=None,
               help="Sum over earlier exposures (the paper, GalSim) or per-pixel maximum (WFC3 pipeline) "
-                   "[default: the model's combine, sum].")
+                   "[default: the model's combine; sum, wfc3: max].")
 @click.option("--max-previous", type=click.IntRange(min=0), default=None, metavar="N",
-              help="Only the N most recent earlier exposures count (0: all) [default: the model's max_previous, 10].")
+              help="Only the N most recent earlier exposures count (0: all) "
+                   "[default: the model's max_previous; 10, wfc3: 0].")
+@click.option("--lookback", type=click.FloatRange(min=0), default=None, metavar="HOURS",
+              help="Ignore earlier exposures that ended more than HOURS before CURRENT starts (0: no limit; "
+                   "-v names them) [default: the model's lookback; 0, wfc3: 16].")
+@click.option("--model-error", type=click.FloatRange(min=0), default=MODEL_ERROR, show_default=True,
+              metavar="FRACTION",
+              help="Fractional uncertainty of the persistence. Where CURRENT has an ERR array (WFC3 flt/ima, "
+                   "JWST): --mode subtract adds FRACTION x persistence to it in quadrature, --mode predict "
+                   "writes FRACTION x persistence; 0 leaves ERR as it is.")
+@click.option("--flag-above", type=click.FloatRange(min=0), default=None, metavar="E_PER_S",
+              help="Set a DQ bit where the persistence averaged over CURRENT's exposure exceeds E_PER_S "
+                   "electrons per second, whatever the units of the data (WFC3's advice: 0.01). A frame "
+                   "without DQ gets one.")
+@click.option("--dq-bit", type=int, default=None, callback=_power_of_two, metavar="VALUE",
+              help=f"The DQ value --flag-above sets, a power of two [default: {DQ_BIT}, a value calwf3 is not known to "
+                   "set in WFC3-IR data].")
 @click.option("--gap", type=click.FloatRange(min=0), default=None, metavar="SECONDS",
               help="Ignore header timestamps: PREVIOUS... then CURRENT, in command-line order, are consecutive "
                    "exposures separated by SECONDS.")
@@ -48,40 +79,59 @@ log = logging.getLogger("perscli")
 @verbosity_opts
 @report_errors
 def apply_persistence(current, previous, output, model_spec, params, mode, time_model, combine,
-                      max_previous, gap, units, gain, exptime, compress, overwrite, workers):
+                      max_previous, lookback, model_error, flag_above, dq_bit, gap, units, gain, exptime, compress,
+                      overwrite, workers):
     """Add, subtract or predict the persistence of earlier exposures on CURRENT.
 
     Each earlier exposure (PREVIOUS...) with fluence x electrons releases
     P(x, t) = F(x) (t/1000 s)^-gamma e-/s, t counted from its end (the paper's
-    Fermi model, linear below half_well).  The charge added to CURRENT is the
-    exact integral of P over CURRENT's own exposure window, from EXPSTART/EXPEND,
+    Fermi model, linear below half_well).  The charge added to CURRENT is by
+    default the exact integral of P over CURRENT's own exposure window, from EXPSTART/EXPEND,
     MJD-BEG/MJD-END or DATE-OBS + EXPTIME; for a ramp (WFC3-IR raw/ima, or a
     3-D cube with a READTIMES table) it is the integral up to each read.
     Earlier exposures are ordered by their timestamps, not by their order on
     the command line, and only the --max-previous most recent count.
 
-    Fluence of an earlier exposure is its accumulated charge: rate x EXPTIME,
-    DN x gain, or last read minus zeroth read for a ramp.  Non-finite pixels
-    count as zero and are reported.  The output has CURRENT's structure and
-    units, with provenance and checksums in its primary header.
+    --model wfc3 follows STScI's WFC3-IR persistence pipeline: its Fermi
+    parameters (no linear branch), the rate at the middle of CURRENT, the
+    per-pixel maximum over earlier exposures, and those of the last 16 hours;
+    each convention can be changed with its own option.
+
+    Fluence of an earlier exposure is its accumulated charge: rate x EXPTIME
+    (WFC3 flt), DN x gain, last read minus zeroth read for a raw ramp, the
+    last read for a calibrated WFC3 ima.  Non-finite pixels count as zero and
+    are reported.  Frames are placed on the detector by LTV1/LTV2 (detector
+    pixel = image pixel - LTV): a subarray and a full frame share the pixels
+    they both cover, persistence flows only there, and the 5-pixel border of
+    reference pixels of WFC3-IR raw/ima frames gives and receives none.
+    Frames of other detectors, or with no pixel in common, are refused.
+
+    The output has CURRENT's structure and units, with provenance and
+    checksums in its primary header; ERR and DQ change as --model-error and
+    --flag-above say.
 
     \b
     Examples:
       perscli apply-persistence exp4.fits exp1.fits exp2.fits exp3.fits -o exp4_pers.fits
       perscli apply-persistence exp4.fits exp3.fits --mode predict -o pers.fits
-      perscli apply-persistence flt.fits prev_flt.fits --model pessimistic --param gamma=1.1 -o out.fits
-      perscli apply-persistence raw.fits prev_raw.fits --combine max --mode subtract -o corrected.fits
+      perscli apply-persistence exp4.fits exp3.fits --model pessimistic --param gamma=1.1 -o exp4_pess.fits
+      perscli apply-persistence exp4_pers.fits exp1.fits exp2.fits exp3.fits --mode subtract --flag-above 0.01 -o exp4_corr.fits
+      perscli apply-persistence exp4.fits exp1.fits exp2.fits exp3.fits --model wfc3 --mode predict -o pers_wfc3.fits
+      perscli apply-persistence exp4.fits 'exp3.fits[SCI][65:192,65:192]' --mode predict -o pers_cutout.fits
       cat exp4.fits | perscli apply-persistence - exp3.fits -o - | perscli apply-persistence - exp2.fits -o out.fits
     """
-    from ..detector.apply import apply_persistence_files
+    from ..detector.apply import DEFAULT_DQ_BIT, apply_persistence_files
     from ..detector.persistence import load_model
 
+    if dq_bit is not None and flag_above is None:
+        raise click.UsageError("--dq-bit sets the bit --flag-above flags: give --flag-above E_PER_S too")
     check_outputs(output, inputs=[current, *previous, model_spec], overwrite=overwrite)
     model = load_model(model_spec, params)
     result = apply_persistence_files(
         current, previous, output, model=model, mode=mode, time_model=time_model, combine=combine,
-        max_previous=max_previous, units=units, gain=gain, exptime=exptime, gap=gap,
+        max_previous=max_previous, lookback=lookback, model_error=model_error, flag_above=flag_above,
+        dq_bit=DEFAULT_DQ_BIT if dq_bit is None else dq_bit, units=units, gain=gain, exptime=exptime, gap=gap,
         overwrite=overwrite, workers=workers, progress=progress_reporter("rows"), compress=compress)
-    log.info("%s: persistence from %d earlier exposure(s): max %.4g e-, total %.6g e- (last plane)",
+    log.info("%s: persistence from %d earlier exposure(s): max %.4g e-, total %.6g e- (last plane)%s",
              "stdout" if output == "-" else output, len(result.used), result.max_electrons,
-             result.total_electrons)
+             result.total_electrons, f"; {result.flagged} pixel(s) flagged in DQ" if flag_above is not None else "")

@@ -52,9 +52,18 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
 
     \b
     Examples:
-      perscli diagnose meas1.fits meas2.fits --simulated sim1.fits --simulated sim2.fits -o diag
-      perscli diagnose meas*.fits --simulated sim1.fits --simulated sim2.fits --model roman.yaml -o diag2
+      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 128 1 128 --seed 21 \
+          --set dark.current=0.3 -o meas0.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 128 1 128 --seed 22 \
+          --set dark.current=0.3 --previous meas0.fits -o meas1.fits
+      perscli diagnose meas0.fits meas1.fits --simulated e0.fits --simulated e1.fits -o diag
+      perscli diagnose meas0.fits meas1.fits --simulated e0.fits --simulated e1.fits \
+          --model roman_detector.yaml -o diag_model
       perscli diagnose ibh7a7lsq_raw.fits -o wfc3_diag
+
+    (meas0/meas1 are "measured" frames with a dark current 20 times Roman's;
+    e0/e1, seq.fits and seq_truth.fits are made by the examples of perscli
+    render --help.)
     """
     import os
 

@@ -53,12 +53,16 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
 
     \b
     Examples:
-      perscli study examples/small.yaml -o small_study
       perscli study --preset ci -o ci_study --scheduler serial
-      perscli study examples/small.yaml -o small_study --set exposures.count=5 --workers 2
-      perscli study examples/small.yaml -o small_study --overwrite     # remake every product
-      perscli study --preset paper -o paper_study --dry-run
-      perscli study --preset paper -o /scratch/paper --scheduler tcp://10.0.0.5:8786
+      perscli study --preset ci -o ci_dask --scheduler local --workers 2
+      perscli study --preset paper -o paper_study --dry-run --cost-from ci_study/cost.json
+      perscli study examples/small.yaml -o small_study --workers 2
+      perscli study --preset paper -o /scratch/paper --scheduler tcp://HOST:8786
+
+    Run again, a study skips what is made; with a setting changed (--set
+    measure.min_snr=10) it remakes the shapes and what follows.
+    (examples/small.yaml needs the public Roman schedule it names; the last
+    example needs a Dask scheduler running at HOST.)
     """
     import sys
 

@@ -7,11 +7,28 @@ through :func:`perscli.detector.persistence.accumulate` block of rows by
 block of rows, all earlier frames side by side, and builds the output file
 with the input's structure and units.  Memory is the output frame plus one
 block per input, whatever the number of earlier frames.
+
+Frames need not cover the same pixels: each is placed on the detector
+through LTV1/LTV2 (detector pixel = image pixel - LTV, FITS 1-indexed; see
+:meth:`perscli.io.frames.Frame.placement`), so a subarray and a full frame,
+or two subarrays, share the detector pixels they both cover.  Persistence
+flows only from the pixels an earlier frame saw light on to the pixels of
+the current frame they coincide with; reference pixels (the 5-pixel border
+of WFC3-IR raw/ima frames) neither give nor receive any.
+
+Besides the science data, a correction carries its uncertainty and flags:
+in subtract mode the ERR extension, when the input has one with data, grows
+in quadrature by ``model_error`` times the persistence subtracted (in
+predict mode ERR becomes that uncertainty), and with ``flag_above`` a DQ
+bit marks the pixels whose persistence, averaged over the exposure,
+exceeds that many electrons per second (WFC3's advice: 0.01 e-/s).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import re
 from dataclasses import dataclass, field
 
@@ -19,7 +36,7 @@ import numpy as np
 
 from .. import PerscliError, _kernels
 from ..executor import thread_map
-from ..io.fitsfile import OutHDU
+from ..io.fitsfile import OutHDU, format_card
 from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, require_timing
 from ..io.output import add_provenance
 from .persistence import GALSIM_EXPTIME, PersistenceModel, accumulate, ones_complement_add, time_factor
@@ -28,11 +45,48 @@ log = logging.getLogger(__name__)
 
 MODES = ("add", "subtract", "predict")
 
+#: Fractional uncertainty of the predicted persistence (the default of ``model_error``): a judgement,
+#: not a published or fitted figure.  The WFC3 Data Handbook (ch. 8, NOTES.md section 10) gives no
+#: number; it says the model can differ from the short-term persistence and underestimates it after
+#: spatial scans.  0.3 stands for "good to some tens of per cent"; give your own with --model-error.
+DEFAULT_MODEL_ERROR = 0.3
+
+#: The DQ value ORed into pixels flagged for persistence (the default of ``dq_bit``).  In the
+#: WFC3 Data Handbook's table of data quality flags, as we recall it (not checked here against
+#: the current edition), calwf3 sets 1-512 and 2048-8192 in IR data, while 1024 marks charge
+#: traps in UVIS data only, so it is free in IR frames; 32768 does not fit HST's signed 16-bit DQ.
+#: Check it against the DQ definitions of your pipeline, or choose another (JWST's stcal names
+#: 32 PERSISTENCE).
+DEFAULT_DQ_BIT = 1024
+
 #: keywords written by :func:`provenance`
-_PROVENANCE_KEY = re.compile(r"^(PS(MODE|MODEL|KIND|TIME|COMB|MAXPRV|NPREV|UNIT|CUR|CURDS)|PS_\w+|PSCOEF\d+|PSP\d+\w*)$")
+_PROVENANCE_KEY = re.compile(r"^(PS(MODE|MODEL|KIND|TIME|COMB|MAXPRV|LOOKB|NPREV|UNIT|CUR|CURDS|MERR|FLAG|DQBIT"
+                             r"|NFLAG)|PS_\w+|PSCOEF\d+|PSP\d+\w*)$")
 
 #: rows per block: 64 rows of a 4088-pixel frame are 2 MB of float64, which stays in cache
 BLOCK_ROWS = 64
+
+
+@dataclass(frozen=True)
+class Overlap:
+    """Where an earlier frame's light-sensitive pixels fall on the current frame.
+
+    Attributes
+    ----------
+    shift : (int, int)
+        ``(dy, dx)``: current pixel ``(y, x)`` is the earlier frame's image
+        pixel ``(y + dy, x + dx)`` (0-indexed, both).
+    box : (int, int, int, int)
+        ``(y0, y1, x0, x1)``: the current frame's pixels (0-indexed,
+        half-open) that both frames saw with light-sensitive pixels.
+    same_pixels : bool
+        Both frames have the same shape, placement and science area: the
+        earlier one is streamed row block for row block as it is stored.
+    """
+
+    shift: tuple
+    box: tuple
+    same_pixels: bool
 
 
 @dataclass
@@ -46,6 +100,7 @@ class EarlierExposure:
     factors: list         # time factor (s) or linear coefficient, one per output plane
     datasum: int = 0
     nonfinite: int = 0
+    overlap: Overlap | None = None   # where it falls on the current frame (None: the same pixels)
 
 
 @dataclass
@@ -55,6 +110,7 @@ class PersistencePlan:
     current: Frame
     used: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
+    science: tuple | None = None   # the current frame's light-sensitive pixels (y0, y1, x0, x1); None: all
 
 
 @dataclass
@@ -65,6 +121,7 @@ class PersistenceResult:
     skipped: list
     max_electrons: float = 0.0     # largest persistence in the last plane
     total_electrons: float = 0.0   # sum over the last plane
+    flagged: int = 0               # pixels flagged in DQ (with flag_above)
 
 
 def _plane_ends(current: Frame) -> np.ndarray:
@@ -74,18 +131,39 @@ def _plane_ends(current: Frame) -> np.ndarray:
     return np.array([(current.end - current.start) * SECONDS_PER_DAY])
 
 
-def with_settings(model: PersistenceModel, *, time_model=None, combine=None, max_previous=None) -> PersistenceModel:
+def with_settings(model: PersistenceModel, *, time_model=None, combine=None, max_previous=None,
+                  lookback=None) -> PersistenceModel:
     """``model`` with its settings replaced where given (command-line options over the model file)."""
-    import dataclasses
-
-    changes = {k: v for k, v in (("time_model", time_model), ("combine", combine), ("max_previous", max_previous))
+    changes = {k: v for k, v in (("time_model", time_model), ("combine", combine), ("max_previous", max_previous),
+                                 ("lookback", lookback))
                if v is not None and v != getattr(model, k)}
     return dataclasses.replace(model, **changes) if changes else model
 
 
+def _detector(frame: Frame):
+    return frame.keyword("SCA", frame.keyword("DETECTOR"))
+
+
+def _check_detector(prev: Frame, label: str, detector, instrument=None) -> None:
+    """Refuse an earlier exposure of another instrument or detector."""
+    theirs = prev.keyword("INSTRUME")
+    if None not in (theirs, instrument) and str(theirs).strip().upper() != str(instrument).strip().upper():
+        raise PerscliError(f"{prev.label}: instrument INSTRUME={str(theirs).strip()} differs from {label}'s "
+                           f"{str(instrument).strip()}: persistence stays on the detector that saw the light; "
+                           "give earlier exposures of the same detector")
+    theirs = _detector(prev)
+    if None not in (theirs, detector) and str(theirs).strip() != str(detector).strip():
+        raise PerscliError(f"{prev.label}: detector SCA/DETECTOR={theirs} differs from "
+                           f"{label}'s {detector}: persistence stays on the detector that saw "
+                           "the light; give earlier exposures of the same detector")
+
+
 def check_earlier(prev: Frame, *, label: str, shape: tuple, detector=None, offsets=(None, None),
                   start: float | None = None) -> None:
-    """Refuse an earlier exposure that cannot leave persistence in the current one.
+    """Refuse an earlier exposure that does not cover exactly the pixels of the current one.
+
+    The strict check of callers that need the same pixels (render, diagnose);
+    apply-persistence places frames of different areas with :func:`overlap`.
 
     Parameters
     ----------
@@ -106,71 +184,160 @@ def check_earlier(prev: Frame, *, label: str, shape: tuple, detector=None, offse
     if prev.shape != tuple(shape):
         raise PerscliError(f"{prev.label}: image shape {prev.shape} differs from {label}'s "
                            f"{tuple(shape)}; earlier exposures must be of the same detector area")
-    theirs = prev.keyword("SCA", prev.keyword("DETECTOR"))
-    if None not in (theirs, detector) and str(theirs).strip() != str(detector).strip():
-        raise PerscliError(f"{prev.label}: detector SCA/DETECTOR={theirs} differs from "
-                           f"{label}'s {detector}: persistence stays on the detector that saw "
-                           "the light; give earlier exposures of the same detector")
+    _check_detector(prev, label, detector)
     mine = (prev.keyword("LTV1"), prev.keyword("LTV2"))
     if None not in mine + tuple(offsets) and tuple(float(v) for v in mine) != tuple(float(v) for v in offsets):
         raise PerscliError(f"{prev.label}: subarray offset LTV1/LTV2={mine} differs from "
                            f"{label}'s {tuple(offsets)}: not the same pixels of the detector")
+    _check_start(prev, label, start)
+
+
+def _check_start(prev: Frame, label: str, start) -> None:
     if start is not None and prev.end > start:
         raise PerscliError(
             f"{prev.label} ends at MJD {prev.end:.8f}, after {label} starts "
             f"(MJD {start:.8f}): it is not an earlier exposure; check the order or the timestamps")
 
 
+def _footprint(placement) -> str:
+    """The detector pixels of a science box, FITS 1-indexed and inclusive, for messages."""
+    y0, y1, x0, x1 = placement.science
+    dy, dx = placement.offset
+    return f"x {x0 + 1 + dx:g}-{x1 + dx:g}, y {y0 + 1 + dy:g}-{y1 + dy:g}"
+
+
+def overlap(prev: Frame, current: Frame) -> Overlap:
+    """Place an earlier frame on the current one through their LTV1/LTV2.
+
+    Parameters
+    ----------
+    prev, current : Frame
+
+    Returns
+    -------
+    Overlap
+
+    Raises
+    ------
+    PerscliError
+        Frames of different shapes neither of which has LTV1/LTV2 (where they
+        lie cannot be told; when one has them, the other's are taken as 0, the
+        FITS default), offsets that are not whole pixels, binned or
+        flipped pixels (LTM1_1/LTM2_2 not 1) where the frames differ, and
+        frames with no light-sensitive detector pixel in common.
+    """
+    here, there = current.placement(), prev.placement()
+    same_shape = prev.shape == current.shape
+    if here.offset is None and there.offset is None:
+        if not same_shape:
+            raise PerscliError(f"{prev.label}: image shape {prev.shape} differs from {current.label}'s "
+                               f"{current.shape} and neither has LTV1/LTV2 to place it on the detector; give "
+                               "earlier exposures of the same detector area, or add LTV1/LTV2 (detector pixel = "
+                               "image pixel - LTV)")
+        # frames of one detector area, as a simulation writes them
+        return Overlap((0, 0), here.science, True)
+    # one side says where it lies: the other, silent, lies where LTV = 0 puts it (the IRAF/FITS default,
+    # which a CFITSIO image section of it also assumes)
+    here = here if here.offset is not None else dataclasses.replace(here, offset=(0.0, 0.0), source="no LTV: 0")
+    there = there if there.offset is not None else dataclasses.replace(there, offset=(0.0, 0.0), source="no LTV: 0")
+    if here.offset == there.offset and same_shape and here.scale == there.scale and here.science == there.science:
+        return Overlap((0, 0), here.science, True)
+    for frame, placement in ((prev, there), (current, here)):
+        if placement.scale != (1.0, 1.0):
+            raise PerscliError(f"{frame.label}: LTM1_1/LTM2_2 = {placement.scale[1]:g}/{placement.scale[0]:g}: "
+                               "binned or flipped pixels cannot be placed on another frame's; give frames with "
+                               "one image pixel per detector pixel")
+    shift = tuple(a - b for a, b in zip(here.offset, there.offset))
+    if not all(float(v).is_integer() for v in shift):
+        raise PerscliError(f"{prev.label}: LTV1/LTV2 put it {shift[1]:g}, {shift[0]:g} pixels from "
+                           f"{current.label}: not whole pixels, so no pixel of one is a pixel of the other")
+    dy, dx = (int(v) for v in shift)
+    cy0, cy1, cx0, cx1 = here.science
+    py0, py1, px0, px1 = there.science
+    box = (max(cy0, py0 - dy), min(cy1, py1 - dy), max(cx0, px0 - dx), min(cx1, px1 - dx))
+    if box[0] >= box[1] or box[2] >= box[3]:
+        raise PerscliError(f"{prev.label} covers detector pixels {_footprint(there)} ({there.source}) and "
+                           f"{current.label} {_footprint(here)} ({here.source}): no pixel in common, so no "
+                           "persistence can flow; give earlier exposures that overlap CURRENT")
+    return Overlap((dy, dx), box, False)
+
+
 def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str | None = None,
-         max_previous: int | None = None) -> PersistencePlan:
-    """Check the earlier exposures, order them by time and work out their time factors.
+         max_previous: int | None = None, lookback: float | None = None) -> PersistencePlan:
+    """Check the earlier exposures, place them, order them by time and work out their time factors.
 
     Parameters
     ----------
     current : Frame
         The exposure that receives persistence (an image or a ramp).
     previous : iterable of Frame
-        Earlier exposures of the same detector, in any order.
+        Earlier exposures of the same detector, in any order, covering the
+        same pixels or any others that overlap (placed with :func:`overlap`).
     model : PersistenceModel
         The law and its settings: time_model ('exact': the integral of the
         rate over the current exposure's own [start, end], or up to each read
         of a ramp, with t counted from the end of each earlier exposure;
-        'galsim': GalSim's ``rate((0.5 + i) * 139.8 s) * 139.8 s`` for the
-        i-th most recent one) and max_previous (0: all).
-    time_model, max_previous : optional
+        'middle': the rate at the middle of that window times its length, as
+        STScI's WFC3 pipeline; 'galsim': GalSim's ``rate((0.5 + i) * 139.8 s)
+        * 139.8 s`` for the i-th most recent one), max_previous (0: all) and
+        lookback (hours; earlier exposures that ended longer before the
+        current one starts are ignored, with a note at -v; 0: no limit).
+    time_model, max_previous, lookback : optional
         Override the model's settings.
 
     Returns
     -------
     PersistencePlan
     """
-    from .persistence import exposure_time_factors, order_earlier
+    from .persistence import beyond_lookback, exposure_time_factors, order_earlier
 
-    model = with_settings(model, time_model=time_model, max_previous=max_previous)
+    model = with_settings(model, time_model=time_model, max_previous=max_previous, lookback=lookback)
     previous = list(previous)
     require_timing(current)
+    overlaps = []
     for prev in previous:
-        check_earlier(prev, label=current.label, shape=current.shape,
-                      detector=current.keyword("SCA", current.keyword("DETECTOR")),
-                      offsets=(current.keyword("LTV1"), current.keyword("LTV2")), start=current.start)
-    keep, left = order_earlier([f.end for f in previous], current.start, model, [f.label for f in previous])
-    result = PersistencePlan(current=current, skipped=[previous[i].label for i in left])
-    if result.skipped:
-        log.info("only the %d most recent earlier exposures count; ignoring %s", len(keep),
-                 ", ".join(result.skipped))
-    ends = _plane_ends(current)
+        require_timing(prev)
+        _check_detector(prev, current.label, _detector(current), current.keyword("INSTRUME"))
+        overlaps.append(overlap(prev, current))
+        _check_start(prev, current.label, current.start)
+    ends = [f.end for f in previous]
+    keep, left = order_earlier(ends, current.start, model, [f.label for f in previous],
+                               unit_seconds=SECONDS_PER_DAY)
+    science = current.placement().science
+    full = (0, current.shape[0], 0, current.shape[1])
+    result = PersistencePlan(current=current, skipped=[previous[i].label for i in left],
+                             science=None if science == full else science)
+    old = set(beyond_lookback(ends, current.start, model, unit_seconds=SECONDS_PER_DAY))
+    for i in left:
+        if i in old:
+            log.info("%s ended %.1f h before %s starts, beyond the %g h look-back: ignored", previous[i].label,
+                     (current.start - ends[i]) * 24.0, current.label, model.lookback)
+    capped = [previous[i].label for i in left if i not in old]
+    if capped:
+        log.info("only the %d most recent earlier exposures count; ignoring %s", len(keep), ", ".join(capped))
+    if previous and not keep:
+        log.warning("%s: no earlier exposure ended within the %g h look-back: no persistence", current.label,
+                    model.lookback)
+    plane_ends = _plane_ends(current)
     for recency, i in enumerate(keep):
         prev = previous[i]
         gap = (current.start - prev.end) * SECONDS_PER_DAY
         try:
-            factors = exposure_time_factors(gap, ends, recency, model, label=prev.label)
+            factors = exposure_time_factors(gap, plane_ends, recency, model, label=prev.label)
         except PerscliError as exc:
             raise PerscliError(f"{current.label}: {exc}" if not str(exc).startswith(prev.label) else str(exc)) from None
         if factors is None:
             log.info("%s: beyond the linear model's %d coefficients; ignored", prev.label, len(model.coefficients))
             result.skipped.append(prev.label)
             continue
-        result.used.append(EarlierExposure(frame=prev, name=prev.name, recency=recency, gap=gap, factors=factors))
+        where = overlaps[i]
+        if not where.same_pixels:
+            y0, y1, x0, x1 = where.box
+            log.info("%s lies on %s's pixels x %d-%d, y %d-%d (LTV1/LTV2: its pixel 1,1 is %s's %d,%d); "
+                     "persistence flows there only", prev.label, current.label, x0 + 1, x1, y0 + 1, y1,
+                     current.label, 1 - where.shift[1], 1 - where.shift[0])
+        result.used.append(EarlierExposure(frame=prev, name=prev.name, recency=recency, gap=gap, factors=factors,
+                                           overlap=where))
     return result
 
 
@@ -197,10 +364,14 @@ def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, b
 
     Notes
     -----
-    Every earlier frame is read once, a block at a time, by the compiled
-    kernel directly from its stored bytes where it can; the DATASUM of each
-    is gathered on the way (in any order: the ones'-complement sum is
-    commutative) and checked against its header at the end.
+    Every earlier frame that covers the current frame's pixels is read once,
+    a block at a time, by the compiled kernel directly from its stored bytes
+    where it can; the DATASUM of each is gathered on the way (in any order:
+    the ones'-complement sum is commutative) and checked against its header
+    at the end.  An earlier frame placed elsewhere on the detector gives
+    only to the rows and columns it shares with the current frame (through a
+    small buffer, then added or maxed in), and is checksummed whole at the
+    end.  The current frame's reference pixels, if any, receive nothing.
     """
     import threading
 
@@ -210,6 +381,25 @@ def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, b
     starts = list(range(0, ny, block_rows))
     local = threading.local()
     nused = len(the_plan.used)
+    use_max = model.combine == "max"
+
+    def placed(rec, r0, r1, acc):
+        """Add (or max) an earlier frame placed elsewhere on the detector into rows r0:r1 of ``acc``."""
+        y0, y1, x0, x1 = rec.overlap.box
+        a, b = max(r0, y0), min(r1, y1)
+        if a >= b:
+            return 0, 0
+        dy, dx = rec.overlap.shift
+        fluence, scale = rec.frame.fluence_rows(a + dy, b + dy, scratch=True)
+        part = np.ascontiguousarray(fluence[:, x0 + dx:x1 + dx])
+        own = np.zeros((nplanes, b - a, x1 - x0))
+        bad, _ = accumulate(part, own, rec.factors, model, scale=scale, combine=model.combine)
+        target = acc[:, a - r0:b - r0, x0:x1]
+        if use_max:
+            np.maximum(target, own, out=target)
+        else:
+            target += own
+        return bad, 0
 
     def work(r0):
         r1 = min(ny, r0 + block_rows)
@@ -220,9 +410,19 @@ def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, b
         acc.fill(0.0)
         sums = []
         for rec in the_plan.used:
-            # the thread's scratch buffer: the rows are used at once, before the next read
-            fluence, scale = rec.frame.fluence_rows(r0, r1, scratch=True)
-            sums.append(accumulate(fluence, acc, rec.factors, model, scale=scale, combine=model.combine))
+            if rec.overlap is None or rec.overlap.same_pixels:
+                # the thread's scratch buffer: the rows are used at once, before the next read
+                fluence, scale = rec.frame.fluence_rows(r0, r1, scratch=True)
+                sums.append(accumulate(fluence, acc, rec.factors, model, scale=scale, combine=model.combine))
+            else:
+                sums.append(placed(rec, r0, r1, acc))
+        if the_plan.science is not None:
+            # reference pixels see no light and hold no charge: they receive no persistence
+            y0, y1, x0, x1 = the_plan.science
+            acc[:, :max(0, min(r1, y0) - r0)] = 0.0
+            acc[:, max(0, y1 - r0):] = 0.0
+            acc[:, :, :x0] = 0.0
+            acc[:, :, x1:] = 0.0
         return sums, consume(r0, r1, acc)
 
     threads_ok = all(rec.frame.fluence_is_raw for rec in the_plan.used)
@@ -234,7 +434,8 @@ def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, b
             rec.nonfinite += bad
             rec.datasum = ones_complement_add(rec.datasum, dsum)
         frame = rec.frame
-        if frame.fluence_is_raw:
+        streamed = rec.overlap is None or rec.overlap.same_pixels
+        if frame.fluence_is_raw and streamed:
             rec.datasum = frame.verify(frame.fluence_source, rec.datasum)
         else:
             rec.datasum = frame.datasum(frame.provenance_hdu)
@@ -244,7 +445,8 @@ def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, b
 
 
 def persistence_image(current: Frame, previous, model: PersistenceModel, *, time_model: str | None = None,
-                      combine: str | None = None, max_previous: int | None = None, workers: int = 1) -> np.ndarray:
+                      combine: str | None = None, max_previous: int | None = None, lookback: float | None = None,
+                      workers: int = 1) -> np.ndarray:
     """The persistence that earlier exposures leave in ``current``, in electrons.
 
     Parameters are those of :func:`plan` and :func:`map_blocks`.
@@ -253,7 +455,8 @@ def persistence_image(current: Frame, previous, model: PersistenceModel, *, time
     -------
     ndarray of float64, shape ``(nplanes, ny, nx)``
     """
-    model = with_settings(model, time_model=time_model, combine=combine, max_previous=max_previous)
+    model = with_settings(model, time_model=time_model, combine=combine, max_previous=max_previous,
+                          lookback=lookback)
     the_plan = plan(current, previous, model)
     out = np.zeros((current.nreads,) + current.shape)
 
@@ -275,29 +478,150 @@ def _unit_factor(current: Frame, plane: int) -> float:
     return current.electrons_per_unit()
 
 
+def _check_corrections(model_error, flag_above, dq_bit) -> None:
+    if not (isinstance(model_error, (int, float)) and math.isfinite(model_error) and model_error >= 0):
+        raise PerscliError(f"--model-error must be a fraction >= 0 (e.g. 0.3 for 30%), not {model_error!r}")
+    if flag_above is not None and not (isinstance(flag_above, (int, float)) and math.isfinite(flag_above)
+                                       and flag_above >= 0):
+        raise PerscliError(f"--flag-above must be a persistence rate >= 0 in e-/s (e.g. 0.01), not {flag_above!r}")
+    if isinstance(dq_bit, bool) or not isinstance(dq_bit, (int, np.integer)) or dq_bit < 1 or dq_bit > 2 ** 31 \
+            or dq_bit & (dq_bit - 1):
+        raise PerscliError(f"--dq-bit must be one DQ flag value, a power of two from 1 to 2147483648 "
+                           f"(e.g. 1024), not {dq_bit!r}")
+
+
+def _section_of(current: Frame, array: np.ndarray) -> np.ndarray:
+    """The current frame's image section (if any) of a companion array of the full stored image."""
+    if current.section is None:
+        return array
+    rows, cols = current.section
+    return array[..., rows, cols]
+
+
+def _companion(current: Frame, name: str, ver: int):
+    """The ERR or DQ HDU that goes with the science HDU of EXTVER ``ver``, or None."""
+    return next((h for h in current.hdus if h.name == name and h.is_image and h.ver == ver), None)
+
+
+def _err_planes(current: Frame, model_error: float, mode: str):
+    """``(hdu index, stored data, plane)`` per output plane for the ERR arrays to update, or None per plane.
+
+    ERR arrays without data (a WFC3 raw file's, where calwf3 has not yet
+    computed them) are left as they are.
+    """
+    if mode == "add" or model_error == 0:
+        return []
+    full = current.stored_shape
+    if current.layout == "cube":
+        hdu = next((h for h in current.hdus if h.name == "ERR" and h.is_image), None)
+        if hdu is None or not hdu.shape or 0 in hdu.shape:
+            return []
+        if tuple(hdu.shape) != (current.nreads,) + full:
+            raise PerscliError(f"{current.label}: ERR has shape {tuple(hdu.shape)}, not the science cube's "
+                               f"{(current.nreads,) + full}: cannot propagate the persistence uncertainty; give "
+                               "--model-error 0 to leave ERR as it is")
+        data = _section_of(current, hdu.read())
+        return [(hdu.index, data, k) for k in range(current.nreads)]
+    out = []
+    for k in range(current.nreads):
+        hdu = _companion(current, "ERR", current.hdus[current.sci[k]].ver)
+        if hdu is None or not hdu.shape or 0 in hdu.shape:
+            out.append(None)
+            continue
+        if tuple(hdu.shape) != full:
+            raise PerscliError(f"{current.label}: {hdu.label} has shape {tuple(hdu.shape)}, not the science "
+                               f"image's {full}: cannot propagate the persistence uncertainty; give "
+                               "--model-error 0 to leave ERR as it is")
+        out.append((hdu.index, _section_of(current, hdu.read()), None))
+    return out
+
+
+def _dq_targets(current: Frame, dq_bit: int):
+    """``{hdu index or ('new', ver): (array, header cards)}``: the DQ arrays a flag goes into.
+
+    Existing DQ arrays keep their integer type (the bit must fit in it); a
+    DQ array without data (a WFC3 raw file's constant PIXVALUE) becomes a
+    full array; a science HDU without DQ gets one (16-bit like HST's when the
+    bit fits, else 32-bit), appended at the end of the file.
+    """
+    shape = current.shape
+    vers = [current.hdus[i].ver for i in current.sci] if current.layout == "wfc3-ramp" \
+        else [current.hdus[current.sci[0]].ver]
+    targets = {}
+    for ver in vers:
+        if current.layout == "cube":
+            hdu = next((h for h in current.hdus if h.name == "DQ" and h.is_image), None)
+        else:
+            hdu = _companion(current, "DQ", ver)
+        if hdu is None:
+            dtype = np.int16 if dq_bit <= 2 ** 14 else np.int32 if dq_bit <= 2 ** 30 else np.uint32
+            cards = [format_card("EXTVER", ver, "extension version"),
+                     format_card("COMMENT", "data quality flags, made by perscli apply-persistence --flag-above")]
+            targets[("new", ver)] = (np.zeros(shape, dtype=dtype), cards)
+            continue
+        data, _ = hdu.read_copy()
+        if data is None:
+            value = hdu.header.get("PIXVALUE", 0)
+            data = np.full(current.stored_shape, int(value or 0), dtype=hdu.dtype.newbyteorder("="))
+        if data.dtype.kind not in "iu":
+            raise PerscliError(f"{current.label}: {hdu.label} holds {data.dtype} values, not integer flags: "
+                               "cannot set a DQ bit in it; drop --flag-above")
+        if data.shape[-2:] != current.stored_shape:
+            raise PerscliError(f"{current.label}: {hdu.label} has shape {data.shape}, not the science image's "
+                               f"{current.stored_shape}; drop --flag-above")
+        if dq_bit > np.iinfo(data.dtype).max:
+            raise PerscliError(f"{current.label}: {hdu.label} holds {data.dtype} flags: --dq-bit {dq_bit} does not "
+                               f"fit; choose a bit up to {(np.iinfo(data.dtype).max + 1) // 2}")
+        cards = [c for c in hdu.header.cards if c[:8].rstrip() not in ("NPIX1", "NPIX2", "NPIX3", "PIXVALUE")]
+        targets[hdu.index] = (np.array(_section_of(current, data)), cards)
+        if current.layout == "cube":
+            break
+    return targets
+
+
 def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: str = "add",
                    time_model: str | None = None, combine: str | None = None, max_previous: int | None = None,
-                   workers: int = 1, progress=None):
+                   lookback: float | None = None, model_error: float = DEFAULT_MODEL_ERROR,
+                   flag_above: float | None = None, dq_bit: int = DEFAULT_DQ_BIT, workers: int = 1,
+                   progress=None):
     """Output HDUs: the current frame with persistence added, subtracted or alone.
 
     Parameters
     ----------
-    current, previous, model, time_model, combine, max_previous, workers, progress
+    current, previous, model, time_model, combine, max_previous, lookback, workers, progress
         See :func:`plan` and :func:`map_blocks`.
     mode : {'add', 'subtract', 'predict'}
         Data plus persistence, data minus persistence, or persistence alone;
         always in the current frame's units.  Integer data become float32;
         float data keep their precision.
+    model_error : float
+        Fractional uncertainty of the predicted persistence ``P`` (default
+        :data:`DEFAULT_MODEL_ERROR`).  When the current frame has an ERR
+        array with data (WFC3 flt/ima, JWST): in subtract mode each ERR
+        value becomes ``sqrt(ERR^2 + (model_error * P)^2)``, in predict mode
+        ``model_error * P``, per read of a ramp, in the frame's units; in add
+        mode (a simulation: the persistence added is the truth) ERR is kept.
+    flag_above : float, optional
+        Flag the pixels whose persistence averaged over the exposure (the
+        charge up to the last read, or over the exposure, divided by that
+        time) exceeds this many electrons per second, whatever the frame's
+        units: ``dq_bit`` is ORed into the DQ array that goes with each
+        science array (every read of a ramp gets the exposure's flags).  A
+        frame without DQ gets one.
+    dq_bit : int
+        The DQ value set (a power of two; default :data:`DEFAULT_DQ_BIT`).
 
     Returns
     -------
     (list of OutHDU, PersistenceResult)
-        The output file's HDUs, in the input's structure, with provenance in
-        the primary header.
+        The output file's HDUs, in the input's structure (plus a DQ
+        extension when one was made), with provenance in the primary header.
     """
     if mode not in MODES:
         raise PerscliError(f"--mode must be one of {', '.join(MODES)}, not {mode!r}")
-    model = with_settings(model, time_model=time_model, combine=combine, max_previous=max_previous)
+    _check_corrections(model_error, flag_above, dq_bit)
+    model = with_settings(model, time_model=time_model, combine=combine, max_previous=max_previous,
+                          lookback=lookback)
     time_model, combine, max_previous = model.time_model, model.combine, model.max_previous
     the_plan = plan(current, previous, model)
     ny, nx = current.shape
@@ -310,8 +634,27 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
     # the fast path: the current frame's stored bytes are checksummed as they are used
     fold_current = current.rows_are_raw
 
+    # the uncertainty and the flags: companions read whole before the blocks (they are small next to
+    # the science data, and reading them here keeps CFITSIO out of the worker threads)
+    err_in = _err_planes(current, model_error, mode)
+    err_out = {}
+    for entry in err_in:
+        if entry is not None and entry[0] not in err_out:
+            err_out[entry[0]] = np.empty_like(entry[1])
+    flag_mask = None
+    if flag_above is not None:
+        dq = _dq_targets(current, dq_bit)
+        seconds = float(_plane_ends(current)[-1])
+        if seconds <= 0:
+            raise PerscliError(f"{current.label}: the exposure lasts 0 s: a persistence rate cannot be flagged; "
+                               "drop --flag-above or fix the timing")
+        flag_limit = flag_above * seconds
+        flag_mask = np.zeros((ny, nx), dtype=bool)
+
     def consume(r0, r1, electrons):
         peak_total = (float(electrons[-1].max()), float(electrons[-1].sum()))
+        if flag_mask is not None:
+            np.greater(electrons[-1], flag_limit, out=flag_mask[r0:r1])
         scratch = np.empty((r1 - r0, nx))
         part = 0
         out_sums = []
@@ -324,6 +667,15 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
             else:
                 work = scratch
                 np.divide(electrons[k], factors[k], out=work)
+            entry = err_in[k] if k < len(err_in) else None
+            if entry is not None:
+                index, err, plane = entry
+                rows_in = err[plane, r0:r1] if plane is not None else err[r0:r1]
+                rows_out = err_out[index][plane, r0:r1] if plane is not None else err_out[index][r0:r1]
+                if mode == "subtract":
+                    rows_out[...] = np.hypot(rows_in, model_error * work)
+                else:
+                    rows_out[...] = model_error * np.abs(work)
             if mode != "predict":
                 rows = current.raw_rows(r0, r1, scratch=True) if fold_current else current.rows(k, r0, r1)
                 if fold_current:
@@ -350,6 +702,13 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
     else:
         current_sum = current.datasum(current.provenance_hdu)
 
+    flagged = 0
+    if flag_mask is not None:
+        flagged = int(flag_mask.sum())
+        for data, _ in dq.values():
+            # every plane of a DQ cube gets the exposure's flags
+            data |= (flag_mask * dq_bit).astype(data.dtype)
+
     hdus = []
     for hdu in current.hdus:
         if hdu.index in current.sci:
@@ -362,29 +721,51 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
                 data, datasum = out[k], plane_sums[k]
             extname = hdu.header.get("EXTNAME") if "EXTNAME" in hdu.header else None
             hdus.append(OutHDU(list(hdu.header.cards), data, extname=extname, datasum=datasum))
+        elif hdu.index in err_out:
+            hdus.append(OutHDU(list(hdu.header.cards), err_out[hdu.index], extname="ERR"))
+        elif flag_mask is not None and hdu.index in dq:
+            data, cards = dq[hdu.index]
+            hdus.append(OutHDU(cards, data, extname="DQ"))
         else:
             data, units = hdu.read_copy()
             hdus.append(OutHDU(list(hdu.header.cards), data, units=units))
+    if flag_mask is not None:
+        for key, (data, cards) in dq.items():
+            if isinstance(key, tuple):
+                hdus.append(OutHDU(cards, data, extname="DQ"))
     result = PersistenceResult(used=the_plan.used, skipped=the_plan.skipped, max_electrons=peak,
-                               total_electrons=total)
+                               total_electrons=total, flagged=flagged)
     provenance(hdus[0], current, result, model, mode=mode, time_model=time_model, combine=combine,
-               max_previous=max_previous, current_datasum=current_sum)
+               max_previous=max_previous, current_datasum=current_sum,
+               model_error=model_error if err_out else None,
+               flag=(flag_above, dq_bit) if flag_mask is not None else None)
     return hdus, result
 
 
 def provenance(header, current: Frame, result: PersistenceResult, model: PersistenceModel, *,
-               mode: str, time_model: str, combine: str, max_previous: int, current_datasum: int) -> None:
-    """Write the settings and inputs of an apply-persistence run into the primary header."""
+               mode: str, time_model: str, combine: str, max_previous: int, current_datasum: int,
+               model_error: float | None = None, flag: tuple | None = None) -> None:
+    """Write the settings and inputs of an apply-persistence run into the primary header.
+
+    ``model_error`` when ERR was updated; ``flag`` = (rate in e-/s, DQ bit) when DQ was.
+    """
     params = {
         "PSMODE": (mode, "persistence: add, subtract or predict"),
         "PSMODEL": (model.name[-68:], "persistence model"),
         "PSKIND": (model.kind, "fermi or linear"),
-        "PSTIME": (time_model if model.kind == "fermi" else "none", "time model: exact integral or galsim"),
+        "PSTIME": (time_model if model.kind == "fermi" else "none", "time model: exact, middle or galsim"),
         "PSCOMB": (combine, "combination over earlier exposures"),
         "PSMAXPRV": (max_previous, "most recent earlier exposures counted (0: all)"),
+        "PSLOOKB": (float(model.lookback), "[h] earlier exposures older are ignored (0: none)"),
         "PSNPREV": (len(result.used), "earlier exposures used"),
         "PSUNIT": (current.unit, "units of the science data"),
     }
+    if model_error is not None:
+        params["PSMERR"] = (float(model_error), "fractional uncertainty of persistence, in ERR")
+    if flag is not None:
+        params["PSFLAG"] = (float(flag[0]), "[e-/s] DQ flag where persistence rate exceeds")
+        params["PSDQBIT"] = (int(flag[1]), "DQ value set for persistence")
+        params["PSNFLAG"] = (int(result.flagged), "pixels flagged for persistence")
     if model.kind == "fermi":
         params.update({
             "PS_A": (model.A, "[e-/s] Fermi normalisation at t=1000 s"),
@@ -407,15 +788,25 @@ def provenance(header, current: Frame, result: PersistenceResult, model: Persist
         inputs.append((stem, rec.name, rec.datasum))
         params[f"{stem}DT"] = (round(rec.gap, 6), f"[s] from end of {stem} to start of PSCUR")
         params[f"{stem}TF"] = (rec.factors[-1], "[s] time factor (or coefficient), last plane")
+        if rec.overlap is not None and not rec.overlap.same_pixels:
+            params[f"{stem}SX"] = (rec.overlap.shift[1], f"[pix] {stem} x of PSCUR pixel x=0")
+            params[f"{stem}SY"] = (rec.overlap.shift[0], f"[pix] {stem} y of PSCUR pixel y=0")
+    extra = f" lookback={model.lookback:g}h" if model.lookback else ""
+    if model_error is not None:
+        extra += f" model-error={model_error:g}"
+    if flag is not None:
+        extra += f" flag-above={flag[0]:g} dq-bit={flag[1]}"
     add_provenance(header, step=f"apply-persistence mode={mode} model={model.name} "
                                 f"time-model={params['PSTIME'][0]} combine={combine} "
-                                f"previous={len(result.used)}",
+                                f"previous={len(result.used)}{extra}",
                    params=params, inputs=inputs)
 
 
 def apply_persistence_files(current: str, previous, dest: str, *, model: PersistenceModel,
                             mode: str = "add", time_model: str | None = None, combine: str | None = None,
-                            max_previous: int | None = None, units: str | None = None, gain: float | None = None,
+                            max_previous: int | None = None, lookback: float | None = None,
+                            model_error: float = DEFAULT_MODEL_ERROR, flag_above: float | None = None,
+                            dq_bit: int = DEFAULT_DQ_BIT, units: str | None = None, gain: float | None = None,
                             exptime: float | None = None, gap: float | None = None, overwrite: bool = False,
                             workers: int = 1, progress=None, stdin=None, stdout=None,
                             compress: str = "none") -> PersistenceResult:
@@ -430,7 +821,7 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
     dest : str
         Output path, or '-' for stdout.
     model : PersistenceModel
-    mode, time_model, combine, max_previous, workers, progress
+    mode, time_model, combine, max_previous, lookback, model_error, flag_above, dq_bit, workers, progress
         See :func:`apply_to_frame`.
     units, gain, exptime : optional
         Override BUNIT, GAIN/CCDGAIN and supply EXPTIME for every input.
@@ -452,6 +843,7 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
     names = [current, *previous]
     if names.count("-") > 1:
         raise PerscliError("only one input can be read from standard input ('-')")
+    _check_corrections(model_error, flag_above, dq_bit)
     check_output(dest, overwrite=overwrite, inputs=names)
     opened = []
     try:
@@ -463,7 +855,8 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
                 raise PerscliError(f"--gap must be >= 0 seconds, not {gap}")
             assign_sequence_timing(prevs + [cur], gap, exptime)
         hdus, result = apply_to_frame(cur, prevs, model, mode=mode, time_model=time_model, combine=combine,
-                                      max_previous=max_previous, workers=workers, progress=progress)
+                                      max_previous=max_previous, lookback=lookback, model_error=model_error,
+                                      flag_above=flag_above, dq_bit=dq_bit, workers=workers, progress=progress)
         write_hdus(hdus, dest, overwrite=overwrite, stdout=stdout, compress=compress)
         return result
     finally:

@@ -12,6 +12,10 @@ exposure is ``F(x) * T`` where ``T`` is the exact integral of the time factor
 over that exposure's own window (:func:`time_factor`).  ``F`` is evaluated per
 pixel once per earlier frame, by a compiled loop that streams the frame.
 
+Three parameter sets are built in: the paper's Table 1 ('typical',
+'pessimistic') and 'wfc3', STScI's parameters for HST WFC3-IR, which also
+brings the WFC3 persistence pipeline's conventions (:data:`PRESET_SETTINGS`).
+
 This module is the only place where persistence is computed: render,
 apply-persistence and diagnose all call it.
 """
@@ -29,10 +33,35 @@ import numpy as np
 from .. import PerscliError
 from .. import instrument as _instrument
 
-#: Parameter sets of the paper's Table 1 (GalSim's Roman module uses 'typical').
+#: Parameter sets of the law.
+#:
+#: 'typical' and 'pessimistic': the paper's Table 1 (Lin et al., H4RG lab fits;
+#: GalSim's Roman module uses 'typical'), with the paper's linear law below
+#: half_well = 5e4 e- (its "Implementation of persistence effect").
+#:
+#: 'wfc3': HST WFC3-IR, the Fermi-function form of Long et al. (2012, SPIE 8442,
+#: cited by the paper; the exposure-time dependent version is WFC3 ISR 2015-15)
+#: with the parameters of STScI's WFC3 persistence software as NOTES.md section 1
+#: records them: norm 0.3 (A, e-/s at t = 1000 s), alpha 0.174, gamma 1.0,
+#: x0 9.0e4 e- and dx 2.0e4 e-, in the parametrisation used here.  Long's law has
+#: no linear branch: the Fermi function holds down to zero fluence, which
+#: half_well = 0 expresses.  STScI's later "A-gamma" model tabulates A and gamma
+#: against fluence and exposure time from calibration data that perscli does not
+#: hold; these single values are its Fermi-law predecessor.
 PRESETS = {
     "typical": dict(A=0.017, x0=6.0e4, dx=5.0e4, alpha=0.045, gamma=1.0, half_well=5.0e4),
     "pessimistic": dict(A=0.086, x0=1.37e5, dx=2.6e4, alpha=0.02, gamma=1.0, half_well=5.0e4),
+    "wfc3": dict(A=0.3, x0=9.0e4, dx=2.0e4, alpha=0.174, gamma=1.0, half_well=0.0),
+}
+
+#: How a preset is applied when it is chosen by name (``--model wfc3``, or ``base: wfc3`` in a
+#: YAML file); the settings of a preset missing here are the defaults of :data:`SETTINGS`.
+#: 'wfc3' follows STScI's WFC3-IR persistence pipeline (NOTES.md sections 1 and 10): the
+#: current at the MIDDLE of the later exposure times its length, the per-pixel MAXIMUM over
+#: earlier exposures rather than their sum, every earlier exposure of the last 16 hours
+#: (older ones are ignored), however many there are.
+PRESET_SETTINGS = {
+    "wfc3": dict(time_model="middle", combine="max", max_previous=0, lookback=16.0),
 }
 
 #: GalSim's linear persistence coefficients (galsim.roman.persistence_coefficients):
@@ -52,18 +81,21 @@ FERMI_PARAMETERS = {
     "dx": ("width of the Fermi step", "e-"),
     "alpha": ("power-law index of the fluence dependence", ""),
     "gamma": ("power-law index of the decay in time", ""),
-    "half_well": ("fluence below which the law is linear", "e-"),
+    "half_well": ("fluence below which the law is linear (0: the Fermi law down to zero fluence)", "e-"),
 }
 
-TIME_MODELS = ("exact", "galsim")
+TIME_MODELS = ("exact", "middle", "galsim")
 COMBINES = ("sum", "max")
 
 #: How a model is applied (not the law itself): name -> (description, allowed values, default).
 SETTINGS = {
-    "time_model": ("exact: integral of the rate over the exposure; galsim: GalSim's mid-exposure rate x 139.8 s",
+    "time_model": ("exact: integral of the rate over the exposure; middle: the rate at the middle of the "
+                   "exposure x its length (WFC3 pipeline); galsim: GalSim's mid-exposure rate x 139.8 s",
                    TIME_MODELS, "exact"),
     "combine": ("sum over earlier exposures (the paper, GalSim) or per-pixel max (WFC3 pipeline)", COMBINES, "sum"),
     "max_previous": ("only the N most recent earlier exposures count (0: all; the paper: 10)", "integer >= 0", 10),
+    "lookback": ("hours: earlier exposures that ended longer ago than this before the current one starts are "
+                 "ignored (0: no limit; WFC3 pipeline: 16)", "number >= 0", 0.0),
 }
 
 
@@ -83,12 +115,14 @@ class PersistenceModel:
         Fermi parameters (see :data:`FERMI_PARAMETERS`).
     coefficients : tuple of float
         Linear coefficients, most recent exposure first.
-    time_model : {'exact', 'galsim'}
+    time_model : {'exact', 'middle', 'galsim'}
         How the rate becomes charge (see :data:`SETTINGS`).
     combine : {'sum', 'max'}
         How earlier exposures add up.
     max_previous : int
         Most recent earlier exposures that count (0: all).
+    lookback : float
+        Hours: earlier exposures that ended longer ago are ignored (0: no limit).
     """
 
     name: str = "typical"
@@ -103,6 +137,7 @@ class PersistenceModel:
     time_model: str = "exact"
     combine: str = "sum"
     max_previous: int = 10
+    lookback: float = 0.0
 
     def __post_init__(self):
         if self.time_model not in TIME_MODELS:
@@ -113,6 +148,10 @@ class PersistenceModel:
         if isinstance(self.max_previous, bool) or not isinstance(self.max_previous, int) or self.max_previous < 0:
             raise PerscliError(f"persistence max_previous must be a whole number >= 0 (0: all), "
                                f"not {self.max_previous!r}")
+        if (isinstance(self.lookback, bool) or not isinstance(self.lookback, (int, float))
+                or not math.isfinite(self.lookback) or self.lookback < 0):
+            raise PerscliError(f"persistence lookback must be a number of hours >= 0 (0: no limit), "
+                               f"not {self.lookback!r}")
         if self.kind not in ("fermi", "linear"):
             raise PerscliError(f"persistence model kind must be 'fermi' or 'linear', not {self.kind!r}")
         if self.kind == "fermi":
@@ -120,10 +159,13 @@ class PersistenceModel:
                 value = getattr(self, key)
                 if not (isinstance(value, (int, float)) and math.isfinite(value)):
                     raise PerscliError(f"persistence parameter {key}={value!r} is not a finite number")
-            for key in ("x0", "dx", "half_well"):
+            for key in ("x0", "dx"):
                 if getattr(self, key) <= 0:
                     raise PerscliError(
                         f"persistence parameter {key}={getattr(self, key)!r} must be positive (electrons)")
+            if self.half_well < 0:
+                raise PerscliError(f"persistence parameter half_well={self.half_well!r} must be >= 0 electrons "
+                                   "(0: no linear branch)")
             if self.A < 0:
                 raise PerscliError(f"persistence parameter A={self.A!r} must not be negative (e-/s)")
         else:
@@ -132,8 +174,10 @@ class PersistenceModel:
 
     @property
     def slope(self) -> float:
-        """F(half_well) / half_well: the linear law's slope in (e-/s)/e-."""
-        return self.fermi(self.half_well) / self.half_well
+        """F(half_well) / half_well: the linear law's slope in (e-/s)/e- (0 without a linear branch)."""
+        if self.half_well == 0:
+            return 0.0
+        return float(self.fermi(self.half_well) / self.half_well)
 
     def fermi(self, x):
         """The Fermi law alone (no linear branch), in e-/s at t = 1000 s."""
@@ -187,16 +231,19 @@ def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence
     Parameters
     ----------
     spec : str
-        'typical' or 'pessimistic' (the paper's Table 1), 'galsim-linear'
+        'typical' or 'pessimistic' (the paper's Table 1), 'wfc3' (STScI's
+        WFC3-IR parameters with the WFC3 pipeline's settings, see
+        :data:`PRESETS` and :data:`PRESET_SETTINGS`), 'galsim-linear'
         (GalSim's 8 coefficients), the path of a YAML file, or a frame
         perscli rendered (the persistence step of the detector model in its
         MODEL table, as ``perscli render --model FRAME.fits`` reads it).  The YAML file
         holds either the parameters at top level or under a ``persistence:``
         key (so a detector-model file can be given), optionally with
-        ``base: typical|pessimistic`` to start from a preset, ``kind:
-        linear`` with ``coefficients: [...]`` for a linear model.
+        ``base: typical|pessimistic|wfc3`` to start from a preset (and its
+        settings), ``kind: linear`` with ``coefficients: [...]`` for a linear model.
     overrides : mapping or sequence of 'KEY=VALUE'
-        Values of A, x0, dx, alpha, gamma, half_well that replace those of
+        Values of A, x0, dx, alpha, gamma, half_well, or of the settings
+        (time_model, combine, max_previous, lookback), that replace those of
         ``spec``; unknown keys are an error.
 
     Returns
@@ -204,7 +251,7 @@ def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence
     PersistenceModel
     """
     if spec in PRESETS:
-        model = PersistenceModel(name=spec, **PRESETS[spec])
+        model = PersistenceModel(name=spec, **PRESETS[spec], **PRESET_SETTINGS.get(spec, {}))
     elif spec == "galsim-linear":
         model = PersistenceModel(name=spec, kind="linear")
     elif _is_fits_name(spec):
@@ -216,7 +263,7 @@ def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence
         model = _model_from_yaml(spec)
     else:
         raise PerscliError(
-            f"unknown persistence model {spec!r}: use typical, pessimistic, galsim-linear or a YAML file")
+            f"unknown persistence model {spec!r}: use typical, pessimistic, wfc3, galsim-linear or a YAML file")
     if isinstance(overrides, Mapping):
         items = list(overrides.items())
     else:
@@ -256,7 +303,16 @@ def _is_fits_name(spec: str) -> bool:
 
 
 def _setting(key, value, source):
-    """A model setting (time_model, combine, max_previous) from YAML or the command line, checked."""
+    """A model setting (time_model, combine, max_previous, lookback) from YAML or the command line, checked."""
+    if key == "lookback":
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            number = float("nan")
+        if isinstance(value, bool) or not math.isfinite(number) or number < 0:
+            raise PerscliError(f"{source}: persistence lookback={value!r} must be a number of hours >= 0 "
+                               "(0: no limit)")
+        return number
     if key == "max_previous":
         try:
             number = float(value)
@@ -305,6 +361,9 @@ def _model_from_mapping(doc: dict, path: str) -> PersistenceModel:
         raise PerscliError(f"{path}: kind must be 'fermi' or 'linear', not {kind!r}")
     if base is not None and base not in PRESETS:
         raise PerscliError(f"{path}: base must be one of {', '.join(PRESETS)}, not {base!r}")
+    if base is not None:
+        # a preset brings its own conventions (wfc3: the WFC3 pipeline's); the file's settings win
+        settings = {**PRESET_SETTINGS.get(base, {}), **settings}
     params = dict(PRESETS[base or "typical"])
     unknown = [k for k in doc if k not in FERMI_PARAMETERS]
     if unknown:
@@ -315,7 +374,7 @@ def _model_from_mapping(doc: dict, path: str) -> PersistenceModel:
     if missing:
         raise PerscliError(f"{path}: missing {', '.join(missing)} (or give 'base: typical' to start from a preset)")
     params.update({k: _number(k, v, path) for k, v in doc.items()})
-    name = base if base and not doc and not settings else path
+    name = base if base and not doc and settings == PRESET_SETTINGS.get(base, {}) else path
     return PersistenceModel(name=name, **params, **settings)
 
 
@@ -354,6 +413,43 @@ def time_factor(t_start, t_end, gamma: float) -> np.ndarray:
         return 1000.0 ** gamma * (t2 ** (1 - gamma) - t1 ** (1 - gamma)) / (1 - gamma)
     u = (1.0 - gamma) * np.log(t2 / t1)
     return 1000.0 ** gamma * t1 ** (1.0 - gamma) * np.expm1(u) / (1.0 - gamma)
+
+
+def middle_time_factor(gap, ends, gamma: float) -> np.ndarray:
+    """The WFC3 pipeline's time factor: ``(t_mid/1000)^-gamma`` times the window, ``t_mid`` its middle.
+
+    Parameters
+    ----------
+    gap : float
+        Seconds from the end of the earlier exposure to the start of the current one.
+    ends : float or array_like
+        Seconds from the start of the current exposure to the end of each
+        window (the exposure, or each read of a ramp: the window is then
+        ``[0, read time]`` and ``t_mid`` its own middle).
+    gamma : float
+
+    Returns
+    -------
+    ndarray
+        Seconds: ``e ((gap + e/2)/1000)^-gamma`` for each window length ``e``
+        (0 for an empty window).
+
+    Notes
+    -----
+    STScI's WFC3-IR persistence estimate counts time from EXPEND of the
+    earlier exposure to the middle of the later one (NOTES.md section 1).  The
+    decay is convex, so this falls below the exact integral
+    (:func:`time_factor`): for gamma = 1 and a 300 s exposure by 30% when it
+    starts 30 s after the earlier one ends, by 1.4% 600 s after, and by
+    parts per million after 10 h (the difference is of second order in the
+    window over the delay).
+    """
+    e = np.atleast_1d(np.asarray(ends, dtype=np.float64))
+    mid = float(gap) + 0.5 * e
+    out = np.zeros_like(e)
+    live = e > 0
+    out[live] = e[live] * (mid[live] / 1000.0) ** (-gamma)
+    return out
 
 
 def ones_complement_add(a: int, b: int) -> int:
@@ -436,7 +532,9 @@ def exposure_time_factors(gap: float, ends, recency: int, model: PersistenceMode
     Returns
     -------
     list of float or None
-        Seconds (the time integral of ``(t/1000)^-gamma``; GalSim's
+        Seconds (the time integral of ``(t/1000)^-gamma``; with
+        ``time_model='middle'`` its value at the middle of the window times
+        the window, :func:`middle_time_factor`; GalSim's
         ``rate((0.5 + i) 139.8 s) 139.8 s`` with ``time_model='galsim'``), or
         the linear coefficient; None when the exposure is beyond the linear
         model's coefficients.
@@ -452,6 +550,8 @@ def exposure_time_factors(gap: float, ends, recency: int, model: PersistenceMode
             raise PerscliError("time_model galsim has no notion of reads; use time_model exact for ramps")
         mid = (0.5 + recency) * GALSIM_EXPTIME
         return [GALSIM_EXPTIME * (mid / 1000.0) ** (-model.gamma)]
+    if model.time_model == "middle":
+        return [float(v) for v in middle_time_factor(gap, ends, model.gamma)]
     if gap <= 0 and model.gamma >= 1:
         raise PerscliError(f"{label} ends exactly when the current exposure starts: with gamma={model.gamma:g} the "
                            "persistence integral diverges at zero delay; check the timestamps (a reset takes time)")
@@ -461,7 +561,25 @@ def exposure_time_factors(gap: float, ends, recency: int, model: PersistenceMode
         raise PerscliError(f"{label}: {exc}") from None
 
 
-def order_earlier(ends, start: float, model: PersistenceModel, names=None):
+def beyond_lookback(ends, start: float, model: PersistenceModel, *, unit_seconds: float = 1.0) -> list:
+    """Indices of the earlier exposures that ended more than ``model.lookback`` hours before ``start``.
+
+    Parameters
+    ----------
+    ends : sequence of float
+        End of each earlier exposure, on the clock of ``start``.
+    start : float
+        Start of the current exposure.
+    unit_seconds : float
+        Seconds per unit of that clock (1 for seconds, 86400 for MJD).
+    """
+    if not model.lookback:
+        return []
+    limit = model.lookback * 3600.0
+    return [i for i, end in enumerate(ends) if (float(start) - float(end)) * unit_seconds > limit]
+
+
+def order_earlier(ends, start: float, model: PersistenceModel, names=None, *, unit_seconds: float = 1.0):
     """Which earlier exposures count, most recent first, after checking their times.
 
     Parameters
@@ -472,12 +590,16 @@ def order_earlier(ends, start: float, model: PersistenceModel, names=None):
         Start of the current exposure, same clock.
     names : sequence of str, optional
         For messages.
+    unit_seconds : float
+        Seconds per unit of the clock (1 for seconds, 86400 for MJD): the
+        model's look-back is in hours.
 
     Returns
     -------
     (list of int, list of int)
-        Indices used (most recent first, at most ``model.max_previous`` unless
-        0) and indices left out.
+        Indices used (most recent first, those within ``model.lookback``
+        hours unless 0, at most ``model.max_previous`` unless 0) and indices
+        left out (beyond the look-back, then beyond max_previous).
 
     Raises
     ------
@@ -496,8 +618,10 @@ def order_earlier(ends, start: float, model: PersistenceModel, names=None):
         if ends[a] == ends[b]:
             raise PerscliError(f"{names[b]} and {names[a]} end at the same moment: the same earlier exposure is "
                                "given twice; give each earlier exposure once")
-    keep = order if model.max_previous == 0 else order[:model.max_previous]
-    return keep, order[len(keep):]
+    old = set(beyond_lookback(ends, start, model, unit_seconds=unit_seconds))
+    recent = [i for i in order if i not in old]
+    keep = recent if model.max_previous == 0 else recent[:model.max_previous]
+    return keep, [i for i in order if i in old] + recent[len(keep):]
 
 
 def persistence_charge(fluences, ends, start: float, plane_ends, model: PersistenceModel, *, scales=None):

@@ -18,7 +18,21 @@ fluence     of an earlier exposure: a FLUENCE extension (electrons, as
 ramps       WFC3-IR raw/ima: SCI,1 is the last read, SCI,NSAMP the zeroth;
             SAMPTIME (s since the start) per read.  Cubes: (read, y, x) in
             time order with a READTIMES table (column TIME, s since start).
+placement   where the pixels lie on the detector (:meth:`Frame.placement`):
+            detector pixel = image pixel - LTV (LTV1 for x, LTV2 for y, FITS
+            1-indexed; IRAF's convention, which HST, JWST and CFITSIO image
+            sections follow); WFC3-IR raw/ima frames have a border of 5
+            reference pixels that sees no light (calwf3 trims it from flt)
 ==========  ==============================================================
+
+Fluence of the HST products (what an earlier exposure leaves behind):
+
+- flt (2-D, BUNIT ELECTRONS/S): rate x EXPTIME;
+- raw (MULTIACCUM, COUNTS): (last read - zeroth read) x CCDGAIN;
+- ima (MULTIACCUM, calibrated): the last read's accumulated signal: its rate
+  x its SAMPTIME when in ELECTRONS/S; in ELECTRONS or COUNTS the last read
+  itself when calwf3 has subtracted the zeroth read (ZOFFCORR = 'COMPLETE'),
+  else last minus zeroth read.
 
 Keywords are looked up in the science extension's header first, then in the
 primary header.  Opening a frame reads only its headers; pixels are read
@@ -58,6 +72,20 @@ _UNIT_ALIASES = {
     "dn/s": "DN/s", "counts/s": "DN/s", "count/s": "DN/s", "adu/s": "DN/s", "dn s-1": "DN/s",
     "dn / s": "DN/s",
 }
+
+#: WFC3-IR raw and ima frames keep the detector's reference pixels, the outermost 5 rows and columns,
+#: which are not sensitive to light; subarrays carry 5 of them on each side too, and calwf3 trims them
+#: from flt files (WFC3 Instrument and Data Handbooks).
+WFC3_IR_BORDER = 5
+#: Image sizes of WFC3-IR raw/ima frames: the full frame and the 512, 256, 128 and 64 pixel subarrays,
+#: each with its reference-pixel border (the flt sizes are 10 less: 1014, 512, 256, 128, 64).
+WFC3_IR_RAW_SIZES = (1024, 522, 266, 138, 74)
+#: LTV1/LTV2 of a WFC3-IR full frame whose header lacks them.  Detector pixels are those of a
+#: full-frame flt (1014x1014, whose archive headers say LTV = 0); calwf3 trims the 5 reference pixels
+#: from raw/ima to flt and moves LTV by 5, so a raw/ima full frame (1024x1024) has LTV = 5.  (These
+#: values centre the subarrays of the shared files on the detector: SQ128SUB's science pixels at
+#: 444-571, SQ256SUB's at 380-635.)
+WFC3_IR_FULL_FRAME_LTV = {1024: 5.0, 1014: 0.0}
 
 MJD_EPOCH = _dt.datetime(1858, 11, 17)
 SECONDS_PER_DAY = 86400.0
@@ -169,6 +197,87 @@ class Frame:
         return default
 
     @property
+    def is_wfc3_ir(self) -> bool:
+        """An HST WFC3 infrared frame (INSTRUME = 'WFC3', DETECTOR = 'IR')."""
+        return (str(self.keyword("INSTRUME", "")).strip().upper() == "WFC3"
+                and str(self.keyword("DETECTOR", "")).strip().upper() == "IR")
+
+    @property
+    def stored_shape(self) -> tuple:
+        """Shape of one image as stored, before any image section."""
+        return tuple(self.hdus[self.sci[0]].shape[-2:])
+
+    @property
+    def reference_border(self) -> int:
+        """Width of the border of reference pixels around the stored image (WFC3-IR raw/ima: 5; else 0)."""
+        ny, nx = self.stored_shape
+        if self.is_wfc3_ir and ny in WFC3_IR_RAW_SIZES and nx in WFC3_IR_RAW_SIZES:
+            return WFC3_IR_BORDER
+        return 0
+
+    def _default_ltv(self, key: str):
+        """LTV1/LTV2 of a WFC3-IR full frame whose header has none (see :data:`WFC3_IR_FULL_FRAME_LTV`)."""
+        if not self.is_wfc3_ir:
+            return None
+        ny, nx = self.stored_shape
+        if ny == nx and ny in WFC3_IR_FULL_FRAME_LTV:
+            return WFC3_IR_FULL_FRAME_LTV[ny]
+        return None
+
+    def placement(self) -> Placement:
+        """Where this frame's pixels lie on the detector (see :class:`Placement`).
+
+        The offset comes from LTV1/LTV2 (detector pixel = image pixel - LTV,
+        as HST and CFITSIO write them; a section ``file[x1:x2,y1:y2]`` moves
+        them as CFITSIO does); a WFC3-IR full frame without them gets
+        calwf3's values.  WFC3-IR raw/ima frames lose their 5-pixel border
+        of reference pixels from the science area.
+        """
+        values, source = [], "LTV1/LTV2"
+        for key in ("LTV2", "LTV1"):
+            value = self.keyword(key)
+            if value is None:
+                value = self._default_ltv(key)
+                source = "the WFC3-IR full-frame default" if value is not None else source
+            if value is None:
+                values = None
+                break
+            try:
+                values.append(float(value))
+            except (TypeError, ValueError):
+                raise PerscliError(f"{self.label}: {key}={value!r} is not a number of pixels") from None
+        offset = None if values is None else (-values[0], -values[1])
+        scale = []
+        for key in ("LTM2_2", "LTM1_1"):
+            value = self.keyword(key, 1.0)
+            try:
+                scale.append(float(value))
+            except (TypeError, ValueError):
+                raise PerscliError(f"{self.label}: {key}={value!r} is not a number") from None
+        ny, nx = self.shape
+        box = [0, ny, 0, nx]
+        border = self.reference_border
+        if border:
+            sny, snx = self.stored_shape
+            rows, cols = self.section if self.section is not None else (slice(None), slice(None))
+            for axis, (n_stored, sl) in enumerate(((sny, rows), (snx, cols))):
+                first, _, step = sl.indices(n_stored)
+                if step != 1:
+                    raise PerscliError(f"{self.label}: a section with a step cannot be placed on the detector; "
+                                       "take every pixel (file[x1:x2,y1:y2])")
+                n = (ny, nx)[axis]
+                box[2 * axis] = min(n, max(0, border - first))
+                box[2 * axis + 1] = max(box[2 * axis], min(n, n_stored - border - first))
+        if offset is None:
+            source = "no LTV1/LTV2"
+        return Placement(offset=offset, science=tuple(box), scale=tuple(scale), source=source)
+
+    @property
+    def zero_read_subtracted(self) -> bool:
+        """True for a calwf3 ima whose reads already count from the zeroth read (ZOFFCORR = 'COMPLETE')."""
+        return str(self.keyword("ZOFFCORR", "")).strip().upper() == "COMPLETE"
+
+    @property
     def is_ramp(self) -> bool:
         return self.layout in ("wfc3-ramp", "cube")
 
@@ -265,7 +374,9 @@ class Frame:
         ``array * scale`` is the fluence in electrons.  For a float image the
         array is the file's bytes as stored (no conversion: the compiled
         kernel swaps bytes itself); for a ramp it is the last read minus the
-        zeroth read.
+        zeroth read (the last read alone in a calwf3 ima whose reads count
+        from the zeroth read already: ZOFFCORR = 'COMPLETE'; in a rate ramp
+        the last read times its SAMPTIME).
         """
         if self.fluence_hdu is not None:
             # a frame perscli rendered: its FLUENCE extension holds the collected charge in electrons
@@ -275,6 +386,10 @@ class Frame:
             hdu = self.hdus[self.sci[0]]
             return self._rows_of(hdu, 0, r0, r1, stream=self.fluence_is_raw, scratch=scratch), self.electrons_per_unit()
         last = np.asarray(self.rows(self.nreads - 1, r0, r1), dtype=np.float64)
+        if self.zero_read_subtracted:
+            # calwf3's ZOFFCORR has taken the zeroth read off every read: the last one is the signal
+            charge = last * self.read_times[-1] if UNITS[self.unit][1] else last
+            return charge, self.electrons_per_unit(seconds=1.0)
         first = np.asarray(self.rows(0, r0, r1), dtype=np.float64)
         if UNITS[self.unit][1]:
             # a rate ramp (WFC3 ima) stores each read's charge divided by its SAMPTIME
@@ -335,6 +450,32 @@ class Frame:
 
     def __exit__(self, *exc):
         self.close()
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where a frame's pixels lie on its detector.
+
+    Attributes
+    ----------
+    offset : (float, float) or None
+        ``(dy, dx)``: detector pixel = image pixel + offset (any indexing, as
+        both are shifted alike), i.e. ``(-LTV2, -LTV1)``; None when the
+        header does not say.
+    science : (int, int, int, int)
+        ``(y0, y1, x0, x1)``: the light-sensitive pixels in image
+        coordinates (0-indexed, half-open), the whole image unless the frame
+        has a reference-pixel border.
+    scale : (float, float)
+        LTM2_2, LTM1_1 (1: one image pixel per detector pixel).
+    source : str
+        Where the offset came from, for messages.
+    """
+
+    offset: tuple | None
+    science: tuple
+    scale: tuple = (1.0, 1.0)
+    source: str = ""
 
 
 def _native(array: np.ndarray) -> np.ndarray:
@@ -514,7 +655,11 @@ def open_frame(name: str, *, units: str | None = None, gain: float | None = None
             # a cutout of the detector: its offset moves as CFITSIO moves LTV1/LTV2 for a section
             rows, cols = source.section
             for key, sl in (("LTV1", cols), ("LTV2", rows)):
-                base = frame.keyword(key, 0.0)
+                base = frame.keyword(key)
+                if base is None:
+                    base = frame._default_ltv(key)
+                if base is None:
+                    base = 0.0
                 try:
                     frame.overrides[key] = float(base) - float(sl.start or 0)
                 except (TypeError, ValueError):
