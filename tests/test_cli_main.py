@@ -54,8 +54,8 @@ def test_help_lists_the_registered_commands(flag):
     commands = text.split("Commands:", 1)[1]
     # one command per line indented by two spaces; wrapped help lines are indented further
     names = re.findall(r"^  (\S+)", commands, re.M)
-    assert names == sorted(cli.commands) == ["apply-persistence", "budget", "catalog", "correlate", "diagnose",
-                                             "measure", "pointings", "render", "study"]
+    assert names == sorted(cli.commands) == ["apply-persistence", "budget", "catalog", "completion", "correlate",
+                                             "diagnose", "man", "measure", "pointings", "render", "study"]
 
 
 def test_no_command_shows_usage():
@@ -67,7 +67,8 @@ def test_no_command_shows_usage():
 def test_unknown_command_is_a_usage_error():
     result = invoke("apply-persistance")
     assert result.exit_code == 2
-    assert "No such command 'apply-persistance'" in result.stderr
+    assert result.stderr == ("perscli: error: No such command 'apply-persistance'. Did you mean "
+                             "'apply-persistence'? (see 'perscli -h')\n")
 
 
 def test_command_help_documents_conventions():
@@ -206,7 +207,9 @@ def test_console_script_data_error_is_one_line_and_exit_1(tmp_path, frames):
 def test_console_script_usage_error_exit_2(tmp_path, frames):
     proc = _script("apply-persistence", *frames)
     assert proc.returncode == 2
-    assert re.search(r"^Usage: perscli apply-persistence", proc.stderr.decode(), re.M)
+    assert proc.stdout == b""
+    assert proc.stderr.decode() == ("perscli apply-persistence: error: Missing option '-o' / '--output' "
+                                    "(see 'perscli apply-persistence -h')\n")
 
 
 def test_progress_bar_on_a_terminal_and_silent_otherwise():

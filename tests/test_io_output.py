@@ -15,7 +15,7 @@ from astropy.io import fits
 import perscli
 from perscli import PerscliError
 from perscli.io.output import CREATOR, add_provenance, check_output
-from perscli.io.output import write_hdus
+from perscli.io.output import atomic_output, atomic_path, make_temp_file, make_temp_folder, write_hdus
 
 from fits_factory import (DAY, SHAPE, T0, cards_except, cube_file, frame_file, image_file, invoke, listing,
                           raw_cards_masked, timing, wfc3_ramp_file)
@@ -122,14 +122,71 @@ def test_write_hdus_writes_verified_checksums_and_leaves_no_temporary_file(tmp_p
         np.testing.assert_array_equal(hdul["SCI"].data, 3.0)
 
 
-def test_write_hdus_gives_the_file_ordinary_permissions(tmp_path):
-    dest = tmp_path / "out.fits"
-    old = os.umask(0o022)
-    try:
-        write_hdus(small_hdul(), str(dest))
-    finally:
-        os.umask(old)
-    assert stat.S_IMODE(os.stat(dest).st_mode) == 0o644
+# -- permissions: those of any new file (0666 less the umask), not mkstemp's 0600 -----------------
+
+@pytest.fixture(params=[(0o022, 0o644), (0o077, 0o600), (0o027, 0o640)], ids=["022", "077", "027"])
+def umask(request):
+    """Run under a umask; the value is the mode a new file gets under it."""
+    mask, mode = request.param
+    old = os.umask(mask)
+    yield mode
+    os.umask(old)
+
+
+def mode_of(path):
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+@pytest.mark.parametrize("name", ["out.fits", "out.fits.gz"])
+def test_write_hdus_gives_the_file_ordinary_permissions(tmp_path, umask, name):
+    dest = tmp_path / name
+    write_hdus(small_hdul(), str(dest))
+    assert mode_of(dest) == umask
+    write_hdus(small_hdul(2.0), str(dest), overwrite=True)
+    assert mode_of(dest) == umask
+    assert listing(tmp_path) == [name]
+
+
+def test_atomic_output_and_atomic_path_give_ordinary_permissions(tmp_path, umask):
+    with atomic_output(str(tmp_path / "figure.png")) as fh:
+        fh.write(b"png")
+    with atomic_path(str(tmp_path / "regions.reg"), suffix=".part.reg") as tmp:
+        with open(tmp, "w") as fh:               # as a library that writes to a path (matplotlib, ds9) does
+            fh.write("fk5\n")
+    assert {name: mode_of(tmp_path / name) for name in listing(tmp_path)} == {"figure.png": umask,
+                                                                               "regions.reg": umask}
+
+
+def test_temporary_files_and_folders_are_made_with_ordinary_permissions(tmp_path, umask):
+    fd, path = make_temp_file(str(tmp_path), suffix=".part.png")
+    os.close(fd)
+    assert os.path.basename(path).startswith(".perscli-") and path.endswith(".part.png")
+    assert mode_of(path) == umask
+    folder = make_temp_folder(str(tmp_path), prefix=".perscli-diagnose-")
+    assert os.path.isdir(folder) and mode_of(folder) == umask | ((umask & 0o444) >> 2)      # r implies x
+    names = {os.path.basename(make_temp_file(str(tmp_path))[1]) for _ in range(50)}
+    assert len(names) == 50
+
+
+def test_temporary_file_names_are_never_reused(tmp_path, monkeypatch):
+    import perscli.io.output as output
+
+    tokens = iter(["aaaa", "aaaa", "bbbb"])
+    monkeypatch.setattr(output.secrets, "token_hex", lambda n: next(tokens))
+    fd1, first = make_temp_file(str(tmp_path))
+    fd2, second = make_temp_file(str(tmp_path))      # 'aaaa' exists: the next name is taken
+    os.close(fd1), os.close(fd2)
+    assert (os.path.basename(first), os.path.basename(second)) == (".perscli-aaaa.part", ".perscli-bbbb.part")
+
+
+def test_writing_never_changes_the_umask_even_for_a_moment(tmp_path, monkeypatch):
+    # reading the umask means setting it (os.umask(0)), which other threads would see: never done
+    calls = []
+    monkeypatch.setattr(os, "umask", lambda mask: calls.append(mask))
+    write_hdus(small_hdul(), str(tmp_path / "out.fits.gz"))
+    with atomic_output(str(tmp_path / "x.png")) as fh:
+        fh.write(b"png")
+    assert calls == []
 
 
 def test_write_hdus_refuses_an_existing_file_without_overwrite(tmp_path):

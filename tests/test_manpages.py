@@ -1,6 +1,9 @@
-"""The committed man pages are the current click help (regenerate with `make man`)."""
+"""The committed man pages are the current click help (regenerate with `make man`), installed with the package."""
 
 from pathlib import Path
+
+import click
+import pytest
 
 from perscli.cli.main import cli
 from perscli.cli.manpages import render_all
@@ -23,3 +26,37 @@ def test_pages_carry_the_options_and_examples():
     page = render_all()["perscli-apply-persistence.1"]
     for text in ("\\-\\-time\\-model", "\\-\\-max\\-previous", "\\-\\-combine", "Examples:", ".SH SYNOPSIS"):
         assert text in page
+
+
+def test_the_generator_writes_every_page(tmp_path, capsys):
+    from perscli.cli.manpages import main
+
+    main([str(tmp_path / "man")])
+    pages = render_all()
+    assert sorted(p.name for p in (tmp_path / "man").iterdir()) == sorted(pages)
+    assert all((tmp_path / "man" / name).read_text() == text for name, text in pages.items())
+    assert capsys.readouterr().out.split() == [str(tmp_path / "man" / name) for name in pages]
+    main([str(tmp_path / "man")])                      # regenerating replaces them
+
+
+def test_plain_text_and_troff_are_the_same_page():
+    from perscli.cli.manpages import page_parts, to_text
+
+    root = click.Context(cli, info_name="perscli", **cli.context_settings)
+    for name, command in cli.commands.items():
+        parts = page_parts(command, f"perscli {name}", root)
+        text = " ".join(to_text(parts).split())
+        for flags, help_text in parts["options"]:
+            assert flags in text and " ".join(help_text.split()) in text, (name, flags)
+        for kind, block in parts["description"]:
+            assert " ".join(block.split()) in text, (name, block[:40])
+
+
+def test_the_pages_are_installed_with_the_package():
+    tomllib = pytest.importorskip("tomllib")           # Python 3.11+
+
+    with open(MAN.parent / "pyproject.toml", "rb") as fh:
+        project = tomllib.load(fh)
+    patterns = project["tool"]["setuptools"]["data-files"]["share/man/man1"]
+    installed = {p.name for pattern in patterns for p in MAN.parent.glob(pattern)}
+    assert installed == set(render_all())

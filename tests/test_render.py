@@ -658,7 +658,8 @@ def expect_error(tmp_path, args, *needles, code=1):
         lines = result.stderr.splitlines()
         assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
     else:
-        assert "Usage:" in result.stderr
+        lines = result.stderr.splitlines()
+        assert len(lines) == 1 and lines[0].startswith("perscli render: error: "), result.stderr
     for needle in needles:
         assert needle in result.stderr, (needle, result.stderr)
     assert listing(tmp_path) == before and not out.exists()

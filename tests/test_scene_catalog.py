@@ -422,7 +422,7 @@ def expect_usage_error(tmp_path, args, *needles):
     files = listing(tmp_path)
     result = invoke("catalog", *args)
     assert result.exit_code == 2, (result.exit_code, result.output)
-    assert "Usage:" in result.stderr
+    assert result.stderr.startswith("perscli catalog: error: ") and len(result.stderr.splitlines()) == 1
     for needle in needles:
         assert needle in result.stderr
     assert listing(tmp_path) == files

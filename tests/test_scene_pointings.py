@@ -290,7 +290,8 @@ def expect_usage_error(tmp_path, args, *needles):
     files = listing(tmp_path)
     result = invoke("pointings", *args, "-o", tmp_path / "out.fits")
     assert result.exit_code == 2, (result.exit_code, result.output)
-    assert "Usage:" in result.stderr and result.stdout == ""
+    assert result.stderr.startswith("perscli pointings: error: ") and result.stdout == ""
+    assert len(result.stderr.splitlines()) == 1, result.stderr
     for needle in needles:
         assert needle in result.stderr, (needle, result.stderr)
     assert listing(tmp_path) == files

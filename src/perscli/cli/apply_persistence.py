@@ -6,7 +6,7 @@ import logging
 
 import click
 
-from .helpers import check_outputs, progress_reporter, report_errors
+from .helpers import FILE, check_outputs, progress_reporter, report_errors
 from .options import (compress_opt, exptime_opt, gain_opt, model_opt, no_checksum_opt, output_opt, overwrite_opt,
                       units_opt, verbosity_opts, workers_opt)
 
@@ -25,15 +25,15 @@ def _power_of_two(ctx, param, value):
 
 
 @click.command("apply-persistence", short_help="Add, subtract or predict the persistence of earlier exposures.")
-@click.argument("current", metavar="CURRENT")
-@click.argument("previous", nargs=-1, required=True, metavar="PREVIOUS...")
+@click.argument("current", metavar="CURRENT", type=FILE)
+@click.argument("previous", nargs=-1, required=True, metavar="PREVIOUS...", type=FILE)
 @output_opt
 @model_opt("typical", "NAME|MODEL.yaml|FRAME.fits",
            "the persistence law: typical or pessimistic (the paper's Table 1), wfc3 (STScI's HST WFC3-IR "
            "parameters, with the WFC3 pipeline's --time-model middle --combine max --max-previous 0 "
            "--lookback 16), galsim-linear (GalSim's 8 coefficients), a YAML file (persistence parameters, or "
            "a detector model as render takes), or a frame perscli rendered (the persistence of the model that "
-           "made it)")
+           "made it)", names=("typical", "pessimistic", "wfc3", "galsim-linear"))
 @click.option("--param", "params", multiple=True, metavar="KEY=VALUE",
               help="Override a model parameter (A, x0, dx, alpha, gamma, half_well) or setting (time_model, "
                    "combine, max_previous, lookback). Repeatable.")

@@ -6,7 +6,7 @@ import logging
 
 import click
 
-from .helpers import check_outputs, report_errors
+from .helpers import FILE, check_outputs, report_errors
 from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
@@ -16,7 +16,7 @@ BAND_NAMES = ("dore2018", "troxel2021", "hirata")
 
 
 @click.command("budget", short_help="Compare a measured xi+ with the Roman additive shear budget.")
-@click.argument("xi", required=False, metavar="[XI.fits]")
+@click.argument("xi", required=False, metavar="[XI.fits]", type=FILE)
 @click.option("--bands", type=click.Choice(BAND_NAMES), default="dore2018", show_default=True,
               help="Additive shear rms per multipole band: dore2018 (HLIS requirement, Dore et al. 2018), "
                    "troxel2021 (7.0e-5 in the first band) or hirata (Hirata's allocation).")

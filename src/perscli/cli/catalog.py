@@ -7,7 +7,7 @@ import logging
 import click
 
 from ..instrument import ROMAN_N_SCA, ROMAN_SCA_SIZE
-from .helpers import check_outputs, report_errors
+from .helpers import FILE, check_outputs, report_errors
 from .options import columns_opt, dec_opt, no_checksum_opt, output_opt, overwrite_opt, ra_opt, seed_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
@@ -18,7 +18,7 @@ log = logging.getLogger("perscli")
 @dec_opt("Centre of the square field: declination")
 @click.option("--size", type=click.FloatRange(min=0, max=3600, min_open=True, max_open=True), default=None,
               metavar="ARCMIN", help="Side of the square field on the tangent plane  [default: 10].")
-@click.option("--footprints", "footprints", metavar="POINTINGS.fits", default=None,
+@click.option("--footprints", "footprints", metavar="POINTINGS.fits", default=None, type=FILE,
               help="Instead of a square: the union of the SCA footprints of every row of this pointings table "
                    "(perscli pointings), each grown by --margin.")
 @click.option("--sca", type=click.IntRange(0, ROMAN_N_SCA), default=0, show_default=True, metavar="N",
@@ -33,7 +33,7 @@ log = logging.getLogger("perscli")
               metavar="PER_ARCMIN2", help="Mean number of galaxies per arcmin^2 (Poisson).")
 @click.option("--star-density", type=click.FloatRange(min=0), default=2.5, show_default=True,
               metavar="PER_ARCMIN2", help="Mean number of model stars per arcmin^2 (Poisson); not used with --gaia.")
-@click.option("--gaia", "gaia", multiple=True, metavar="FILE",
+@click.option("--gaia", "gaia", multiple=True, metavar="FILE", type=FILE,
               help="Gaia DR2 reference-catalog chunk (LSST format; '-' for standard input): its stars in the "
                    "field replace the model stars. Repeatable.")
 @columns_opt("the --gaia files", "id=source_id,coord_ra=ra_rad,coord_dec=dec_rad")

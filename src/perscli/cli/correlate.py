@@ -7,7 +7,7 @@ import logging
 import click
 from click.core import ParameterSource
 
-from .helpers import check_outputs, report_errors
+from .helpers import FILE, FOLDER, check_outputs, report_errors
 from .options import (columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, seed_opt, verbosity_opts,
                       workers_opt)
 
@@ -28,11 +28,11 @@ def _numbers(ctx, param, value):
 
 
 @click.command("correlate", short_help="Correlation function xi+/- and statistics of shape changes De.")
-@click.argument("shapes", nargs=-1, required=False, metavar="[SHAPES_A.fits [SHAPES_B.fits]]")
-@click.option("--pair", "pair_list", type=(str, str), multiple=True, metavar="A B",
+@click.argument("shapes", nargs=-1, required=False, metavar="[SHAPES_A.fits [SHAPES_B.fits]]", type=FILE)
+@click.option("--pair", "pair_list", type=FILE, nargs=2, multiple=True, metavar="A B",
               help="One pair of SHAPES tables, A (with persistence) and B (its reference); repeat for many: the De "
                    "of every pair are pooled into one catalogue.  Not with SHAPES arguments.")
-@click.option("--pairs", "pairs_file", metavar="FILE", default=None,
+@click.option("--pairs", "pairs_file", metavar="FILE", default=None, type=FILE,
               help="A text file of pairs to pool: 'A.fits B.fits' per line, # comments, names relative to the "
                    "file's folder.  Adds to --pair.")
 @click.option("--frames", type=int, nargs=2, default=None, metavar="A B",
@@ -59,7 +59,7 @@ def _numbers(ctx, param, value):
                    "large catalogues.")
 @click.option("--npatch", type=click.IntRange(min=2), default=20, show_default=True, metavar="N",
               help="Jackknife patches, found by k-means on the positions (seeded by --seed).")
-@click.option("--patch-centers", metavar="FILE", default=None,
+@click.option("--patch-centers", metavar="FILE", default=None, type=FILE,
               help="Jackknife patch centres instead of k-means: TreeCorr's write_patch_centers file, a table "
                    "of ra/dec (degrees), or an earlier perscli correlate output (its PATCHES table).")
 @click.option("--var-method", type=click.Choice(["auto", "jackknife", "shot"]), default="auto", show_default=True,
@@ -81,7 +81,7 @@ def _numbers(ctx, param, value):
 @no_checksum_opt
 @seed_opt
 @plot_opt("xi+/- with its errors")
-@click.option("--plots", "plots_dir", metavar="DIR", default=None,
+@click.option("--plots", "plots_dir", metavar="DIR", default=None, type=FOLDER,
               help="Also draw xi.png, hist_de.png and bin_theta.png in DIR (created if needed).")
 @output_opt
 @overwrite_opt

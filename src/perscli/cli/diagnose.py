@@ -6,21 +6,21 @@ import logging
 
 import click
 
-from .helpers import report_errors
+from .helpers import FILE, FOLDER, report_errors
 from .options import model_opt, no_checksum_opt, overwrite_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
 
 
 @click.command("diagnose", short_help="Find the detector effect a simulation lacks, fit it, show the gap shrink.")
-@click.argument("measured", nargs=-1, required=True, metavar="MEASURED...")
-@click.option("--simulated", "simulated", multiple=True, metavar="SIM.fits",
+@click.argument("measured", nargs=-1, required=True, metavar="MEASURED...", type=FILE)
+@click.option("--simulated", "simulated", multiple=True, metavar="SIM.fits", type=FILE,
               help="The same exposures rendered by perscli render (SCI, IDEAL, FLUENCE, MODEL); repeatable. "
                    "Paired with MEASURED by start time (within 1 s), else in order. Without them, a lone "
                    "ramp is predicted from its own earliest reads.")
 @model_opt(None, "MODEL.yaml|FRAME.fits",
            "the detector model to test [default: the one stored in the simulated frames]")
-@click.option("-o", "--output", "outdir", required=True, metavar="OUTDIR",
+@click.option("-o", "--output", "outdir", required=True, metavar="OUTDIR", type=FOLDER,
               help="Folder to write: model.yaml, report.json, report.md and PNG figures.")
 @click.option("--fit-pixels", type=click.IntRange(min=1000), default=1_000_000, show_default=True, metavar="N",
               help="Pixels per exposure used in the fits (evenly spaced stripes); the gaps use every pixel.")

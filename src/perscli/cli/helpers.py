@@ -1,7 +1,8 @@
-"""Glue between click and the library: errors, logging and progress."""
+"""Glue between click and the library: errors, logging, progress and path parameters."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import sys
@@ -99,3 +100,114 @@ def progress_reporter(label: str, stream=None):
             bar.__exit__(None, None, None)
 
     return progress
+
+
+# -- usage errors: one line ----------------------------------------------------------------------
+
+def usage_error_line(exc: click.UsageError, *, command_path: str | None = None, help_names=("-h", "--help")) -> str:
+    """A usage error as one line: ``perscli render: error: MESSAGE (see 'perscli render -h')``.
+
+    The message is click's own (``Invalid value for '--ra': ...``,
+    ``Missing option '-o' / '--output'``, ``No such command 'rendr'``);
+    the line starts with the command it concerns, as argparse's do, so that
+    in ``perscli A | perscli B`` one knows which of them complained.
+
+    Parameters
+    ----------
+    exc : click.UsageError
+    command_path : str, optional
+        'perscli render', when ``exc`` carries no context (a UsageError
+        raised in a command's body without one).
+    help_names : sequence of str
+        The help options of that command, for the hint (the shortest is given).
+    """
+    ctx = exc.ctx
+    if ctx is not None:
+        command_path = ctx.command_path
+        help_names = ctx.help_option_names if ctx.command.get_help_option(ctx) is not None else ()
+    command_path = command_path or "perscli"
+    message = " ".join(line.strip() for line in exc.format_message().splitlines() if line.strip())
+    if message.endswith(".") and not message.endswith(".."):
+        message = message[:-1]
+    hint = f" (see '{command_path} {min(help_names, key=len)}')" if help_names else ""
+    return f"{command_path}: error: {message}{hint}"
+
+
+# click >= 8.2 shows the help of a group called without a command through a UsageError
+_NO_ARGS_IS_HELP = getattr(click.exceptions, "NoArgsIsHelpError", ())
+
+
+@contextlib.contextmanager
+def one_line_usage_errors(ctx: click.Context | None = None):
+    """Usage errors raised inside the block show as one line on stderr (exit status 2 still).
+
+    click's own display is four lines (usage, a hint, a blank line, the
+    error), which in a pipeline or a log is mostly noise.  The exception
+    keeps its type, message and context (callers with
+    ``standalone_mode=False`` see it unchanged); only its ``show`` is
+    replaced.  ``ctx`` is the group's context, which names the command a
+    context-less UsageError (one raised in a command's body) came from.
+    ``perscli`` with no arguments still prints the help.
+    """
+    try:
+        yield
+    except _NO_ARGS_IS_HELP:
+        raise
+    except click.UsageError as exc:
+        path, names = None, ("-h", "--help")
+        if exc.ctx is None and ctx is not None:
+            names = ctx.help_option_names
+            path = " ".join(filter(None, [ctx.command_path, ctx.invoked_subcommand]))
+
+        exc.show = functools.partial(_show_usage_error, exc, command_path=path, help_names=names)
+        raise
+
+
+def _show_usage_error(exc, file=None, **kw):
+    click.echo(usage_error_line(exc, **kw), file=file, err=True)
+
+
+# -- path parameters ----------------------------------------------------------------------------
+
+class PathName(click.Path):
+    """A file (or folder) name on the command line: completed by the shell as one, passed on as given.
+
+    click completes file names only for parameters of type click.Path; this
+    is one that checks nothing, so that the library still reports a
+    missing, unreadable or wrong file in one line naming it, with exit
+    status 1 (click.Path's own checks would make those usage errors), and
+    '-' still means standard input or output.
+
+    Parameters
+    ----------
+    folder : bool
+        Complete folder names only (an output folder).
+    names : iterable of str
+        Words the parameter takes besides a file name (``--model typical``):
+        completed too.
+    """
+
+    def __init__(self, *, folder: bool = False, names=()):
+        super().__init__(file_okay=not folder, dir_okay=True, readable=False)
+        self.names = tuple(names)
+
+    def convert(self, value, param, ctx):
+        return value
+
+    def shell_complete(self, ctx, param, incomplete):
+        from click.shell_completion import CompletionItem
+
+        # the file item first: bash's script empties its list when it meets one
+        return super().shell_complete(ctx, param, incomplete) + [
+            CompletionItem(name) for name in self.names if name.startswith(incomplete)]
+
+
+#: a file name: an input or an output ('-' for standard input or output)
+FILE = PathName()
+#: a folder name (an output folder)
+FOLDER = PathName(folder=True)
+
+
+def file_or(*names: str) -> PathName:
+    """A parameter that takes one of ``names`` or a file name (``--model typical|MODEL.yaml``)."""
+    return PathName(names=names)

@@ -14,11 +14,30 @@ from .catalog import catalog
 from .pointings import pointings
 from .diagnose import diagnose
 from .study import study
+from .manpages import man
+from .completion import completion
 from .helpers import configure_logging  # noqa: F401  (re-exported: perscli.cli.main.configure_logging)
+from .helpers import one_line_usage_errors
 from .options import no_checksum_opt
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class PerscliGroup(click.Group):
+    """The perscli group: every usage error, its own or a command's, is one line on stderr.
+
+    Done here rather than in :func:`main` so that it holds wherever the
+    group runs: the console script, ``python -m perscli``, CliRunner.
+    """
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        with one_line_usage_errors():
+            return super().make_context(info_name, args, parent=parent, **extra)
+
+    def invoke(self, ctx):
+        with one_line_usage_errors(ctx):
+            return super().invoke(ctx)
+
+
+@click.group("perscli", cls=PerscliGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="perscli", message="%(prog)s %(version)s")
 @click.option("-v", "--verbose", count=True, help="More messages on stderr (-vv: debug, with tracebacks).")
 @click.option("-q", "--quiet", count=True, help="Fewer messages on stderr (errors only; no progress bars).")
@@ -29,7 +48,13 @@ def cli(ctx, verbose, quiet):
 
     Every command reads and writes FITS; '-' stands for standard input or
     output, so commands compose in shell pipelines.  Exit status: 0 success,
-    1 a data or runtime error, 2 a usage error.
+    1 a data or runtime error, 2 a usage error (one line on stderr, e.g.
+    "perscli render: error: Missing option '--seed' (see 'perscli render -h')").
+
+    Manual pages: perscli man COMMAND (or perscli man --all -o
+    ~/.local/share/man/man1 to install them for man(1)).  Tab completion of
+    commands, options and file names: eval "$(perscli completion bash)"
+    (zsh, fish: see perscli completion -h).
     """
     ctx.obj = {"verbosity": verbose - quiet}
     configure_logging(verbose - quiet)
@@ -44,6 +69,8 @@ cli.add_command(catalog)
 cli.add_command(pointings)
 cli.add_command(diagnose)
 cli.add_command(study)
+cli.add_command(man)
+cli.add_command(completion)
 
 
 def main():

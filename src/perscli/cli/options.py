@@ -44,9 +44,10 @@ import math
 import click
 
 from ..instrument import ROMAN_FILTERS, ROMAN_N_SCA
+from .helpers import FILE, file_or
 
 output_opt = click.option(
-    "-o", "--output", "output", required=True, metavar="PATH",
+    "-o", "--output", "output", required=True, metavar="PATH", type=FILE,
     help="Output FITS file, or '-' for standard output.")
 
 overwrite_opt = click.option(
@@ -71,10 +72,11 @@ def workers_opt(what: str):
         help=f"Cores to use: {what}.")
 
 
-def model_opt(default: str, metavar: str, what: str):
-    """``--model NAME|FILE``: the model a command applies, ``what`` listing the names and files it takes."""
+def model_opt(default: str, metavar: str, what: str, names=()):
+    """``--model NAME|FILE``: the model a command applies, ``what`` listing the names and files it takes
+    (``names`` complete in the shell beside file names)."""
     return click.option("--model", "model_spec", default=default, show_default=True, metavar=metavar,
-                        help=f"Model to apply: {what}.")
+                        type=file_or(*names), help=f"Model to apply: {what}.")
 
 
 def _png(ctx, param, value):
@@ -89,7 +91,7 @@ def _png(ctx, param, value):
 
 def plot_opt(what: str, metavar: str = "PNG"):
     """``--plot PNG``: also draw ``what`` into a PNG file (never over an input or the -o output)."""
-    return click.option("--plot", metavar=metavar, default=None, callback=_png,
+    return click.option("--plot", metavar=metavar, default=None, callback=_png, type=FILE,
                         help=f"Also draw {what} into this PNG file.")
 
 class _Range(click.FloatRange):

@@ -8,7 +8,7 @@ import click
 from click.core import ParameterSource
 
 from ..instrument import ROMAN_EXPTIME, ROMAN_N_SCA, ROMAN_WAS_GAP
-from .helpers import check_outputs, report_errors
+from .helpers import FILE, check_outputs, report_errors
 from .options import (columns_opt, dec_opt, filter_opt, no_checksum_opt, mjd_opt, output_opt, overwrite_opt, pa_opt, ra_opt, seed_opt,
                       verbosity_opts)
 
@@ -31,7 +31,7 @@ sca_opt = click.option(
 
 
 @click.command("pointings", short_help="Select exposures of a field from a schedule, or plan dithered ones.")
-@click.option("--schedule", metavar="FILE", default=None,
+@click.option("--schedule", metavar="FILE", default=None, type=FILE,
               help="Survey schedule (FITS table: date, exptime, ra, dec, pa, filter; '-' for standard input): "
                    "select its exposures of the field.")
 @click.option("--plan", is_flag=True, default=False, help="Plan a dithered sequence instead.")
@@ -67,7 +67,7 @@ sca_opt = click.option(
 @click.option("--footprints", is_flag=True, default=False,
               help="Add each row's SCA corners on the sky (columns corner_ra, corner_dec, 4 values each, "
                    "degrees; GalSim's Roman WCS); needs --sca N.")
-@click.option("--catalog", "catalog", metavar="TRUTH.fits", default=None,
+@click.option("--catalog", "catalog", metavar="TRUTH.fits", default=None, type=FILE,
               help="With --footprints: also count the objects of this truth catalogue (perscli catalog) whose "
                    "centre lands on each row's SCA (columns n_star, n_galaxy).")
 @columns_opt("--catalog", "ra=ALPHA_J2000,dec=DELTA_J2000,kind=CLASS")

@@ -8,7 +8,7 @@ import click
 
 from .. import PerscliError
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
-from .helpers import check_outputs, progress_reporter, report_errors
+from .helpers import FILE, check_outputs, progress_reporter, report_errors
 from .options import (columns_opt, compress_opt, dec_opt, mjd_opt, model_opt, no_checksum_opt, output_opt, overwrite_opt, pa_opt,
                       plot_opt, ra_opt, required_seed_opt, verbosity_opts, workers_opt)
 
@@ -28,8 +28,8 @@ def _list_effects(ctx, param, value):
 
 
 @click.command("render", short_help="Draw a Roman SCA exposure of a truth catalogue through a detector model.")
-@click.argument("truth", metavar="TRUTH.fits")
-@click.option("--pointings", "pointings_file", metavar="FILE",
+@click.argument("truth", metavar="TRUTH.fits", type=FILE)
+@click.option("--pointings", "pointings_file", metavar="FILE", type=FILE,
               help="A pointings table (perscli pointings) or a survey schedule (date, exptime, ra, dec, pa, "
                    "filter) to take the exposure from; see --row.")
 @click.option("--row", type=click.IntRange(min=0), default=0, show_default=True, metavar="N",
@@ -48,10 +48,10 @@ def _list_effects(ctx, param, value):
                    f"[default: the full {ROMAN_SCA_SIZE} x {ROMAN_SCA_SIZE}].")
 @model_opt("roman", "roman|MODEL.yaml|FRAME.fits",
            "the detector model: GalSim's Roman chain (with saturation), a YAML list of effects in physical "
-           "order, or a frame perscli rendered (the model that made it); see --list-effects")
+           "order, or a frame perscli rendered (the model that made it); see --list-effects", names=("roman",))
 @click.option("--set", "settings", multiple=True, metavar="EFFECT.KEY=VALUE",
               help="Override the model: e.g. read_noise.sigma=5, persistence.base=pessimistic, ipc=off.")
-@click.option("--previous", multiple=True, metavar="FRAME",
+@click.option("--previous", multiple=True, metavar="FRAME", type=FILE,
               help="An earlier exposure of the same SCA (a frame perscli rendered); repeatable. Its FLUENCE "
                    "(STARFLU for --persistence-source stars) leaves persistence in this one.")
 @click.option("--persistence-source", "persistence_source", metavar="all|stars|ELECTRONS", default=None,
@@ -65,7 +65,7 @@ def _list_effects(ctx, param, value):
 @click.option("--dry-run", "dry_run", is_flag=True, default=False,
               help="Draw nothing, write no frame or figure (no -o or --seed needed): print where the frame lands (its "
                    "corners on the sky, its size) and how many stars and galaxies of TRUTH.fits land on it.")
-@click.option("--regions", metavar="FILE.reg", default=None,
+@click.option("--regions", metavar="FILE.reg", default=None, type=FILE,
               help="With --dry-run: also write a ds9 region file (fk5) of the frame's outline and of the objects "
                    "drawn on it.")
 @click.option("--strict", is_flag=True, default=False,

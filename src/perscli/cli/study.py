@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import click
 
-from .helpers import report_errors
+from .helpers import FILE, FOLDER, report_errors
 from .options import overwrite_opt, verbosity_opts, workers_opt
 
 
 @click.command("study", short_help="Run a whole persistence study from one YAML description (Dask or serial).")
-@click.argument("description", required=False, metavar="STUDY.yaml")
-@click.option("-o", "--output", "outdir", required=True, metavar="DIR",
+@click.argument("description", required=False, metavar="STUDY.yaml", type=FILE)
+@click.option("-o", "--output", "outdir", required=True, metavar="DIR", type=FOLDER,
               help="Study folder: every product is written here; a rerun skips what is already made.")
 @click.option("--preset", type=click.Choice(["small", "paper", "ci"]), default=None,
               help="Start from a preset (small: a laptop; paper: the paper's 6.25 deg^2 and 18 SCAs; ci: the "

@@ -165,7 +165,10 @@ def write_report(outcome: dict, outdir: str, *, overwrite: bool = False) -> None
     parent = os.path.dirname(outdir)
     if not os.path.isdir(parent):
         raise PerscliError(f"{parent}: folder does not exist; create it or choose another output")
-    tmp = tempfile.mkdtemp(prefix=".perscli-diagnose-", dir=parent)
+    from ..io.output import make_temp_folder
+
+    # a new folder's permissions (0777 less the umask); the files in it get a new file's
+    tmp = make_temp_folder(parent, prefix=".perscli-diagnose-")
     try:
         report = outcome["report"]
         with open(os.path.join(tmp, "model.yaml"), "w") as fh:
@@ -178,10 +181,6 @@ def write_report(outcome: dict, outdir: str, *, overwrite: bool = False) -> None
             json.dump(_jsonable(report), fh, indent=1)
         with open(os.path.join(tmp, "report.md"), "w") as fh:
             fh.write(_markdown(report))
-        mode = 0o777 & ~_umask()
-        os.chmod(tmp, mode)
-        for name in os.listdir(tmp):
-            os.chmod(os.path.join(tmp, name), 0o666 & ~_umask())
         if os.path.exists(outdir):
             old = tempfile.mkdtemp(prefix=".perscli-old-", dir=parent)
             os.rmdir(old)
@@ -193,12 +192,6 @@ def write_report(outcome: dict, outdir: str, *, overwrite: bool = False) -> None
     finally:
         if os.path.exists(tmp):
             shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _figures(outcome, folder) -> list:

@@ -10,7 +10,9 @@ Everything is written by fitsio (:func:`perscli.io.fitsfile.write_fits_path`)
 from a list of :class:`perscli.io.fitsfile.OutHDU` (images, and tables built
 with :func:`perscli.io.fitsfile.table_hdu`).
 ``-o NAME.fits.gz`` writes gzip; ``compress=`` tile-compresses images
-losslessly.
+losslessly.  Files get the permissions of any new file (0666 less the
+umask): their temporary files are made by :func:`make_temp_file`, not
+:func:`tempfile.mkstemp`, whose files are 0600.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import contextlib
 import datetime as _dt
 import io
 import os
+import secrets
 import sys
 import tempfile
 
@@ -152,15 +155,74 @@ def atomic_path(dest: str, *, overwrite: bool = False, suffix: str = ".part"):
     if os.path.exists(dest) and not overwrite:
         raise PerscliError(f"{dest}: already exists; use --overwrite to replace it")
     folder = os.path.dirname(os.path.abspath(dest))
-    fd, tmp = tempfile.mkstemp(prefix=".perscli-", suffix=suffix, dir=folder)
+    fd, tmp = make_temp_file(folder, suffix=suffix)
     os.close(fd)
     try:
         yield tmp
-        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, dest)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def make_temp_file(folder: str, *, prefix: str = ".perscli-", suffix: str = ".part"):
+    """A new, empty file in ``folder`` for an output to be renamed into place: ``(fd, path)``.
+
+    Like :func:`tempfile.mkstemp` (a unique name, created exclusively), but
+    with the permissions of any new file, 0666 less the umask (0644 under
+    the usual umask 022), where mkstemp's are 0600: the output renamed from
+    it would otherwise be readable by its owner only.  The umask is applied
+    by the system as the file is created, not read and reset here, which
+    would change it for every thread of the process for a moment.
+
+    Parameters
+    ----------
+    folder : str
+        The destination's folder (a rename across file systems is not atomic).
+    prefix, suffix : str
+        Around a random part of the name; the leading dot hides it from ``ls``.
+
+    Returns
+    -------
+    (int, str)
+        An open descriptor (read-write) and the path.
+    """
+    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    for _ in range(100):
+        path = os.path.join(folder, f"{prefix}{secrets.token_hex(6)}{suffix}")
+        try:
+            return os.open(path, flags, 0o666), path
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{folder}: no unused temporary file name (100 tried)")
+
+
+def make_temp_folder(folder: str, *, prefix: str = ".perscli-") -> str:
+    """A new, empty folder in ``folder`` for an output folder to be renamed into place.
+
+    Like :func:`tempfile.mkdtemp`, but with the permissions of any new
+    folder, 0777 less the umask (mkdtemp's are 0700); see :func:`make_temp_file`.
+
+    Parameters
+    ----------
+    folder : str
+        The destination's parent folder.
+    prefix : str
+        Before a random part of the name.
+
+    Returns
+    -------
+    str
+        The new folder's path.
+    """
+    for _ in range(100):
+        path = os.path.join(folder, f"{prefix}{secrets.token_hex(6)}")
+        try:
+            os.mkdir(path, 0o777)
+            return path
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{folder}: no unused temporary folder name (100 tried)")
 
 
 def write_hdus(hdus, dest: str, *, overwrite: bool = False, stdout=None, compress: str = "none") -> None:
@@ -179,6 +241,7 @@ def write_hdus(hdus, dest: str, *, overwrite: bool = False, stdout=None, compres
     from .fitsfile import gzip_file, write_fits_path
 
     if dest == "-":
+        # a scratch copy in the shared temporary folder, read back at once: mkstemp's 0600 is right for it
         fd, tmp = tempfile.mkstemp(prefix=".perscli-", suffix=".part.fits")
         os.close(fd)
         try:
@@ -192,7 +255,7 @@ def write_hdus(hdus, dest: str, *, overwrite: bool = False, stdout=None, compres
     with atomic_path(dest, overwrite=overwrite, suffix=".part.fits") as tmp:
         write_fits_path(hdus, tmp, compress=compress)
         if dest.endswith(".gz"):
-            fd, ztmp = tempfile.mkstemp(prefix=".perscli-", suffix=".part.gz", dir=os.path.dirname(tmp))
+            fd, ztmp = make_temp_file(os.path.dirname(tmp), suffix=".part.gz")
             try:
                 gzip_file(tmp, fd)
                 os.close(fd)
@@ -204,8 +267,3 @@ def write_hdus(hdus, dest: str, *, overwrite: bool = False, stdout=None, compres
                 if os.path.exists(ztmp):
                     os.unlink(ztmp)
 
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

@@ -49,7 +49,6 @@ import contextlib
 import logging
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -1473,12 +1472,6 @@ def _pairs_hdu(records: list, g_axes: str):
     return hdu
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def _png_targets(plot, plots_dir, overwrite):
     """{kind: path} of the figures to write, checked before any work."""
     targets = {}
@@ -1552,7 +1545,7 @@ def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=
         |De| bin: de_lo, de_hi, n, n_eff, chi2, dof, p, p_method), figures
         and source.
     """
-    from ..io.output import check_output, write_hdus
+    from ..io.output import check_output, make_temp_file, write_hdus
 
     catalogs = list(catalogs or ())
     if pairs is not None:
@@ -1619,11 +1612,10 @@ def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=
                        "hist_de": lambda p: plots.hist_de_figure(hist, p, thresholds=thresholds, n=len(sc)),
                        "bin_theta": lambda p: plots.theta_figure(theta, p)}
             for key, path in pngs.items():
-                fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".png",
-                                           dir=os.path.dirname(os.path.abspath(path)))
+                # a new file's permissions (0666 less the umask), as for every output
+                fd, tmp = make_temp_file(os.path.dirname(os.path.abspath(path)),
+                                         prefix=f".{os.path.basename(path)}.", suffix=".png")
                 os.close(fd)
-                # mkstemp makes the file 0600: figures are as readable as any other output
-                os.chmod(tmp, 0o666 & ~_umask())
                 temps[tmp] = path
                 figures[key.removeprefix("dir:")](tmp)
         write_hdus(hdul, dest, overwrite=overwrite)

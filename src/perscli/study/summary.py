@@ -201,7 +201,6 @@ def _write_bytes(path: str, data: bytes) -> None:
     tmp = f"{path}.{os.getpid()}.part"
     with open(tmp, "wb") as fh:
         fh.write(data)
-    os.chmod(tmp, 0o644)
     os.replace(tmp, path)
 
 
