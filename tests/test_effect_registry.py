@@ -23,21 +23,23 @@ OBJECTS = [("star", 1020.3, 2030.6, 15.0, 0.3, 0, 0), ("star", 1050.7, 2012.2, 2
            ("galaxy", 1040.4, 2050.1, 17.5, 0.3, 0.2, -0.1), ("galaxy", 1012.6, 2055.8, 21.0, 0.5, 0, 0.1)]
 
 #: sha256 of each image HDU's data as big-endian float32, rendered by the chain before the registry
-#: (commit f61446f, and again at 5627a19/d07a744: identical, with --workers 1 and 2).  e1: the
-#: Roman chain; e2: 30 s later, dithered by 1.44", with e1 as --previous; e3: 30 s after e2, with
-#: e1 and e2 as --previous, pessimistic persistence, gain 2, read noise 5.
+#: (commit f61446f, and again at 5627a19/d07a744: identical, with --workers 1 and 2), then re-pinned
+#: when render began passing the exposure's date to GalSim's sky (commit 9766425): IDEAL then moved by
+#: exactly (1.2866 - 0.5665) e-/s x 139.8 s = 100.67 e- in every pixel of e1, and nothing else changed
+#: in the chain.  e1: the Roman chain; e2: 30 s later, dithered by 1.44", with e1 as --previous; e3:
+#: 30 s after e2, with e1 and e2 as --previous, pessimistic persistence, gain 2, read noise 5.
 REFERENCE = {
-    "e1": {"SCI": "9f5f02f570f3c824871bea0210c84550afefacb7fbe14582707d7a4af42112db",
-           "IDEAL": "c39f0cb88ba804c32efbefa211a870730763d630978a34e9df855e4b0fe4e754",
-           "FLUENCE": "6e660e920d76cc5a4a28e281559575688a89fffa8d998ec3a85919242a4a7602"},
-    "e2": {"SCI": "accbc7a5a40744ded1c0b37882f3aefb9067dc1e5d707f55a3746faf387d6727",
-           "IDEAL": "e557a22500d27a2f8651be7ddfdc0657f6e867d6012106f7b65fe953287e02ba",
-           "FLUENCE": "c29968c4a350a1a5e2314a687cb7cf786f896eaa84585b1f721f2aeecf920523",
-           "PERSIST": "9ea83a866ebc5d8ff9d176bfb18c7fb350e5fab32a3fdc9153ea2a3cf7889c50"},
-    "e3": {"SCI": "bb9e3eb8e32b3bda3a5344b0eee0f0fd7b9b4758678397fcddfbb2a316596f5e",
-           "IDEAL": "c39f0cb88ba804c32efbefa211a870730763d630978a34e9df855e4b0fe4e754",
-           "FLUENCE": "19304fb74ae57eaefe16934989efd7822849a7470dc8d4e3f4c5064d404ea150",
-           "PERSIST": "f2fde47a4cf944fab68db8a5c92014f10847e7ecf48b223685c4ab7979d9660b"},
+    "e1": {"SCI": "61de938a2079f18c4d531f495338db5aac811679f38a8450b890abd1f7ecfa6c",
+           "IDEAL": "d704203bf43ced4d30c1094fc1b2b00236ed7df300ce01193f41644a44829ef2",
+           "FLUENCE": "f5e88cdacab1eb627d8fd74184cd9245fbc5db6a1d6c932d2255e1028317712b"},
+    "e2": {"SCI": "37a6121f8d71f589784436259f27a4f8a51ddb126727757dc170a9d33f4292c5",
+           "IDEAL": "48d771ab94b4e0b7b55cc1701086a06ef62213d68f19c0fc8b45b49541cb96c6",
+           "FLUENCE": "7267ec41348f2a918ef54b4a947a40136bb239b971f6a34052e88af1a67162b8",
+           "PERSIST": "1a9133840a9c6c8edb744e7ec97193b0096e649ef6474d128de7201575a185c1"},
+    "e3": {"SCI": "7043efbc1f6b9411ea2f26e31022f9e8bd8e77e7d5bf9a6f43aa9385b9d5971a",
+           "IDEAL": "ed9ec839221129499b2d8c3719aa62fcabe0baf607d8d44f270e22e205ae1824",
+           "FLUENCE": "6ec5edaedb9f3dd134c59f904d5cdf524b6fbbc757133f36e50c3b2ee52cce26",
+           "PERSIST": "ebe191dcc9792f7216f95e87f0b0df7952f38f9e2336f20844f56f5be88064c4"},
 }
 
 
@@ -131,7 +133,7 @@ def test_registry_order_and_schemas():
     ("persistence.max_previous=-1", ["persistence.max_previous", "integer [0, inf)", "not -1"]),
     ("persistence.max_previous=2.5", ["persistence.max_previous", "whole number", "not 2.5"]),
     ("persistence.combine=mean", ["persistence.combine must be one of sum, max", "not 'mean'"]),
-    ("persistence.time_model=fast", ["persistence.time_model must be one of exact, galsim", "not 'fast'"]),
+    ("persistence.time_model=fast", ["persistence.time_model must be one of exact, middle, galsim", "not 'fast'"]),
     ("persistence.x0=0", ["persistence.x0", "must be positive"]),
     ("sky.level=-3", ["sky.level", "[0, inf) e-/pixel/s | auto", "not -3"]),
     ("ipc.kernel=[[1,0],[0,1]]", ["ipc.kernel must be 'roman' or a 3x3 list"]),
@@ -383,7 +385,7 @@ def test_list_effects_needs_no_inputs():
         assert f"\n{name} " in out
         for p in cls.schema:
             assert f" {p.name} " in out
-    for text in ("e-/DN", "(0, inf)", "100000", "exact | galsim", "integer [0, inf)", "(base)"):
+    for text in ("e-/DN", "(0, inf)", "100000", "exact | middle | galsim", "integer [0, inf)", "(base)"):
         assert text in out, text
     # other options around it are not checked: it stops first
     assert invoke("render", "truth-that-does-not-exist.fits", "--list-effects").exit_code == 0

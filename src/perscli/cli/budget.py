@@ -74,9 +74,10 @@ def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, columns, ch
     \b
     Examples:
       perscli budget -o budget.fits --plot budget.png
-      perscli budget xi.fits -o cmp.fits --plot xi_vs_budget.png --check
-      perscli budget xi.fits --bands hirata --modes EB --sigma 3 -o cmp.fits
-      perscli correlate shapes.fits -o - | perscli budget - -o cmp.fits
+      perscli budget xi.fits -o cmp.fits --plot xi_vs_budget.png
+      perscli budget xi.fits --bands hirata --modes EB --sigma 3 -o cmp_hirata.fits
+      perscli correlate both.fits --frames 0 1 --min-sep 0.05 --max-sep 2 --nbins 5 -o - | perscli budget - -o cmp_pipe.fits
+      perscli budget xi.fits --check -o cmp_check.fits || echo "xi+ exceeds the budget"
     """
     if xi is not None and (theta_range is not None or nbins is not None):
         raise click.UsageError("--theta-range and --nbins are for the budget alone; with XI the separations "

@@ -149,12 +149,19 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
 
     \b
     Examples:
-      perscli correlate both.fits --frames 0 1 -o xi.fits --plots figs
-      perscli correlate shapes_persist.fits shapes_ref.fits -o xi.fits --plot xi.png
-      perscli correlate de.fits --de1 de1 --de2 de2 --min-sep 0.5 --max-sep 60 --nbins 15 -o xi.fits
-      perscli correlate both.fits --frames 0 1 --patch-centers earlier_xi.fits -o xi2.fits
-      perscli correlate --pair e1.fits e1_ref.fits --pair e2.fits e2_ref.fits -o xi.fits
-      perscli correlate --pairs pairs.txt --npatch 10 -o xi.fits --plots figs
+      perscli correlate both.fits --frames 0 1 --min-sep 0.05 --max-sep 2 --nbins 5 -o xi.fits --plots figs
+      perscli correlate shapes.fits shapes_nop.fits --min-sep 0.05 --max-sep 2 --nbins 5 -o xi_ab.fits \
+          --plot xi_ab.png
+      perscli correlate --pair shapes.fits shapes_nop.fits --min-sep 0.05 --max-sep 2 --nbins 5 -o xi_pairs.fits
+      perscli correlate both.fits --de1 g1 --de2 g2 --min-sep 0.05 --max-sep 2 --nbins 5 -o xi_g.fits
+
+    (both.fits, shapes.fits and shapes_nop.fits are made by the examples of
+    perscli measure --help, on 512 x 512 cutouts: a few dozen galaxies, hence
+    arcsecond separations and shot-noise errors.  A study pools many pairs:
+    --pair A B --pair C D ..., or --pairs FILE with one 'A.fits B.fits' per
+    line; with --patch-centers an earlier output's PATCHES fixes the
+    jackknife patches.  The last example correlates one table's own columns,
+    here g itself.)
     """
     from ..stats.correlate import correlate_files
 

@@ -52,9 +52,9 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
 
     \b
     Examples:
-      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 128 1 128 --seed 21 \
+      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 512 1 512 --seed 21 \
           --set dark.current=0.3 -o meas0.fits
-      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 128 1 128 --seed 22 \
+      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 512 1 512 --seed 22 \
           --set dark.current=0.3 --previous meas0.fits -o meas1.fits
       perscli diagnose meas0.fits meas1.fits --simulated e0.fits --simulated e1.fits -o diag
       perscli diagnose meas0.fits meas1.fits --simulated e0.fits --simulated e1.fits \

@@ -127,22 +127,22 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     \b
     Examples:
       perscli pointings --plan --ra 10 --dec -44 --n 3 --sca 7 -o seq.fits
-      perscli catalog --footprints seq.fits --bounds 1 128 1 128 -o seq_truth.fits
-      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 128 1 128 --dry-run --regions seq0.reg
-      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 128 1 128 --seed 1 --strict -o e0.fits
-      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 128 1 128 --seed 2 --previous e0.fits \\
+      perscli catalog --footprints seq.fits --bounds 1 512 1 512 -o seq_truth.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 512 1 512 --dry-run --regions seq0.reg
+      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 512 1 512 --seed 1 --strict -o e0.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 512 1 512 --seed 2 --previous e0.fits \\
           -o e1.fits
-      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 128 1 128 --seed 2 --set persistence=off \\
+      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 512 1 512 --seed 2 --set persistence=off \\
           -o e1_nop.fits
-      perscli render seq_truth.fits --pointings seq.fits --row 2 --bounds 1 128 1 128 --seed 3 --model e1.fits \\
+      perscli render seq_truth.fits --pointings seq.fits --row 2 --bounds 1 512 1 512 --seed 3 --model e1.fits \\
           -o e2.fits
-      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 128 1 128 --seed 1 \\
+      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 512 1 512 --seed 1 \\
           --hdus SCI,FLUENCE,STARFLU --compress gzip -o h0.fits
-      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 128 1 128 --seed 2 --previous h0.fits \\
+      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 512 1 512 --seed 2 --previous h0.fits \\
           --persistence-source stars --hdus SCI,PERSIST -o e1_stars.fits
       perscli catalog --ra 9.5 --dec -44.06 --size 10 -o sca7_truth.fits
       perscli render sca7_truth.fits --ra 10 --dec -44 --pa 30 --mjd 61541.97 --filter J129 --sca 7 \\
-          --bounds 1 128 1 128 --model roman_detector.yaml --set read_noise.sigma=5 --seed 4 --plot explicit.png \\
+          --bounds 1 512 1 512 --model roman_detector.yaml --set read_noise.sigma=5 --seed 4 --plot explicit.png \\
           -o explicit.fits
       perscli render --list-effects
     """

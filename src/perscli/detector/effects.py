@@ -456,8 +456,9 @@ def _persistence_schema():
         *law,
         Param("coefficients", "floats", list(GALSIM_LINEAR_COEFFICIENTS), "",
               "kind linear: fraction of each earlier exposure's fluence, most recent first (galsim.roman)"),
-        Param("time_model", "choice", "exact", "", "exact: the rate integrated over the exposure; galsim: "
-              "GalSim's mid-exposure rate x 139.8 s", choices=TIME_MODELS),
+        Param("time_model", "choice", "exact", "", "exact: the rate integrated over the exposure; middle: the "
+              "rate at its middle x its length (the WFC3 pipeline); galsim: GalSim's mid-exposure rate x 139.8 s",
+              choices=TIME_MODELS),
         Param("combine", "choice", "sum", "", "sum over earlier exposures (the paper, GalSim) or per-pixel max "
               "(WFC3 pipeline)", choices=COMBINES),
         Param("max_previous", "int", 10, "", "only the N most recent earlier exposures count (0: all)", lo=0),
