@@ -468,7 +468,7 @@ def shapes_summary(path: Path, truth: Path) -> dict:
 REAL_PHASES = [
     ("the command (`measure`, with the imports it makes)", "measure", "cli/measure.py", "max"),
     ("read the frame (`Frame.planes`)", "planes", "io/frames.py", "sum"),
-    ("Roman PSF (`psf_profile`)", "psf_profile", "measure/shapes.py", "sum"),
+    ("Roman PSF (`psf_model`)", "psf_model", "measure/psf.py", "sum"),
     ("PSF transfer tables (`StampDrawer.table`, every stamp side)", "table", "render/draw.py", "sum"),
     ("predicted S/N (`predicted_snr`)", "predicted_snr", "measure/shapes.py", "sum"),
     ("S/N tables (`SnrTable`)", "_snr_table", "measure/shapes.py", "sum"),

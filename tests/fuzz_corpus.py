@@ -508,6 +508,7 @@ def psf_image() -> bytes:
     psf = np.exp(-(xx ** 2 + yy ** 2) / (2 * 2.6 ** 2))
     hdr = fits.Header()
     hdr["PIXSCALE"] = (0.055, "[arcsec] pixel scale")
+    hdr["PSFPIXEL"] = (False, "the optical PSF: no pixel response")
     return _normalized(_astropy_bytes(fits.HDUList([fits.PrimaryHDU(psf / psf.sum(), hdr)])))
 
 

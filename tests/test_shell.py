@@ -99,6 +99,59 @@ def test_a_multi_line_message_becomes_one_line():
     assert result.stderr == "tool sub: error: first line second line (see 'tool sub --help')\n"
 
 
+@pytest.mark.parametrize("module, command, args, message", [
+    ("correlate", "correlate", ["--frobnicate"], "No such option '--frobnicate'"),
+    ("correlate", "correlate", [], "Missing option '-o' / '--output'"),
+    ("budget", "budget", ["--nbins", "many", "-o", "x.fits"], "Invalid value for '--nbins'"),
+    ("render", "render", ["t.fits", "--ra", "370"], "Invalid value for '--ra': 370.0 is not in the range"),
+    ("manpages", "man", ["--all"], "--all needs -o FOLDER"),
+])
+def test_a_command_run_on_its_own_has_one_line_usage_errors(tmp_path, monkeypatch, module, command, args, message):
+    # as tests of single commands run them: no perscli group around the command
+    import importlib
+
+    monkeypatch.chdir(tmp_path)
+    cmd = getattr(importlib.import_module(f"perscli.cli.{module}"), command)
+    result = click.testing.CliRunner().invoke(cmd, args)
+    assert result.exit_code == 2 and result.stdout == "", (result.exit_code, result.output)
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith(f"{command}: error: ") and message in lines[0], lines[0]
+    assert lines[0].endswith(f" (see '{command} --help')"), lines[0]
+    assert listing(tmp_path) == []
+
+
+def test_other_click_programs_keep_clicks_display():
+    # perscli's display is installed on click's class: a program of someone else's in the same process
+    @click.command("other")
+    @click.option("--n", type=int)
+    def other(n):
+        pass
+
+    result = click.testing.CliRunner().invoke(other, ["--n", "x"])
+    assert result.exit_code == 2
+    assert result.stderr.startswith("Usage: other [OPTIONS]\nTry 'other --help' for help.\n\nError: ")
+    # a perscli command taken into another program's group is that program's too
+    group = click.Group("theirs", commands={"budget": cli.commands["budget"]})
+    result = click.testing.CliRunner().invoke(group, ["budget", "--frobnicate"])
+    assert result.exit_code == 2 and result.stderr.startswith("Usage: theirs budget ")
+
+
+def test_importing_the_helpers_again_installs_the_display_once(monkeypatch):
+    # a second copy of the module (importlib.reload does this) replaces click's display, not the first copy's
+    import importlib.util
+
+    from perscli.cli import helpers
+
+    monkeypatch.setattr(click.UsageError, "show", click.UsageError.show)  # restored afterwards
+    spec = importlib.util.spec_from_file_location("perscli.cli._helpers_again", helpers.__file__)
+    again = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(again)
+    assert click.UsageError.show is again.show_usage_error is not helpers.show_usage_error
+    assert again.show_usage_error.replaces is helpers.show_usage_error.replaces
+    assert helpers.show_usage_error.replaces.__module__ == "click.exceptions"
+
+
 def test_usage_errors_keep_their_type_and_message_for_python_callers():
     with pytest.raises(click.UsageError) as err:
         cli.main(["rendr"], prog_name="perscli", standalone_mode=False)
@@ -281,6 +334,7 @@ def test_man_in_a_real_pipeline_that_stops_reading(tmp_path):
 
 #: every parameter that names a file or a folder: (command, parameter) -> completion type (and names)
 PATH_PARAMS = {
+    ("measure", "write_psf"): "file",
     ("apply-persistence", "current"): "file",
     ("apply-persistence", "previous"): "file",
     ("apply-persistence", "model_spec"): ("file", "typical", "pessimistic", "wfc3", "galsim-linear"),

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import logging
 import sys
@@ -104,28 +103,20 @@ def progress_reporter(label: str, stream=None):
 
 # -- usage errors: one line ----------------------------------------------------------------------
 
-def usage_error_line(exc: click.UsageError, *, command_path: str | None = None, help_names=("-h", "--help")) -> str:
+def usage_error_line(exc: click.UsageError) -> str:
     """A usage error as one line: ``perscli render: error: MESSAGE (see 'perscli render -h')``.
 
     The message is click's own (``Invalid value for '--ra': ...``,
-    ``Missing option '-o' / '--output'``, ``No such command 'rendr'``);
-    the line starts with the command it concerns, as argparse's do, so that
-    in ``perscli A | perscli B`` one knows which of them complained.
-
-    Parameters
-    ----------
-    exc : click.UsageError
-    command_path : str, optional
-        'perscli render', when ``exc`` carries no context (a UsageError
-        raised in a command's body without one).
-    help_names : sequence of str
-        The help options of that command, for the hint (the shortest is given).
+    ``Missing option '-o' / '--output'``, ``No such command 'rendr'``),
+    joined into one line; the line starts with the command it concerns, as
+    argparse's do, so that in ``perscli A | perscli B`` one knows which of
+    them complained.  The command is ``exc.ctx``'s ('perscli' without one).
     """
+    command_path, help_names = "perscli", ("-h", "--help")
     ctx = exc.ctx
     if ctx is not None:
         command_path = ctx.command_path
         help_names = ctx.help_option_names if ctx.command.get_help_option(ctx) is not None else ()
-    command_path = command_path or "perscli"
     message = " ".join(line.strip() for line in exc.format_message().splitlines() if line.strip())
     if message.endswith(".") and not message.endswith(".."):
         message = message[:-1]
@@ -133,38 +124,55 @@ def usage_error_line(exc: click.UsageError, *, command_path: str | None = None, 
     return f"{command_path}: error: {message}{hint}"
 
 
-# click >= 8.2 shows the help of a group called without a command through a UsageError
-_NO_ARGS_IS_HELP = getattr(click.exceptions, "NoArgsIsHelpError", ())
+class PerscliGroup(click.Group):
+    """A click group whose usage errors, its own and its commands', are one line on stderr.
+
+    The group itself changes nothing; being one marks the commands under it
+    as perscli's for :func:`show_usage_error` (a group of another program
+    that took in perscli's commands keeps click's display).
+    """
 
 
-@contextlib.contextmanager
-def one_line_usage_errors(ctx: click.Context | None = None):
-    """Usage errors raised inside the block show as one line on stderr (exit status 2 still).
+def speaks_perscli(ctx: click.Context) -> bool:
+    """True when ``ctx`` belongs to a perscli command line: one started at a PerscliGroup or a perscli command.
+
+    The second case is a command run on its own, as tests do
+    (``CliRunner().invoke(correlate, ...)``): its callback is perscli code.
+    """
+    root = ctx.find_root().command
+    module = getattr(root.callback, "__module__", None) or ""
+    return isinstance(root, PerscliGroup) or module == "perscli" or module.startswith("perscli.")
+
+
+# click's own, also when this module is reloaded (the class then holds the previous perscli one)
+_click_usage_error_show = getattr(click.UsageError.show, "replaces", click.UsageError.show)
+
+
+def show_usage_error(self: click.UsageError, file=None) -> None:
+    """``click.UsageError.show`` as perscli has it: one line (:func:`usage_error_line`) for its commands.
 
     click's own display is four lines (usage, a hint, a blank line, the
-    error), which in a pipeline or a log is mostly noise.  The exception
-    keeps its type, message and context (callers with
-    ``standalone_mode=False`` see it unchanged); only its ``show`` is
-    replaced.  ``ctx`` is the group's context, which names the command a
-    context-less UsageError (one raised in a command's body) came from.
-    ``perscli`` with no arguments still prints the help.
+    error), which in a pipeline or a log is mostly noise.  It is installed
+    in place of click's when this module is imported (every command module
+    imports it), rather than through a group or command class, because a
+    command run on its own (``CliRunner().invoke(correlate, ...)``) is a
+    plain click.Command with no perscli class around it.  The
+    exception keeps its type, message and context (callers with
+    ``standalone_mode=False`` see it unchanged); errors of other click
+    programs in the same process, and context-less ones (click attaches the
+    context to every UsageError raised under a command, so those come from
+    outside any), keep click's display.  Help shown for a group called
+    without a command (click's NoArgsIsHelpError has its own ``show``) is
+    still the help.
     """
-    try:
-        yield
-    except _NO_ARGS_IS_HELP:
-        raise
-    except click.UsageError as exc:
-        path, names = None, ("-h", "--help")
-        if exc.ctx is None and ctx is not None:
-            names = ctx.help_option_names
-            path = " ".join(filter(None, [ctx.command_path, ctx.invoked_subcommand]))
-
-        exc.show = functools.partial(_show_usage_error, exc, command_path=path, help_names=names)
-        raise
+    if self.ctx is not None and speaks_perscli(self.ctx):
+        click.echo(usage_error_line(self), file=file, err=True)
+    else:
+        _click_usage_error_show(self, file)
 
 
-def _show_usage_error(exc, file=None, **kw):
-    click.echo(usage_error_line(exc, **kw), file=file, err=True)
+show_usage_error.replaces = _click_usage_error_show
+click.UsageError.show = show_usage_error
 
 
 # -- path parameters ----------------------------------------------------------------------------

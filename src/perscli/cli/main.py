@@ -17,24 +17,9 @@ from .study import study
 from .manpages import man
 from .completion import completion
 from .helpers import configure_logging  # noqa: F401  (re-exported: perscli.cli.main.configure_logging)
-from .helpers import one_line_usage_errors
+# every usage error of the group and its commands is one line on stderr: see helpers.show_usage_error
+from .helpers import PerscliGroup
 from .options import no_checksum_opt
-
-
-class PerscliGroup(click.Group):
-    """The perscli group: every usage error, its own or a command's, is one line on stderr.
-
-    Done here rather than in :func:`main` so that it holds wherever the
-    group runs: the console script, ``python -m perscli``, CliRunner.
-    """
-
-    def make_context(self, info_name, args, parent=None, **extra):
-        with one_line_usage_errors():
-            return super().make_context(info_name, args, parent=parent, **extra)
-
-    def invoke(self, ctx):
-        with one_line_usage_errors(ctx):
-            return super().invoke(ctx)
 
 
 @click.group("perscli", cls=PerscliGroup, context_settings={"help_option_names": ["-h", "--help"]})

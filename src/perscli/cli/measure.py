@@ -6,7 +6,7 @@ import logging
 
 import click
 
-from .helpers import check_outputs, progress_reporter, report_errors
+from .helpers import FILE, check_outputs, file_or, progress_reporter, report_errors
 from .options import output_opt, overwrite_opt, verbosity_opts, workers_opt
 
 #: perscli.measure.shapes.MIN_SNR_DEFAULT, written out so that --help does not import the fitter
@@ -16,13 +16,32 @@ log = logging.getLogger("perscli")
 
 
 @click.command("measure", short_help="Measure galaxy shapes on frames by exponential-profile fits.")
-@click.argument("frames", nargs=-1, required=True, metavar="FRAME...")
-@click.option("--catalog", required=True, metavar="CAT.fits",
+@click.argument("frames", nargs=-1, required=True, metavar="FRAME...", type=FILE)
+@click.option("--catalog", required=True, metavar="CAT.fits", type=FILE,
               help="Objects to measure: id and ra/dec (degrees) or x/y (FITS pixels); hlr and mag_<FILTER> "
                    "columns, when present, give the starting point.")
-@click.option("--psf", default="roman", show_default=True, metavar="roman|PSF.fits",
-              help="roman: GalSim's Roman PSF for the frame's SCA and FILTER; or an image of the optical PSF "
-                   "with PIXSCALE (arcsec), sampled 2x or finer.")
+@click.option("--psf", default="roman", show_default=True, metavar="roman|PSF.fits", type=file_or("roman"),
+              help="roman: GalSim's Roman PSF for the frame's SCA and FILTER.  Or a PSF image (file.fits[EXT] "
+                   "picks an HDU; of several, each frame takes the one of its SCA and FILTER) sampled finer "
+                   "than the frame, 4x ideally: its sampling from --psf-oversampling, OVERSAMP (PSF pixels per "
+                   "detector pixel), PSF_SAMP (PSFEx: 1/that), PIXSCALE or PIXELSCL (arcsec) or CDELT1 (deg); "
+                   "refused if undersampled (coarser than 1.5x, R062 2.4x, Z087 1.7x, for a Roman filter; or "
+                   "with power beyond its own Nyquist frequency).")
+@click.option("--psf-pixel", type=click.Choice(["included", "excluded"]), default=None,
+              help="Whether the PSF image includes the detector pixel response (then the fit does not apply it "
+                   "again), overriding its PSFPIXEL keyword (T/F).  Without either: included for STPSF's "
+                   "DET_SAMP/DET_DIST extensions and PSFEx models (PSF_SAMP), else excluded (an optical PSF), "
+                   "with a warning.")
+@click.option("--psf-oversampling", type=click.FloatRange(min=0, min_open=True), default=None, metavar="N",
+              help="PSF pixels per frame pixel of the PSF image, overriding its header.")
+@click.option("--allow-undersampled-psf", is_flag=True,
+              help="Fit with an undersampled PSF image instead of refusing it, with a warning giving the "
+                   "expected shape error (Roman's PSF at the frame's own sampling: 4e-4 to 5e-3 in g with the "
+                   "pixel response, up to 6e-2 without).")
+@click.option("--write-psf", default=None, type=FILE, metavar="PSF.fits",
+              help="Also write the PSF images used, one HDU per SCA and FILTER, readable as --psf (with "
+                   "--psf roman: GalSim's Roman PSF drawn 4x oversampled without the pixel; PSFPIXEL = F, "
+                   "OVERSAMP = 4, PIXSCALE, SCA, FILTER).")
 @click.option("--method", type=click.Choice(["exp", "hsm"]), default="exp", show_default=True,
               help="exp: exponential-mixture fit (exact PSF, analytic Jacobian); hsm: GalSim REGAUSS.")
 @click.option("--stamp", type=int, default=48, show_default=True, metavar="PIXELS",
@@ -54,8 +73,8 @@ log = logging.getLogger("perscli")
 @workers_opt("processes fitting the objects (the output does not depend on N)")
 @verbosity_opts
 @report_errors
-def measure(frames, catalog, psf, method, stamp, sky, read_noise, blend_radius, kinds, min_snr, all_rows, joint,
-            output, overwrite, workers):
+def measure(frames, catalog, psf, psf_pixel, psf_oversampling, allow_undersampled_psf, write_psf, method, stamp,
+            sky, read_noise, blend_radius, kinds, min_snr, all_rows, joint, output, overwrite, workers):
     """Measure the shapes of the catalogue's galaxies on each FRAME, or jointly over all of them.
 
     Which objects: the catalogue rows of --kinds (the galaxies, by the truth
@@ -81,6 +100,23 @@ def measure(frames, catalog, psf, method, stamp, sky, read_noise, blend_radius, 
     that pattern's alone (linear down to ~1e-10).  Only when the catalogue has
     no magnitude for the frame's FILTER is the start flux solved from the data.
 
+    The PSF: GalSim's Roman PSF for the frame's SCA and FILTER (--psf roman),
+    or an image.  An image is an optical PSF, without the detector pixel
+    response (PSFPIXEL = F: GalSim's drawImage(method='no_pixel'), STPSF's
+    OVERSAMP extension, what --write-psf writes), which the fit multiplies by
+    the pixel's response; or an effective PSF that includes it (PSFPIXEL = T:
+    PSFEx models, STPSF's DET_SAMP extension, images of stars), which the fit
+    must not give it again.  Say which with PSFPIXEL or --psf-pixel; without
+    either a warning states the assumption.  The image is interpolated, which
+    is accurate only for an image sampled finer than the frame: Roman's PSF
+    at the frame's own sampling (PSFEx, DET_SAMP) is aliased, and shapes
+    measured through it are off by 4e-4 to 5e-3 in g (more without the
+    pixel), so an image coarser than the frame's filter needs, or whose own
+    Fourier transform holds power beyond its Nyquist frequency, is refused
+    (exit 1) unless --allow-undersampled-psf.  Through a 4x oversampled image
+    (STPSF's OVERSAMP, or --write-psf's of --psf roman) shapes are those of
+    --psf roman to ~1e-4.
+
     Output: a SHAPES table, one row per object fitted per frame (frame = its
     index): id, frame, x, y (FITS pixels), ra, dec, g1, g2 (the frame's pixel
     axes), T (pixel^2), flux, their errors, s2n (fitted), snr_pred
@@ -104,19 +140,41 @@ def measure(frames, catalog, psf, method, stamp, sky, read_noise, blend_radius, 
 
     \b
     Examples:
-      perscli measure exp3.fits --catalog truth.fits -o shapes.fits
-      perscli measure exp3.fits exp3_nopersist.fits --catalog truth.fits -o both.fits
-      perscli measure frame.fits --catalog cat.fits --psf psf_x4.fits --method hsm -o hsm.fits
-      perscli measure e1.fits e2.fits e3.fits --catalog truth.fits --joint -o joint.fits
-      perscli measure exp3.fits --catalog truth.fits --kinds all --min-snr 0 --all-rows -o everything.fits
+      perscli pointings --plan --ra 10 --dec -44 --n 2 --sca 7 -o pair.fits
+      perscli catalog --footprints pair.fits --bounds 1 512 1 512 -o truth.fits
+      perscli render truth.fits --pointings pair.fits --row 0 --bounds 1 512 1 512 --seed 1 -o frame0.fits
+      perscli render truth.fits --pointings pair.fits --row 1 --bounds 1 512 1 512 --seed 2 \\
+          --previous frame0.fits -o frame.fits
+      perscli render truth.fits --pointings pair.fits --row 1 --bounds 1 512 1 512 --seed 2 \\
+          --set persistence=off -o frame_nop.fits
+      perscli measure frame.fits --catalog truth.fits -o shapes.fits
+      perscli measure frame_nop.fits --catalog truth.fits -o shapes_nop.fits
+      perscli measure frame.fits frame_nop.fits --catalog truth.fits -o both.fits
+      perscli measure frame.fits --catalog truth.fits --write-psf psf_x4.fits -o shapes_roman.fits
+      perscli measure frame.fits --catalog truth.fits --psf psf_x4.fits --method hsm -o hsm.fits
+      perscli measure frame.fits --catalog truth.fits --psf 'psf_x4.fits[PSF]' --psf-pixel excluded \\
+          --psf-oversampling 4 -o shapes_x4.fits
+      perscli measure frame0.fits frame.fits --catalog truth.fits --joint -o joint.fits
+      perscli measure frame.fits --catalog truth.fits --kinds all --min-snr 0 --all-rows -o everything.fits
+
+    (The first five make the inputs: two exposures of a 512 x 512 cutout
+    of SCA 7, the second with and without the persistence of the first.
+    --write-psf writes GalSim's Roman PSF for the frame's SCA and filter,
+    4x oversampled, which --psf then reads; --psf-pixel and
+    --psf-oversampling say what a PSF image's header does not, as for
+    STPSF's 'psf.fits[OVERSAMP]' or a PSFEx model.)
     """
     from ..measure.shapes import measure_files
 
     check_outputs(output, inputs=[catalog, *frames, psf], overwrite=overwrite)
+    if write_psf is not None:
+        check_outputs(write_psf, inputs=[catalog, *frames, psf], overwrite=overwrite)
     summary = measure_files(frames, catalog, output, psf=psf, method=method, stamp=stamp, sky=sky,
                             read_noise=read_noise, blend_radius=blend_radius, workers=workers, overwrite=overwrite,
                             progress=progress_reporter("galaxies" if joint else "objects"), kinds=kinds,
-                            min_snr=min_snr, all_rows=all_rows, joint=joint)
+                            min_snr=min_snr, all_rows=all_rows, joint=joint, psf_pixel=psf_pixel,
+                            psf_oversampling=psf_oversampling, allow_undersampled_psf=allow_undersampled_psf,
+                            write_psf=write_psf)
     log.info("%s: %d rows (%d without flags) from %d frame(s); %d fitted, %d below --min-snr",
              "stdout" if output == "-" else output, summary["rows"], summary["good"], summary["frames"],
              summary["fitted"], summary["cut"])

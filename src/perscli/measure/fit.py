@@ -6,11 +6,13 @@ component i has flux fraction p_i and covariance ``f_i (T/2) [[1+e1, e2],
 [e2, 1-e1]]`` with e = 2g/(1+|g|^2).  Its Fourier transform is analytic, and
 so are the transform's first and second derivatives with respect to every
 parameter.  The PSF enters as its Fourier transform times the pixel
-response, tabulated once per stamp size (:class:`perscli.render.draw.StampDrawer`,
-the renderer's own table), and pixel values come from the fold of the
-frequencies above Nyquist and one inverse FFT: no Gaussian approximation of
-the PSF, whose rings and spikes a few Gaussians cannot follow (that is where
-ngmix-style fits lose accuracy on Roman images).
+response (or alone, for an effective PSF that includes the pixel already:
+:mod:`perscli.measure.psf`), tabulated once per stamp size
+(:class:`perscli.render.draw.StampDrawer`, the renderer's own table), and
+pixel values come from the fold of the frequencies above Nyquist and one
+inverse FFT: no Gaussian approximation of the PSF, whose rings and spikes a
+few Gaussians cannot follow (that is where ngmix-style fits lose accuracy on
+Roman images).
 
 The fit is a damped Newton method (Levenberg-Marquardt on the full Hessian)
 in float64, with an exp accurate to 2 ulp, a step tolerance of 1e-10 and a
@@ -140,21 +142,25 @@ class ExpModel:
     Parameters
     ----------
     psf : galsim.GSObject
-        The PSF in pixel units of the frame, normalised to 1 (no pixel response).
+        The PSF in pixel units of the frame, normalised to 1.
     n : int
         Stamp size.
     pad : int
         FFT size is n + 2 pad: the model is periodic on that size, so light
         that leaves the stamp by less than ``pad`` pixels does not come back.
+    pixel : bool
+        Whether the model multiplies the PSF's transform by the pixel
+        response: True for an optical PSF, False for one that includes it
+        already (an effective PSF).
     """
 
-    def __init__(self, psf, n: int, pad: int = 8):
+    def __init__(self, psf, n: int, pad: int = 8, pixel: bool = True):
         from ..render.draw import StampDrawer
 
         self.n = int(n)
         self.pad = int(pad)
         self.size = self.n + 2 * self.pad
-        self.drawer = StampDrawer(psf)
+        self.drawer = StampDrawer(psf, pixel=pixel)
         transfer, k = self.drawer.table(self.size)
         self.alias = self.drawer.alias
         self.tr_re = np.ascontiguousarray(transfer.real, dtype=np.float64)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +32,7 @@ import numpy as np
 from .. import PerscliError
 from ..instrument import ROMAN_PIXEL_SCALE
 from .fit import FLAG_EDGE, P_EXP, ExpModel, JointStamp, fit_exp, fit_joint
+from .psf import PsfOptions, psf_hdus, psf_model
 
 log = logging.getLogger(__name__)
 
@@ -179,55 +181,26 @@ def frame_wcs(frame):
     return wcs
 
 
-def psf_profile(spec: str, frame, *, pixel_scale: float):
-    """The PSF as a GalSim profile in the frame's pixel units.
+def psf_profile(spec: str, frame, *, pixel_scale: float, options=None):
+    """The optical PSF (without the pixel response) as a GalSim profile in the frame's pixel units, flux 1.
 
-    Parameters
-    ----------
-    spec : str
-        'roman': galsim.roman.getPSF for the frame's SCA and FILTER at the SCA
-        centre and the filter's effective wavelength (what ``perscli render``
-        draws with).  Otherwise a FITS image of the optical PSF (without the
-        pixel response) with its pixel scale in PIXSCALE (arcsec) or CDELT1
-        (degrees); it must be Nyquist sampled (for Roman, 2x or finer; 4x
-        reaches the accuracy targets) and is interpolated with a quintic kernel.
-    pixel_scale : float
-        The frame's pixel scale, arcsec.
+    What :class:`~perscli.measure.fit.ExpModel` and
+    :class:`~perscli.render.draw.StampDrawer` take with their default
+    ``pixel=True``.  ``spec``, ``options``: as for
+    :func:`perscli.measure.psf.psf_model`, which the command uses (it also
+    takes PSF images that include the pixel response).
+
+    Raises
+    ------
+    PerscliError
+        For a PSF image that includes the pixel response: it has no optical
+        profile to give, and applying the pixel to it again would widen it.
     """
-    import galsim
-
-    if spec == "roman":
-        import galsim.roman as roman
-
-        sca, filt = frame.keyword("SCA"), frame.keyword("FILTER")
-        if sca is None or filt is None:
-            raise PerscliError(f"{frame.label}: --psf roman needs SCA and FILTER in the header; give --psf PSF.fits")
-        bandpasses = roman.getBandpasses(AB_zeropoint=True)
-        if str(filt).strip() not in bandpasses:
-            raise PerscliError(f"{frame.label}: FILTER={filt!r} is not a Roman filter; give --psf PSF.fits")
-        bp = bandpasses[str(filt).strip()]
-        psf = roman.getPSF(int(sca), str(filt).strip(), wavelength=bp.effective_wavelength)
-        return galsim.PixelScale(roman.pixel_scale).toImage(psf)
-    from ..io.frames import open_frame
-
-    try:
-        image = open_frame(spec, units="electron")
-    except PerscliError as exc:
-        raise PerscliError(f"--psf: {exc}") from None
-    try:
-        data = image.planes()[0].astype(np.float64)
-        scale = image.keyword("PIXSCALE")
-        if scale is None and image.keyword("CDELT1") is not None:
-            scale = abs(float(image.keyword("CDELT1"))) * 3600.0
-        if scale is None:
-            raise PerscliError(f"{spec}: no PIXSCALE (arcsec) or CDELT1 (deg) keyword: the PSF image's pixel "
-                               "scale is needed")
-    finally:
-        image.close()
-    if not np.all(np.isfinite(data)) or data.sum() <= 0:
-        raise PerscliError(f"{spec}: the PSF image has non-finite values or no positive flux")
-    return galsim.InterpolatedImage(galsim.Image(data, scale=float(scale) / pixel_scale),
-                                    x_interpolant="quintic", normalization="flux")
+    made = psf_model(spec, frame, pixel_scale=pixel_scale, options=options)
+    if made.pixel_included:
+        raise PerscliError(f"{made.source}: this PSF image includes the pixel response, so it is no optical "
+                           "PSF: use perscli.measure.psf.psf_model and ExpModel(..., pixel=False)")
+    return made.profile
 
 
 def read_positions(path: str):
@@ -663,7 +636,7 @@ def _gather(results, fitted, out_rows, float_columns, int_columns) -> dict:
 
 def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, read_noise=None,
                   blend_radius=4.0, progress=None, workers: int = 1, kinds=None, min_snr=MIN_SNR_DEFAULT,
-                  all_rows: bool = False, models=None) -> dict:
+                  all_rows: bool = False, models=None, psf_options=None, psf_used=None) -> dict:
     """Measure the selected catalogue objects on one frame.
 
     The frame is read here, once; the objects are fitted by
@@ -687,6 +660,12 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
     models : dict, optional
         Stamp side -> ExpModel for this frame's PSF, filled here as needed
         (a cache to share between frames of one SCA and filter).
+    psf_options : perscli.measure.psf.PsfOptions, optional
+        How to read a PSF image (--psf-pixel, --psf-oversampling,
+        --allow-undersampled-psf).
+    psf_used : list, optional
+        Appended with the :class:`perscli.measure.psf.PsfModel` when this
+        call makes the models (for --write-psf).
     psf, method, stamp, sky, read_noise, blend_radius, progress, workers
         As for :func:`measure_files`.
 
@@ -709,7 +688,7 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
         data = data.astype(np.float64)
     models = {} if models is None else models
     if stamp not in models:
-        models[stamp] = ExpModel(psf_profile(psf, frame, pixel_scale=pixel_scale), stamp)
+        models[stamp] = _psf_exp_model(psf, frame, pixel_scale, stamp, psf_options, psf_used)
     model = models[stamp]
     facts = _FrameFacts.of(frame)
     on = on_frame(x[rows_sel], y[rows_sel], data.shape)
@@ -724,8 +703,10 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
     if method == "hsm":
         import galsim
 
-        psf_image = galsim.Convolve(model.drawer.psf, galsim.Pixel(1.0)).drawImage(
-            nx=stamp, ny=stamp, scale=1.0, method="no_pixel")
+        # HSM takes the PSF as it appears in pixel values: with the pixel response, once
+        drawer = model.drawer
+        with_pixel = galsim.Convolve(drawer.psf, galsim.Pixel(1.0)) if drawer.pixel else drawer.psf
+        psf_image = with_pixel.drawImage(nx=stamp, ny=stamp, scale=1.0, method="no_pixel")
     # neighbours of any kind count: a star beside a galaxy spoils its shape as much as a galaxy does
     blends = blended(x, y, blend_radius)
     sizes = None
@@ -737,7 +718,7 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
         for n in sorted(set(sizes[todo].tolist())):
             if n not in models:
                 # the PSF's transfer for another grid: milliseconds once GalSim has drawn the PSF once
-                models[n] = ExpModel(model.drawer.psf, n)
+                models[n] = ExpModel(model.drawer.psf, n, pixel=model.drawer.pixel)
     ctx = FrameContext(data=data, weights=weights, ivar=ivar, x=x, y=y, blends=blends,
                        background=float(noise.background), cat=cat, frame=facts, pixel_scale=pixel_scale,
                        method=method, stamp=stamp, models=models if method == "exp" else None, sizes=sizes,
@@ -758,6 +739,15 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
     cols["_counts"] = {"selected": len(rows_sel), "on": len(rows_on), "cut": int(len(rows_on) - len(todo)),
                        "fitted": len(todo)}
     return cols
+
+
+def _psf_exp_model(psf, frame, pixel_scale, stamp, psf_options, psf_used) -> ExpModel:
+    """The ExpModel of a frame's PSF (:func:`perscli.measure.psf.psf_model`) for ``stamp``; the PSF
+    appended to ``psf_used``.  A PSF that includes the pixel response is not given it again."""
+    made = psf_model(psf, frame, pixel_scale=pixel_scale, options=psf_options)
+    if psf_used is not None:
+        psf_used.append(made)
+    return ExpModel(made.profile, stamp, pixel=not made.pixel_included)
 
 
 def _hsm(img, wt, psf_image, cols, i, x0, y0, edge):
@@ -914,7 +904,7 @@ def measure_joint_object(ctx: JointContext, j: int) -> dict:
 
 def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=None, blend_radius=4.0,
                   progress=None, workers: int = 1, kinds=None, min_snr=MIN_SNR_DEFAULT, all_rows: bool = False,
-                  inputs=None) -> dict:
+                  inputs=None, psf_options=None, psf_used=None) -> dict:
     """One shape per galaxy from all the frames it falls on (``perscli measure --joint``).
 
     Every frame is read once (its pixels stay in memory: a 4088^2 float32
@@ -931,6 +921,8 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
         From :func:`read_positions`, with ra/dec.
     inputs : list, optional
         Appended with (stem, name, DATASUM) per frame, for provenance.
+    psf_options, psf_used
+        As for :func:`measure_frame` (one PSF per SCA and filter).
     Others as for :func:`measure_frame`.
 
     Returns
@@ -976,7 +968,7 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
             key = (psf, str(facts.keyword("SCA")), filt, round(pixel_scale, 6))
             if key not in model_keys:
                 model_keys[key] = len(models)
-                models.append({stamp: ExpModel(psf_profile(psf, frame, pixel_scale=pixel_scale), stamp)})
+                models.append({stamp: _psf_exp_model(psf, frame, pixel_scale, stamp, psf_options, psf_used)})
             m = model_keys[key]
             x, y = wcs.all_world2pix(cat["ra"][rows], cat["dec"][rows], 1)
             x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
@@ -1008,7 +1000,7 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
         sizes[j] = stamp_side(cat, rows[j], pixel_scale, ladder)
     for per_psf in models:
         for n in sorted(set(sizes[todo].tolist()) - set(per_psf)):
-            per_psf[n] = ExpModel(per_psf[stamp].drawer.psf, n)
+            per_psf[n] = ExpModel(per_psf[stamp].drawer.psf, n, pixel=per_psf[stamp].drawer.pixel)
     ctx = JointContext(frames=jframes, models=models, cat=cat, rows=rows, sizes=sizes, blends=blends_all[rows],
                        rate_frame=rate_frame, stamp=stamp, pixel_scale=pixel_scale)
     results = run(measure_joint_object, todo, context=ctx, workers=workers, progress=progress)
@@ -1044,7 +1036,8 @@ _DESCRIPTIONS = {"snr_pred": "S/N predicted from the catalogue (cut: MINSNR)",
 
 def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp", stamp=48, sky=None,
                   read_noise=None, blend_radius=4.0, workers=1, overwrite=False, progress=None, kinds=None,
-                  min_snr=MIN_SNR_DEFAULT, all_rows: bool = False, joint: bool = False) -> dict:
+                  min_snr=MIN_SNR_DEFAULT, all_rows: bool = False, joint: bool = False, psf_pixel=None,
+                  psf_oversampling=None, allow_undersampled_psf: bool = False, write_psf=None) -> dict:
     """``perscli measure`` as a function: shapes of the catalogue's galaxies on each frame, or jointly.
 
     Writes a FITS file.  Per frame (the default): a SHAPES table, one row per
@@ -1072,7 +1065,19 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
         256) and below the cut (flag 4096) too.
     joint : bool
         One fit per galaxy over all the frames (one FILTER, with WCS and EXPTIME).
-    psf, method, stamp, sky, read_noise, blend_radius, workers, overwrite, progress
+    psf : str
+        'roman' or a PSF image (:func:`perscli.measure.psf.psf_model`).
+    psf_pixel : {'included', 'excluded'} or None
+        Whether the PSF image includes the pixel response (None: its
+        PSFPIXEL keyword, else inferred with a warning).
+    psf_oversampling : float or None
+        PSF pixels per frame pixel of the PSF image (None: its header).
+    allow_undersampled_psf : bool
+        Use an undersampled PSF image with a warning instead of refusing it.
+    write_psf : str or None
+        Also write the PSF images used there, one HDU per PSF
+        (:func:`perscli.measure.psf.psf_hdus`), readable as ``psf``.
+    method, stamp, sky, read_noise, blend_radius, workers, overwrite, progress
         As the command's options.
 
     Returns
@@ -1095,7 +1100,23 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
     frames = list(frames)
     if frames.count("-") > 1:
         raise PerscliError("only one frame can be standard input ('-')")
-    check_output(dest, overwrite=overwrite, inputs=[catalog, *frames, psf if psf != "roman" else None])
+    if psf == "roman":
+        given = [name for name, value in (("--psf-pixel", psf_pixel), ("--psf-oversampling", psf_oversampling),
+                                           ("--allow-undersampled-psf", allow_undersampled_psf)) if value]
+        if given:
+            raise PerscliError(f"{' and '.join(given)} describe{'s' if len(given) == 1 else ''} a PSF image: "
+                               "give --psf PSF.fits, or leave it out with --psf roman")
+    psf_options = PsfOptions(pixel=psf_pixel, oversampling=psf_oversampling,
+                             allow_undersampled=allow_undersampled_psf)
+    read = [catalog, *frames, psf if psf != "roman" else None]
+    check_output(dest, overwrite=overwrite, inputs=read)
+    if write_psf is not None:
+        check_output(write_psf, overwrite=overwrite, inputs=read)
+        if write_psf == "-" and dest == "-":
+            raise PerscliError("--write-psf and -o cannot both be standard output: give --write-psf a file")
+        if write_psf != "-" and dest != "-" and os.path.abspath(write_psf) == os.path.abspath(dest):
+            raise PerscliError(f"{write_psf}: --write-psf and -o name the same file: choose another name for the PSF")
+    psf_used = []
     cat = read_positions(catalog)
     _, kinds_text = select_kinds(cat, kinds)       # bad --kinds fail here, before any frame is read
     inputs = [("CAT", catalog, cat["datasum"])]
@@ -1112,12 +1133,16 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
               "MINSNR": (min_snr, "cut on the S/N predicted from the catalogue"),
               "SNRPRED": ("mag,hlr,PSF,noise", "predicted S/N from (never the pixels)"),
               "ALLROWS": (bool(all_rows), "rows off the frame (256) / below cut (4096)"),
-              "JOINT": (bool(joint), "one fit per galaxy over all frames")}
+              "JOINT": (bool(joint), "one fit per galaxy over all frames"),
+              "PSFPIXEL": (psf_pixel or "header", "PSF image includes the pixel (--psf-pixel)"),
+              "PSFOVERS": (psf_options.oversampling or "header", "PSF pixels per frame pixel (option)"),
+              "PSFUNDER": (bool(allow_undersampled_psf), "undersampled PSF image allowed")}
     hdus = [OutHDU([])]
     if joint:
         cols = measure_joint(frames, cat, psf=psf, stamp=stamp, sky=sky, read_noise=read_noise,
                              blend_radius=blend_radius, progress=progress, workers=workers, kinds=kinds,
-                             min_snr=min_snr, all_rows=all_rows, inputs=inputs)
+                             min_snr=min_snr, all_rows=all_rows, inputs=inputs, psf_options=psf_options,
+                             psf_used=psf_used)
         noise_sources = cols.pop("_noise")
         counts = cols.pop("_counts")
         order = ("id", "ra", "dec", "g1", "g2", "T", "flux", "ra_err", "dec_err", "g1_err", "g2_err", "T_err",
@@ -1138,7 +1163,8 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
     else:
         tables, noise_sources, frame_counts = [], [], []
         kwargs = dict(psf=psf, method=method, stamp=stamp, sky=sky, read_noise=read_noise,
-                      blend_radius=blend_radius, kinds=kinds, min_snr=min_snr, all_rows=all_rows)
+                      blend_radius=blend_radius, kinds=kinds, min_snr=min_snr, all_rows=all_rows,
+                      psf_options=psf_options, psf_used=psf_used)
         models = {}
         for k, name in enumerate(frames):
             frame = open_frame(name)
@@ -1178,13 +1204,40 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
         params[f"FLAG{int(math.log2(bit)):02d}"] = (bit, text[:47])
     for k, noise in enumerate(noise_sources, 1):
         params[f"BKG{k:02d}"] = (float(noise.background), f"background of frame {k} ({noise.source})")
+    if psf != "roman":
+        # how each PSF image was read: the parameters that produced the shapes
+        for k, used in enumerate(psf_used[:99], 1):
+            params[f"PSFPX{k:02d}"] = (bool(used.pixel_included), f"PSF {k} includes the pixel response")
+            params[f"PSFOV{k:02d}"] = (float(used.oversampling), f"PSF {k}: PSF pixels per frame pixel")
     add_provenance(hdus[0], step=f"measure method={method} psf={params['PSF'][0]} frames={len(frames)}"
                                  f"{' joint' if joint else ''} kinds={kinds_text} min_snr={min_snr:g}",
                    params=params, inputs=inputs)
     _document(hdus[0], joint)
+    if write_psf is not None:
+        _write_psf(psf_used, write_psf, psf, inputs, overwrite)
     write_hdus(hdus, dest, overwrite=overwrite)
     return {"rows": rows, "good": good, "unflagged": good, "frames": len(frames), "selected": counts["selected"],
             "fitted": counts["fitted"], "cut": counts["cut"], "joint": bool(joint)}
+
+
+def _write_psf(psf_used, dest, psf, inputs, overwrite):
+    """--write-psf: the PSF images of the fits, one HDU per PSF, with the keywords that read them back."""
+    from ..io.fitsfile import OutHDU
+    from ..io.output import add_provenance, write_hdus
+
+    # one image per SCA and FILTER, which is how --psf picks them again (frames of one SCA whose WCS
+    # scales differ by 1e-6 have models of their own, of the same PSF)
+    distinct = {}
+    for used in psf_used:
+        distinct.setdefault((used.source, used.sca, used.filter), used)
+    psf_used = list(distinct.values())
+    primary = OutHDU([])
+    add_provenance(primary, step=f"measure --write-psf psf={psf if psf == 'roman' else psf.split('/')[-1]}",
+                   params={"NPSF": (len(psf_used), "PSF images (one per SCA and FILTER)")}, inputs=inputs)
+    primary.add_comment("Each PSF HDU: a PSF image with PSFPIXEL (includes the pixel response), OVERSAMP (PSF")
+    primary.add_comment("pixels per detector pixel), PIXSCALE, SCA and FILTER; perscli measure --psf THIS")
+    primary.add_comment("takes, for each frame, the HDU of its SCA and FILTER.")
+    write_hdus([primary, *psf_hdus(psf_used)], dest, overwrite=overwrite)
 
 
 def _document(header, joint: bool):

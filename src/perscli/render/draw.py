@@ -3,11 +3,12 @@
 Why not GalSim's ``Convolve(galaxy, psf).drawImage()`` per object: it
 recomputes the PSF's Fourier transform (an interpolated image, the expensive
 part) for every object, on an FFT grid sized by the PSF's wide wings.  Here the
-PSF times the pixel response is tabulated once per stamp size; each object then
-costs its own analytic Fourier transform (GalSim's, exact), a phase ramp for its
-sub-pixel position, a fold of the frequencies above Nyquist onto the sampled
-band (the Poisson summation that makes pixel values exact for an undersampled
-PSF), and one small inverse FFT.
+PSF times the pixel response (the PSF alone, with ``pixel=False``, for one that
+includes it: shape fits through an effective PSF) is tabulated once per stamp
+size; each object then costs its own analytic Fourier transform (GalSim's,
+exact), a phase ramp for its sub-pixel position, a fold of the frequencies
+above Nyquist onto the sampled band (the Poisson summation that makes pixel
+values exact for an undersampled PSF), and one small inverse FFT.
 
 Conventions: the PSF and the objects are in pixel coordinates of the detector
 (GalSim's Roman PSFs are oriented with the SCA); an object's profile is mapped
@@ -39,24 +40,34 @@ class StampDrawer:
     ----------
     psf : galsim.GSObject
         The PSF in pixel coordinates (unit = one pixel), normalised to 1.
+    pixel : bool
+        Multiply by the pixel response (the default: ``psf`` is an optical
+        PSF).  False when ``psf`` already includes it (an effective PSF, e.g.
+        interpolated from a PSF image that was integrated over pixels):
+        applying the pixel twice would widen the PSF by a pixel's variance.
     """
 
-    def __init__(self, psf):
+    def __init__(self, psf, pixel: bool = True):
         self.psf = psf
+        self.pixel = bool(pixel)
         # alias factor: the grid must reach the PSF's maxk; an even factor keeps blocks aligned
         alias = max(1, math.ceil(psf.maxk / np.pi))
         self.alias = alias + (alias % 2)
         self._tables = {}
 
     def table(self, n: int):
-        """(T, k) for stamp size n: PSF x pixel transfer on the extended grid, and the frequencies."""
+        """(T, k) for stamp size n: PSF x pixel transfer (PSF only without ``pixel``) on the extended grid,
+        and the frequencies."""
         table = self._tables.get(n)
         if table is None:
             m = self.alias
             k = _centred_freqs(n, m)
             psf_k = self.psf.drawKImage(nx=m * n, ny=m * n, scale=2.0 * np.pi / n).array
-            pix = np.sinc(k / (2.0 * np.pi))
-            table = self._tables[n] = (psf_k * pix[:, None] * pix[None, :], k)
+            if self.pixel:
+                pix = np.sinc(k / (2.0 * np.pi))
+                table = self._tables[n] = (psf_k * pix[:, None] * pix[None, :], k)
+            else:
+                table = self._tables[n] = (psf_k, k)
         return table
 
     def stamp(self, n: int, dx: float, dy: float, flux: float, profile=None) -> np.ndarray:
