@@ -3,7 +3,6 @@
 import os
 import re
 import shutil
-import stat
 import subprocess
 import sys
 
@@ -477,16 +476,8 @@ def test_bash_completes_a_file_name_through_the_real_script(tmp_path):
 
 # -- outputs get the mode of any new file ----------------------------------------------------------
 
-@pytest.fixture(params=[(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)], ids=["022", "077", "002"])
-def umask(request):
-    mask, mode = request.param
-    old = os.umask(mask)
-    yield mode
-    os.umask(old)
-
-
-def mode_of(path):
-    return stat.S_IMODE(os.stat(path).st_mode)
+# the umask fixture (022, 077, 027 and the mode a new file gets under each) and mode_of are test_io_output's
+from test_io_output import mode_of, umask  # noqa: E402,F401  (umask: a fixture)
 
 
 def test_fits_and_png_outputs_follow_the_umask(tmp_path, umask):
