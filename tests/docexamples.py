@@ -35,6 +35,7 @@ NOT_RUN = {
 #: inputs in the repository that name a shared input inside them
 REQUIRES = {
     "examples/small.yaml": "Roman_WAS_obseq_11_1_23.fits",
+    "paper": "Roman_WAS_obseq_11_1_23.fits",   # --preset paper: its exposures come from the real schedule
 }
 
 _OUTPUT_FLAGS = ("-o", "--output", "--plot", "--plots", "--write-psf", "--regions")
@@ -236,7 +237,10 @@ def run_examples(examples, folder: Path, *, shared: Path, bindir: Path | None = 
             if missing:
                 skip = f"needs {', '.join(missing)} from ../shared/data"
         if skip is None:
-            blocked = sorted(n for n in names & unavailable if n not in ex.outputs())
+            # a file made by a skipped example, or one inside a folder such an example makes
+            blocked = sorted({t for t in toks if t not in ex.outputs() and
+                              (t in unavailable or any(t.startswith(u.rstrip("/") + "/") for u in unavailable))}
+                             | (names & unavailable - set(ex.outputs())))
             if blocked:
                 skip = f"needs {', '.join(blocked)}, made by a skipped example"
         if skip is not None:

@@ -72,3 +72,19 @@ def test_help_examples_run(tmp_path):
     outcomes = docs.run_examples(examples, folder, shared=SHARED_DATA)
     print(docs.report(outcomes))
     _check(outcomes)
+
+
+def test_examples_needing_absent_shared_inputs_are_skipped_with_what_they_make(tmp_path):
+    """Without ../shared: an example naming a shared file, or a repository file that names one, is skipped,
+    and so is every later example reading what it would have made (a file inside its output folder too)."""
+    absent = tmp_path / "no-shared" / "data"
+    examples = [docs.Example("t", "perscli study examples/small.yaml -o small_study"),
+                docs.Example("t", "perscli study --preset paper -o plan --dry-run --cost-from small_study/cost.json"),
+                docs.Example("t", "perscli pointings --schedule Roman_WAS_obseq_11_1_23.fits --before 3 --n 2 -o p.fits"),
+                docs.Example("t", "perscli catalog --footprints p.fits --sca 7 -o c.fits")]
+    folder = tmp_path / "clone"
+    docs.prepare_folder(folder, absent, docs.script_dir())
+    outcomes = docs.run_examples(examples, folder, shared=absent)
+    assert [o.status for o in outcomes] == ["skipped"] * 4
+    assert "small_study/cost.json" in outcomes[1].reason or "Roman_WAS" in outcomes[1].reason
+    assert "p.fits, made by a skipped example" in outcomes[3].reason
