@@ -55,18 +55,11 @@ def test_the_harness_fails_a_broken_example_and_a_clobbered_output(tmp_path):
         _check(outcomes)
 
 
-def test_readme_examples_run(tmp_path):
-    examples = docs.readme_examples()
+@pytest.mark.parametrize("source", ["readme", "help"])
+def test_documented_examples_run(tmp_path, source):
+    """README's examples in one folder, the --help examples of every command in another, each in order."""
+    examples = docs.readme_examples() if source == "readme" else help_examples_in_order()
     assert len(examples) >= 30
-    folder = tmp_path / "clone"
-    docs.prepare_folder(folder, SHARED_DATA, docs.script_dir())
-    outcomes = docs.run_examples(examples, folder, shared=SHARED_DATA)
-    print(docs.report(outcomes))
-    _check(outcomes)
-
-
-def test_help_examples_run(tmp_path):
-    examples = help_examples_in_order()
     folder = tmp_path / "clone"
     docs.prepare_folder(folder, SHARED_DATA, docs.script_dir())
     outcomes = docs.run_examples(examples, folder, shared=SHARED_DATA)

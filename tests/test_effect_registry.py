@@ -26,20 +26,23 @@ OBJECTS = [("star", 1020.3, 2030.6, 15.0, 0.3, 0, 0), ("star", 1050.7, 2012.2, 2
 #: (commit f61446f, and again at 5627a19/d07a744: identical, with --workers 1 and 2), then re-pinned
 #: when render began passing the exposure's date to GalSim's sky (commit 9766425): IDEAL then moved by
 #: exactly (1.2866 - 0.5665) e-/s x 139.8 s = 100.67 e- in every pixel of e1, and nothing else changed
-#: in the chain.  e1: the Roman chain; e2: 30 s later, dithered by 1.44", with e1 as --previous; e3:
+#: in the chain; re-pinned again when the noise became keyed on detector blocks of 32 pixels (issue 16:
+#: a pixel's noise the same whatever part of the detector is simulated): IDEAL unchanged in all three
+#: frames, SCI, FLUENCE and PERSIST (which follows e1's and e2's FLUENCE) drawn from the new streams.
+#: e1: the Roman chain; e2: 30 s later, dithered by 1.44", with e1 as --previous; e3:
 #: 30 s after e2, with e1 and e2 as --previous, pessimistic persistence, gain 2, read noise 5.
 REFERENCE = {
-    "e1": {"SCI": "61de938a2079f18c4d531f495338db5aac811679f38a8450b890abd1f7ecfa6c",
+    "e1": {"SCI": "96d3ed1071ca97f99f56a14b80a8b1dfe782d9fb6e49b262512cb9c99cc4c6b5",
            "IDEAL": "d704203bf43ced4d30c1094fc1b2b00236ed7df300ce01193f41644a44829ef2",
-           "FLUENCE": "f5e88cdacab1eb627d8fd74184cd9245fbc5db6a1d6c932d2255e1028317712b"},
-    "e2": {"SCI": "37a6121f8d71f589784436259f27a4f8a51ddb126727757dc170a9d33f4292c5",
+           "FLUENCE": "83672199279ac731aa98dd22a3c70cb27ff01f5b1ad90b4149b98af2febe793c"},
+    "e2": {"SCI": "73e14cab2fb9fa5f5dda3f8114d790696e0b178fc6822ebe2111af317339210d",
            "IDEAL": "48d771ab94b4e0b7b55cc1701086a06ef62213d68f19c0fc8b45b49541cb96c6",
-           "FLUENCE": "7267ec41348f2a918ef54b4a947a40136bb239b971f6a34052e88af1a67162b8",
-           "PERSIST": "1a9133840a9c6c8edb744e7ec97193b0096e649ef6474d128de7201575a185c1"},
-    "e3": {"SCI": "7043efbc1f6b9411ea2f26e31022f9e8bd8e77e7d5bf9a6f43aa9385b9d5971a",
+           "FLUENCE": "62b9bef8f90cdf9fe8f02046b692ef88968a01a89a31c533380dd810f72ee69d",
+           "PERSIST": "9b34a66be53a9955002a3076902a811ffd6cd7b14b175b764534fc9f217655e6"},
+    "e3": {"SCI": "7f7ca013dfd1d5070be3c36c695dd1fbbc8fa43f4ddaf35b4deacc76f1e12bb4",
            "IDEAL": "ed9ec839221129499b2d8c3719aa62fcabe0baf607d8d44f270e22e205ae1824",
-           "FLUENCE": "6ec5edaedb9f3dd134c59f904d5cdf524b6fbbc757133f36e50c3b2ee52cce26",
-           "PERSIST": "ebe191dcc9792f7216f95e87f0b0df7952f38f9e2336f20844f56f5be88064c4"},
+           "FLUENCE": "980667c4c718d2151526b553410b8fb2370b0b7520401d1b03d20b7a2f752c98",
+           "PERSIST": "3fdeb2ab5a2b8e8a2c0cbb3b81fb94abbd7cdd21285c31e8d43106a19376799f"},
 }
 
 

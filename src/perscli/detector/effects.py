@@ -36,10 +36,17 @@ chain (galsim.roman) in its order, with saturation added::
       - gain:         {gain: 1.0}          # e-/DN: the output is in DN
       - quantize:     {}                   # round to integers
 
-Each effect draws its random numbers from its own stream, derived from the
-seed and the effect's name, so switching one effect on or off leaves the
-noise of every other effect unchanged: a frame rendered with persistence and
-one without differ only by the persistence (what a paired measurement needs).
+Each effect draws its random numbers from its own streams, keyed on the
+seed, the effect's name and the block of detector pixels (:data:`NOISE_BLOCK`
+pixels square, on the detector's own grid: :func:`block_streams`), so that
+
+- switching one effect on or off leaves the noise of every other effect
+  unchanged: a frame rendered with persistence and one without differ only
+  by the persistence (what a paired measurement needs);
+- a pixel's noise is the same whether the whole detector, a cutout or a
+  scattered set of blocks is simulated (``ChainContext.origin`` and
+  ``active``): a study can render only the regions that persistence reaches
+  and get the very pixels of the whole frame there.
 
 Stages: 'scene' effects (sky) make the IDEAL frame with the sources;
 'charge' effects (up to saturation) make the FLUENCE, the charge collected in
@@ -229,6 +236,11 @@ class ChainContext:
     seed: int = 0
     sky_rate: float | Callable[[], float] = 0.0
     persistence: np.ndarray | Callable[[], np.ndarray] | None = None
+    #: detector pixel (x, y), 1-indexed, of the image's first element: places it on the noise blocks
+    origin: tuple = (1, 1)
+    #: which noise blocks to simulate (bool, :func:`block_grid` shape); None: all.  Pixels of the other
+    #: blocks come out NaN
+    active: np.ndarray | None = None
     #: what the chain used: the sky rate (e-/pixel/s) and the persistence charge (electrons)
     used_sky_rate: float = field(default=0.0, init=False)
     used_persistence: np.ndarray | None = field(default=None, init=False)
@@ -248,9 +260,89 @@ class ChainContext:
         return self._cache["persistence"]
 
 
-def _stream(seed: int, name: str) -> np.random.Generator:
-    """The random stream of one effect: depends on the seed and the effect's name only."""
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), zlib.crc32(name.encode())])))
+#: side, in detector pixels, of the square blocks that each have their own random stream per effect.
+#: Blocks lie on the detector's grid (block (0, 0) starts at pixel (1, 1)), so a frame, a cutout or a
+#: set of blocks all give a pixel the same noise.  32: a full 4088^2 SCA is 16,384 blocks, whose
+#: streams cost ~0.05 s to key; smaller blocks would make regions tighter but keying slower
+NOISE_BLOCK = 32
+
+
+def block_grid(origin, shape) -> tuple:
+    """The noise blocks an image covers: (first block row, first block column, rows, columns).
+
+    Parameters
+    ----------
+    origin : (int, int)
+        Detector pixel (x, y), 1-indexed, of ``image[0, 0]``.
+    shape : (int, int)
+        The image's (ny, nx).
+    """
+    x0, y0 = int(origin[0]) - 1, int(origin[1]) - 1
+    bx0, by0 = x0 // NOISE_BLOCK, y0 // NOISE_BLOCK
+    bx1 = (x0 + shape[1] - 1) // NOISE_BLOCK
+    by1 = (y0 + shape[0] - 1) // NOISE_BLOCK
+    return by0, bx0, by1 - by0 + 1, bx1 - bx0 + 1
+
+
+def block_streams(seed: int, name: str, origin, shape, active=None):
+    """Random streams of one effect over an image, one per noise block it covers.
+
+    Each block's stream is a counter-based generator (Philox) keyed on the
+    seed and the effect's name, its counter starting at the block's place on
+    the detector: it depends on nothing else, so a pixel gets the same
+    numbers whatever else is simulated.
+
+    Parameters
+    ----------
+    seed : int
+    name : str
+        The effect's name.
+    origin, shape
+        As for :func:`block_grid`.
+    active : ndarray of bool, optional
+        Blocks to visit (the :func:`block_grid` shape); None: every block.
+
+    Yields
+    ------
+    (numpy.random.Generator, tuple of slice, tuple of slice)
+        The block's generator, the part of the image it covers, and that
+        part's place within the whole block (NOISE_BLOCK x NOISE_BLOCK):
+        draws that do not depend on the image's values are made for the whole
+        block and cut, so that a block only partly on the image still gives
+        its pixels the numbers the whole block would.
+    """
+    by0, bx0, nby, nbx = block_grid(origin, shape)
+    x0, y0 = int(origin[0]) - 1, int(origin[1]) - 1
+    bits = np.random.Philox(key=[int(seed) & 0xFFFFFFFFFFFFFFFF, zlib.crc32(name.encode())])
+    gen = np.random.Generator(bits)
+    state = bits.state
+    for j in range(nby):
+        by = by0 + j
+        ya, yb = max(by * NOISE_BLOCK, y0), min((by + 1) * NOISE_BLOCK, y0 + shape[0])
+        for i in range(nbx):
+            if active is not None and not active[j, i]:
+                continue
+            bx = bx0 + i
+            xa, xb = max(bx * NOISE_BLOCK, x0), min((bx + 1) * NOISE_BLOCK, x0 + shape[1])
+            # the counter's high words name the block; the low word counts draws within it
+            state["state"]["counter"][:] = (0, 0, by, bx)
+            state["buffer_pos"] = 4
+            state["has_uint32"] = 0
+            bits.state = state
+            yield (gen, (slice(ya - y0, yb - y0), slice(xa - x0, xb - x0)),
+                   (slice(ya - by * NOISE_BLOCK, yb - by * NOISE_BLOCK),
+                    slice(xa - bx * NOISE_BLOCK, xb - bx * NOISE_BLOCK)))
+
+
+def active_pixels(active, origin, shape) -> np.ndarray:
+    """The pixels of the blocks ``active`` marks, as a bool image of ``shape`` (all True for None)."""
+    if active is None:
+        return np.ones(shape, dtype=bool)
+    by0, bx0, nby, nbx = block_grid(origin, shape)
+    x0, y0 = int(origin[0]) - 1, int(origin[1]) - 1
+    big = np.repeat(np.repeat(np.asarray(active, dtype=bool), NOISE_BLOCK, axis=0), NOISE_BLOCK, axis=1)
+    oy, ox = y0 - by0 * NOISE_BLOCK, x0 - bx0 * NOISE_BLOCK
+    return big[oy:oy + shape[0], ox:ox + shape[1]]
 
 
 def roman_ipc_kernel() -> np.ndarray:
@@ -344,8 +436,15 @@ class DetectorEffect:
         """The variance after this effect, for a signal of mean ``mean`` and variance ``var`` before it."""
         return var
 
-    def rng(self, ctx: ChainContext) -> np.random.Generator:
-        return _stream(ctx.seed, self.name)
+    def streams(self, ctx: ChainContext, shape):
+        """This effect's random streams over an image of ``shape``: :func:`block_streams`."""
+        return block_streams(ctx.seed, self.name, ctx.origin, shape, ctx.active)
+
+    def fresh(self, ctx: ChainContext, image: np.ndarray) -> np.ndarray:
+        """``image`` with the pixels of inactive blocks set to NaN (they are not simulated)."""
+        if ctx.active is not None:
+            image[~active_pixels(ctx.active, ctx.origin, image.shape)] = np.nan
+        return image
 
 
 @register
@@ -375,7 +474,12 @@ class Poisson(DetectorEffect):
     description = "Poisson noise of the collected charge (integer electrons; negative expectations count as 0)"
 
     def sample(self, image, ctx):
-        return self.rng(ctx).poisson(np.clip(image, 0.0, None)).astype(np.float64)
+        # the number of draws Poisson sampling takes depends on the means, so a block's pixels are only
+        # reproducible when the whole block is simulated: render simulates whole blocks
+        out = self.fresh(ctx, np.empty_like(image, dtype=np.float64))
+        for gen, part, _ in self.streams(ctx, image.shape):
+            out[part] = gen.poisson(np.clip(image[part], 0.0, None))
+        return out
 
     def expectation(self, mean, ctx):
         return np.clip(mean, 0.0, None)
@@ -431,8 +535,10 @@ class Dark(DetectorEffect):
     schema = (Param("current", "float", ROMAN_DARK_CURRENT, "e-/pixel/s", "dark current (galsim.roman: 0.015)", lo=0.0),)
 
     def sample(self, image, ctx):
-        image += self.rng(ctx).poisson(self.p["current"] * ctx.exptime, size=image.shape)
-        return image
+        mean = self.p["current"] * ctx.exptime
+        for gen, part, cut in self.streams(ctx, image.shape):
+            image[part] += gen.poisson(mean, size=(NOISE_BLOCK, NOISE_BLOCK))[cut]
+        return self.fresh(ctx, image)
 
     def expectation(self, mean, ctx):
         return mean + self.p["current"] * ctx.exptime
@@ -465,6 +571,9 @@ def _persistence_schema():
         Param("source", "float", "all", "e-", "what of an earlier exposure persists: all (its FLUENCE: every "
               "photon), stars (its STARFLU: the light of stars only, the paper's setting), or a number: only "
               "pixels whose FLUENCE exceeds that many electrons", lo=0.0, choices=("all", "stars")),
+        Param("floor", "float", 0.0, "e-", "pixels of an earlier exposure whose persisting fluence (STARFLU or "
+              "FLUENCE) is at or below this leave nothing: how far faint light persists (0: all of it, the linear "
+              "law down to zero; the paper does not say)", lo=0.0),
         Param("fluence_cap", "float", "well", "e-", "the fluence fed to the law is at most this: well = "
               "saturation.full_well (no cap with saturation off), none = no cap (STARFLU beyond the well "
               "persists: the law extrapolated)", lo=0.0, lo_open=True, choices=("well", "none")),
@@ -522,6 +631,12 @@ class Persistence(DetectorEffect):
     def expectation(self, mean, ctx):
         charge = ctx.persistence_charge()
         return mean if charge is None else mean + charge
+
+    @staticmethod
+    def floor(model: "DetectorModel") -> float:
+        """Electrons: earlier pixels at or below this leave no persistence in ``model`` (0: none left out)."""
+        eff = model.get("persistence")
+        return float((eff.resolved() if eff is not None else Persistence.resolve({}))["floor"])
 
     @staticmethod
     def fluence_input(model: "DetectorModel") -> tuple:
@@ -626,8 +741,9 @@ class ReadNoise(DetectorEffect):
     schema = (Param("sigma", "float", ROMAN_READ_NOISE, "e-", "standard deviation (galsim.roman: 8.5)", lo=0.0),)
 
     def sample(self, image, ctx):
-        image += self.rng(ctx).normal(0.0, self.p["sigma"], size=image.shape)
-        return image
+        for gen, part, cut in self.streams(ctx, image.shape):
+            image[part] += gen.normal(0.0, self.p["sigma"], size=(NOISE_BLOCK, NOISE_BLOCK))[cut]
+        return self.fresh(ctx, image)
 
     def variance(self, mean, var, ctx):
         return var + self.p["sigma"] ** 2
@@ -928,7 +1044,8 @@ class ChainResult:
 
 def run_chain(sources: np.ndarray, model: DetectorModel, *, exptime: float, seed: int,
               sky_rate: Callable[[], float] | float = 0.0,
-              persistence: Callable[[], np.ndarray] | np.ndarray | None = None) -> ChainResult:
+              persistence: Callable[[], np.ndarray] | np.ndarray | None = None,
+              origin=(1, 1), active=None) -> ChainResult:
     """Apply the detector chain to an image of source electrons: ``sample`` of each effect in order.
 
     Parameters
@@ -947,6 +1064,14 @@ def run_chain(sources: np.ndarray, model: DetectorModel, *, exptime: float, seed
         The persistence in electrons (same shape), or a function returning
         it, called only when the persistence effect is on; None means no
         earlier exposures.
+    origin : (int, int)
+        Detector pixel (x, y), 1-indexed, of ``sources[0, 0]``: where the
+        image lies on the noise blocks (:func:`block_streams`).  Every block
+        the image covers should be covered whole (but at the detector's
+        edges) for its pixels to get the noise of a whole-detector frame.
+    active : ndarray of bool, optional
+        Only these noise blocks (:func:`block_grid` shape) are simulated; the
+        pixels of the others are NaN in SCI and FLUENCE.
 
     Returns
     -------
@@ -954,27 +1079,95 @@ def run_chain(sources: np.ndarray, model: DetectorModel, *, exptime: float, seed
         IDEAL is the image before the first effect after the 'scene' stage,
         FLUENCE before the first 'readout' effect (whether those are on or not).
     """
-    ctx = ChainContext(exptime=exptime, seed=seed, sky_rate=sky_rate, persistence=persistence)
+    return run_chains(sources, {"": model}, exptime=exptime, seed=seed, sky_rate=sky_rate,
+                      persistence={"": persistence}, origin=origin, active=active)[""]
+
+
+def _same_step(a: Effect, b: Effect) -> bool:
+    return a.name == b.name and a.enabled == b.enabled and a.resolved() == b.resolved()
+
+
+def run_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
+               sky_rate: Callable[[], float] | float = 0.0, persistence: dict | None = None,
+               origin=(1, 1), active=None) -> dict:
+    """:func:`run_chain` for several models of one exposure, sharing the steps they have in common.
+
+    The same frame with and without persistence, or with two persistence
+    laws, differs from the persistence step on: the steps before it (sky,
+    Poisson noise, reciprocity, dark current) are taken once, and each model
+    goes on from there.  Every effect draws from its own streams, so each
+    result is the bits :func:`run_chain` gives for that model alone.
+
+    Parameters
+    ----------
+    models : dict
+        Name -> DetectorModel.
+    persistence : dict, optional
+        Name -> the persistence charge (or a function giving it, or None) of
+        that model; missing names: None.
+    Others as for :func:`run_chain`.
+
+    Returns
+    -------
+    dict
+        Name -> ChainResult.
+    """
+    persistence = persistence or {}
+    names = list(models)
+    chains = [models[n].effects for n in names]
+    # the common prefix: the same effects with the same parameters, before any persistence charge differs
+    shared = 0
+    while len(names) > 1 and all(len(c) > shared for c in chains) \
+            and all(_same_step(c[shared], chains[0][shared]) for c in chains) \
+            and not (chains[0][shared].name == "persistence" and chains[0][shared].enabled):
+        shared += 1
+    ctx0 = ChainContext(exptime=exptime, seed=seed, sky_rate=sky_rate, origin=tuple(origin), active=active)
     img = np.array(sources, dtype=np.float64)
-    unit = "electron"
-    ideal = fluence = None
-    for eff in model.effects:
+    state = _Steps()
+    for eff in chains[0][:shared]:
+        img = state.step(eff, img, ctx0)
+    out = {}
+    for n, chain in zip(names, chains):
+        ctx = ChainContext(exptime=exptime, seed=seed, sky_rate=ctx0.sky, persistence=persistence.get(n),
+                           origin=tuple(origin), active=active)
+        ctx.used_sky_rate = ctx0.used_sky_rate
+        branch = state.copy()
+        mine = img.copy() if len(names) > 1 else img
+        for eff in chain[shared:]:
+            mine = branch.step(eff, mine, ctx)
+        out[n] = branch.result(mine, ctx)
+    return out
+
+
+class _Steps:
+    """The running state of a chain: IDEAL and FLUENCE as they are passed, and the unit."""
+
+    def __init__(self):
+        self.unit, self.ideal, self.fluence = "electron", None, None
+
+    def copy(self) -> "_Steps":
+        other = _Steps()
+        other.unit, other.ideal, other.fluence = self.unit, self.ideal, self.fluence
+        return other
+
+    def step(self, eff: Effect, img: np.ndarray, ctx: ChainContext) -> np.ndarray:
         cls = eff.cls
-        if ideal is None and cls.stage != "scene":
-            ideal = img.copy()
-        if fluence is None and cls.stage == "readout":
+        if self.ideal is None and cls.stage != "scene":
+            self.ideal = img.copy()
+        if self.fluence is None and cls.stage == "readout":
             # the charge collected so far is what traps hold on to: it drives later persistence
-            fluence = img.copy()
+            self.fluence = img.copy()
         if not eff.enabled:
-            continue
+            return img
         img = eff.instance().sample(img, ctx)
-        unit = cls.unit_out or unit
-    if ideal is None:
-        ideal = img.copy()
-    if fluence is None:
-        fluence = img.copy()
-    return ChainResult(sci=img, unit=unit, ideal=ideal, fluence=fluence, persistence=ctx.used_persistence,
-                       sky_rate=ctx.used_sky_rate)
+        self.unit = cls.unit_out or self.unit
+        return img
+
+    def result(self, img: np.ndarray, ctx: ChainContext) -> ChainResult:
+        ideal = self.ideal if self.ideal is not None else img.copy()
+        fluence = self.fluence if self.fluence is not None else img.copy()
+        return ChainResult(sci=img, unit=self.unit, ideal=ideal, fluence=fluence, persistence=ctx.used_persistence,
+                           sky_rate=ctx.used_sky_rate)
 
 
 @dataclass

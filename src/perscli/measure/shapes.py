@@ -516,6 +516,41 @@ def cut_stamp(data, weights, ivar, background, stamp, xi, yi):
     return img, wt, x0, y0, edge
 
 
+def stamp_window(shape, stamp, xi, yi) -> tuple:
+    """The part of a frame of ``shape`` that :func:`cut_stamp` reads for a stamp at (xi, yi): (b0, b1, a0, a1)."""
+    ny, nx = shape
+    half = stamp // 2
+    x0, y0 = int(math.floor(xi + 0.5)) - half, int(math.floor(yi + 0.5)) - half
+    return max(y0, 0), min(y0 + stamp, ny), max(x0, 0), min(x0 + stamp, nx)
+
+
+class Windows:
+    """A frame's pixels kept only inside the stamps to be fitted: what :func:`cut_stamp` reads of it.
+
+    A joint fit over hundreds of frames would otherwise hold every frame
+    (67 MB for a 4088^2 float32 SCA); the windows of its galaxies are a few
+    percent of that.  Indexing with the slices :func:`stamp_window` gives
+    returns the stored pixels; anything else is an error.
+    """
+
+    def __init__(self, shape, dtype=np.float32):
+        self.shape = tuple(shape)
+        self.dtype = np.dtype(dtype)
+        self._parts = {}
+
+    def keep(self, data, window) -> None:
+        """Store ``data``'s pixels of ``window`` ((b0, b1, a0, a1), e.g. from :func:`stamp_window`)."""
+        b0, b1, a0, a1 = window
+        self._parts[window] = np.array(data[b0:b1, a0:a1], dtype=self.dtype)
+
+    def __contains__(self, window) -> bool:
+        return window in self._parts
+
+    def __getitem__(self, key):
+        rows, cols = key
+        return self._parts[(rows.start, rows.stop, cols.start, cols.stop)]
+
+
 #: float columns of one object's measurement, and the integer ones
 _FLOAT_COLUMNS = ("x", "y", "g1", "g2", "T", "flux", "x_err", "y_err", "g1_err", "g2_err", "T_err", "flux_err",
                   "s2n", "chi2")
@@ -636,7 +671,8 @@ def _gather(results, fitted, out_rows, float_columns, int_columns) -> dict:
 
 def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, read_noise=None,
                   blend_radius=4.0, progress=None, workers: int = 1, kinds=None, min_snr=MIN_SNR_DEFAULT,
-                  all_rows: bool = False, models=None, psf_options=None, psf_used=None) -> dict:
+                  all_rows: bool = False, models=None, psf_options=None, psf_used=None, data=None,
+                  only=None) -> dict:
     """Measure the selected catalogue objects on one frame.
 
     The frame is read here, once; the objects are fitted by
@@ -666,14 +702,22 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
     psf_used : list, optional
         Appended with the :class:`perscli.measure.psf.PsfModel` when this
         call makes the models (for --write-psf).
+    data : ndarray, optional
+        Pixels to fit instead of the frame's own (same shape; its headers,
+        WCS and noise model still come from ``frame``): a variant of the
+        frame, such as the same exposure with persistence.
+    only : ndarray of bool, optional
+        Per catalogue row: fit only these of the selected objects (the
+        selection and ``_todo`` are unchanged).
     psf, method, stamp, sky, read_noise, blend_radius, progress, workers
         As for :func:`measure_files`.
 
     Returns
     -------
     dict of column arrays, one row per object fitted (or, with all_rows, per
-    selected object), in catalogue order; '_noise' the noise model and
-    '_counts' the numbers selected, on the frame, cut and fitted.
+    selected object), in catalogue order; '_noise' the noise model,
+    '_counts' the numbers selected, on the frame, cut and fitted, and
+    '_todo' the catalogue rows selected for a fit (on the frame, above the cut).
     """
     from ..executor import run
 
@@ -683,7 +727,7 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
     x, y, ra, dec = _frame_positions(frame, cat, wcs)
     pixel_scale = _pixel_scale(wcs)
     noise, weights, ivar = _noise_and_weights(frame, sky=sky, read_noise=read_noise)
-    data = np.asarray(frame.planes()[0])
+    data = np.asarray(frame.planes()[0]) if data is None else data
     if data.dtype.kind != "f":
         data = data.astype(np.float64)
     models = {} if models is None else models
@@ -698,7 +742,8 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
                                  _ivar_at(weights, ivar, x[rows_on], y[rows_on]))
     # objects without a predicted S/N (no magnitude) are fitted: the cut only drops what it can predict
     keep = ~(snr[rows_on] < min_snr)
-    todo = rows_on[keep]
+    selected = rows_on[keep]
+    todo = selected if only is None else selected[np.asarray(only, dtype=bool)[selected]]
     psf_image = None
     if method == "hsm":
         import galsim
@@ -736,8 +781,9 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
     cols["dec"] = np.asarray(dec, dtype=np.float64)[out_rows]
     cols["snr_pred"] = snr[out_rows]
     cols["_noise"] = noise
-    cols["_counts"] = {"selected": len(rows_sel), "on": len(rows_on), "cut": int(len(rows_on) - len(todo)),
+    cols["_counts"] = {"selected": len(rows_sel), "on": len(rows_on), "cut": int(len(rows_on) - len(selected)),
                        "fitted": len(todo)}
+    cols["_todo"] = selected
     return cols
 
 
@@ -812,9 +858,13 @@ def local_ainv(wcs, x, y, ra0, dec0, h: float = 0.5) -> np.ndarray:
 
 @dataclass
 class JointFrame:
-    """One frame of a joint fit, read once by the parent: pixels, noise and where each galaxy falls."""
+    """One frame of a joint fit, read once by the parent: pixels, noise and where each galaxy falls.
 
-    data: np.ndarray
+    ``data`` is the frame's pixels, or only the :class:`Windows` of the
+    galaxies fitted on it (what :func:`measure_joint` keeps).
+    """
+
+    data: object
     weights: np.ndarray | None
     ivar: float
     background: float
@@ -825,6 +875,7 @@ class JointFrame:
     on: np.ndarray
     ainv: np.ndarray           # (N, 2, 2), zeros off the frame
     snr: np.ndarray            # predicted S/N, NaN off the frame or without a magnitude
+    shape: tuple = ()          # the frame's (ny, nx)
 
 
 @dataclass
@@ -904,11 +955,14 @@ def measure_joint_object(ctx: JointContext, j: int) -> dict:
 
 def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=None, blend_radius=4.0,
                   progress=None, workers: int = 1, kinds=None, min_snr=MIN_SNR_DEFAULT, all_rows: bool = False,
-                  inputs=None, psf_options=None, psf_used=None) -> dict:
+                  inputs=None, psf_options=None, psf_used=None, data=None, only=None) -> dict:
     """One shape per galaxy from all the frames it falls on (``perscli measure --joint``).
 
-    Every frame is read once (its pixels stay in memory: a 4088^2 float32
-    frame is 67 MB); galaxies are fitted by :func:`measure_joint_object`
+    The frames' headers are read first (where each galaxy falls, its
+    predicted S/N, the cut); then each frame's pixels, one frame at a time,
+    keeping only the :class:`Windows` of the galaxies fitted on it, so that
+    memory grows with the galaxies, not with the frames (a 4088^2 float32
+    frame is 67 MB).  Galaxies are fitted by :func:`measure_joint_object`
     on ``workers`` processes.  The cut is on the combined predicted S/N,
     sqrt(sum of the frames' :func:`predicted_snr` squared).
 
@@ -923,12 +977,20 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
         Appended with (stem, name, DATASUM) per frame, for provenance.
     psf_options, psf_used
         As for :func:`measure_frame` (one PSF per SCA and filter).
+    data : sequence, optional
+        Per frame, the pixels to fit instead of the frame's own: an array of
+        the frame's shape, or a function of no arguments returning one (called
+        once, when that frame's windows are cut): variants of the frames,
+        such as the same exposures with persistence.
+    only : ndarray of bool, optional
+        Per catalogue row: fit only these of the selected galaxies.
     Others as for :func:`measure_frame`.
 
     Returns
     -------
     dict of column arrays (one row per galaxy fitted, or per selected galaxy
-    with ``all_rows``), '_noise' (per frame) and '_counts'.
+    with ``all_rows``), '_noise' (per frame), '_counts' and '_todo' (the
+    catalogue rows selected for a fit).
     """
     from ..executor import run
     from ..io.frames import open_frame
@@ -962,9 +1024,9 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
             scales.append(pixel_scale)
             noise, weights, ivar = _noise_and_weights(frame, sky=sky, read_noise=read_noise)
             noises.append(noise)
-            data = np.asarray(frame.planes()[0])
-            if data.dtype.kind != "f":
-                data = data.astype(np.float64)
+            shape = tuple(frame.shape)
+            # standard input cannot be read again: its pixels are kept now
+            pixels = _float_pixels(frame) if name == "-" and (data is None or data[k] is None) else None
             key = (psf, str(facts.keyword("SCA")), filt, round(pixel_scale, 6))
             if key not in model_keys:
                 model_keys[key] = len(models)
@@ -972,7 +1034,7 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
             m = model_keys[key]
             x, y = wcs.all_world2pix(cat["ra"][rows], cat["dec"][rows], 1)
             x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
-            on = on_frame(x, y, data.shape)
+            on = on_frame(x, y, shape)
             ainv = np.zeros((len(rows), 2, 2))
             snr = np.full(len(rows), np.nan)
             if on.any():
@@ -980,8 +1042,9 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
                 snr[on] = predicted_snr(cat, rows[on], facts, pixel_scale, _snr_table(models[m][stamp]),
                                         _ivar_at(weights, ivar, x[on], y[on]))
             rate_frame = rate_frame or facts
-            jframes.append(JointFrame(data=data, weights=weights, ivar=ivar, background=float(noise.background),
-                                      model=m, per_rate=float(per_rate), x=x, y=y, on=on, ainv=ainv, snr=snr))
+            jframes.append(JointFrame(data=pixels, weights=weights, ivar=ivar, background=float(noise.background),
+                                      model=m, per_rate=float(per_rate), x=x, y=y, on=on, ainv=ainv, snr=snr,
+                                      shape=shape))
         finally:
             frame.close()
     on_any = np.zeros(len(rows), dtype=bool)
@@ -990,7 +1053,8 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
         on_any |= f.on
         snr2 += np.where(f.on, f.snr ** 2, 0.0)   # NaN (no magnitude) stays NaN: not cut
     snr = np.where(on_any, np.sqrt(snr2), np.nan)
-    todo = np.flatnonzero(on_any & ~(snr < min_snr))
+    selected = np.flatnonzero(on_any & ~(snr < min_snr))
+    todo = selected if only is None else selected[np.asarray(only, dtype=bool)[rows[selected]]]
     pixel_scale = float(np.mean(scales)) if scales else ROMAN_PIXEL_SCALE
     # neighbours of any kind within --blend-radius pixels, on the sky
     blends_all = blended_on_sky(cat["ra"], cat["dec"], blend_radius * pixel_scale)
@@ -1001,6 +1065,16 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
     for per_psf in models:
         for n in sorted(set(sizes[todo].tolist()) - set(per_psf)):
             per_psf[n] = ExpModel(per_psf[stamp].drawer.psf, n, pixel=per_psf[stamp].drawer.pixel)
+    for k, f in enumerate(jframes):
+        given = data[k] if data is not None else None
+        pixels = f.data if given is None else (given() if callable(given) else given)
+        if pixels is None:
+            with open_frame(frames[k]) as frame:
+                pixels = _float_pixels(frame)
+        f.data = Windows(f.shape, pixels.dtype)
+        for j in todo[f.on[todo]]:
+            f.data.keep(pixels, stamp_window(f.shape, int(sizes[j]), float(f.x[j]) - 1.0, float(f.y[j]) - 1.0))
+        del pixels
     ctx = JointContext(frames=jframes, models=models, cat=cat, rows=rows, sizes=sizes, blends=blends_all[rows],
                        rate_frame=rate_frame, stamp=stamp, pixel_scale=pixel_scale)
     results = run(measure_joint_object, todo, context=ctx, workers=workers, progress=progress)
@@ -1017,9 +1091,16 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
     cols["id"] = cat["id"][rows[out]]
     cols["snr_pred"] = snr[out]
     cols["_noise"] = noises
-    cols["_counts"] = {"selected": len(rows), "on": int(on_any.sum()), "cut": int(on_any.sum() - len(todo)),
+    cols["_counts"] = {"selected": len(rows), "on": int(on_any.sum()), "cut": int(on_any.sum() - len(selected)),
                        "fitted": len(todo), "models": len(models)}
+    cols["_todo"] = rows[selected]
     return cols
+
+
+def _float_pixels(frame) -> np.ndarray:
+    """A frame's science image as floats (float32 as stored, integers as float64)."""
+    pixels = np.asarray(frame.planes()[0])
+    return pixels if pixels.dtype.kind == "f" else pixels.astype(np.float64)
 
 
 # -- the command ---------------------------------------------------------------------------------------------

@@ -128,6 +128,48 @@ class Exposure:
         return self.mjd + self.exptime / 86400.0
 
 
+@functools.lru_cache(maxsize=1)
+def _bandpasses():
+    """GalSim's Roman bandpasses with AB zeropoints (read from GalSim's files: ~0.25 s, so once a process)."""
+    import galsim.roman as roman
+
+    return roman.getBandpasses(AB_zeropoint=True)
+
+
+@functools.lru_cache(maxsize=8)
+def roman_psf(sca: int, filter_name: str):
+    """GalSim's Roman PSF of an SCA and filter at the filter's effective wavelength (sky units).
+
+    It depends on nothing else (one PSF per SCA and filter, the one at the
+    SCA centre), and ``galsim.roman.getPSF`` takes ~0.7 s: a process that
+    renders many exposures (a study's worker) makes it once per SCA and filter.
+    """
+    import galsim.roman as roman
+
+    return roman.getPSF(int(sca), filter_name, wavelength=_bandpasses()[filter_name].effective_wavelength)
+
+
+#: the stamp drawers kept by :func:`stamp_drawer`: their PSF tables of large stamps are the costly part
+#: of drawing a bright star (2.2 s for the 1024 and 2048 tables) and ~0.35 GB, so only a few are kept
+_DRAWERS: dict = {}
+_MAX_DRAWERS = 2
+
+
+def stamp_drawer(sca: int, filter_name: str) -> StampDrawer:
+    """The :class:`StampDrawer` of an SCA and filter's PSF, kept with its tables for later exposures."""
+    import galsim
+    import galsim.roman as roman
+
+    key = (int(sca), filter_name)
+    drawer = _DRAWERS.pop(key, None)
+    if drawer is None:
+        drawer = StampDrawer(galsim.PixelScale(roman.pixel_scale).toImage(roman_psf(sca, filter_name)))
+    _DRAWERS[key] = drawer          # most recently used last
+    while len(_DRAWERS) > _MAX_DRAWERS:
+        _DRAWERS.pop(next(iter(_DRAWERS)))
+    return drawer
+
+
 class Optics:
     """WCS, PSF, zeropoint and sky of one exposure (the GalSim Roman objects).
 
@@ -142,7 +184,7 @@ class Optics:
         from ..scene.pointings import sca_wcs
 
         self.exposure = exposure
-        self.bandpass = roman.getBandpasses(AB_zeropoint=True)[exposure.filter]
+        self.bandpass = _bandpasses()[exposure.filter]
         # getWCS, with a clear error for a position Roman cannot observe at that date
         self.wcs = sca_wcs(exposure, exposure.sca)
         self.zeropoint = self.bandpass.zeropoint
@@ -153,9 +195,7 @@ class Optics:
     @functools.cached_property
     def psf_world(self):
         """GalSim's Roman PSF of the SCA and filter, at the filter's effective wavelength (sky units)."""
-        import galsim.roman as roman
-
-        return roman.getPSF(self.exposure.sca, self.exposure.filter, wavelength=self.bandpass.effective_wavelength)
+        return roman_psf(self.exposure.sca, self.exposure.filter)
 
     @functools.cached_property
     def psf_pixels(self):
@@ -287,7 +327,7 @@ class DrawContext:
 def draw_context(exposure: Exposure, optics: Optics | None = None) -> DrawContext:
     """The :class:`DrawContext` of an exposure (a picklable factory: ``executor.Lazy(draw_context, exposure)``)."""
     optics = optics if optics is not None else Optics(exposure)
-    return DrawContext(optics, StampDrawer(optics.psf_pixels))
+    return DrawContext(optics, stamp_drawer(exposure.sca, exposure.filter))
 
 
 def draw_one(context: DrawContext, job):
@@ -310,7 +350,7 @@ def draw_one(context: DrawContext, job):
 
 
 def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, stars: bool = False,
-                 optics: Optics | None = None, plan=None):
+                 optics: Optics | None = None, plan=None, bounds=None, only=None, image: bool = True):
     """Expected electrons from the catalogue's objects on the exposure's pixels.
 
     Stamps are drawn by :func:`draw_one` through :func:`perscli.executor.imap`
@@ -333,20 +373,32 @@ def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, s
     optics : Optics, optional
         The exposure's optics, when already made.
     plan : tuple, optional
-        :func:`plan_objects` of these columns and optics, when already made.
+        :func:`plan_objects` of these columns and optics over ``bounds``, when already made.
+    bounds : (xmin, xmax, ymin, ymax), optional
+        The detector pixels to draw (default the exposure's frame).
+    only : ndarray of bool, optional
+        Per catalogue row: draw only these of the objects that reach ``bounds``
+        (the stars alone, say, or those reaching some noise blocks).  Each
+        pixel is the sum of the same stamps in the same order either way, so
+        the pixels that only the objects drawn reach are the same bits.
+    image : bool
+        False: no image of all the objects (with ``stars``, only the stars' image).
 
     Returns
     -------
     (ndarray, int, Optics) or (ndarray, int, Optics, ndarray)
-        The image (float64, shape of the bounds), the number of objects drawn,
-        the optics (WCS, PSF, zeropoint, sky) used, and with ``stars`` the
-        stars' image.
+        The image (float64, shape of the bounds; None without ``image``), the
+        number of objects drawn, the optics (WCS, PSF, zeropoint, sky) used,
+        and with ``stars`` the stars' image.
     """
     optics = optics if optics is not None else Optics(exposure)
-    xmin, xmax, ymin, ymax = exposure.full_bounds
-    image = np.zeros((ymax - ymin + 1, xmax - xmin + 1))
-    star_image = np.zeros_like(image) if stars else None
-    todo, x, y, flux, sizes = plan if plan is not None else plan_objects(cols, optics, exposure.full_bounds)
+    xmin, xmax, ymin, ymax = bounds if bounds is not None else exposure.full_bounds
+    shape = (ymax - ymin + 1, xmax - xmin + 1)
+    star_image = np.zeros(shape) if stars else None
+    todo, x, y, flux, sizes = plan if plan is not None else plan_objects(cols, optics, (xmin, xmax, ymin, ymax))
+    if only is not None:
+        todo = todo[np.asarray(only, dtype=bool)[todo]]
+    image = np.zeros(shape) if image else None
     jobs = [(int(i), float(x[i]), float(y[i]), float(flux[i]), int(sizes[i]), cols["kind"][i],
              float(cols["hlr"][i]), float(cols["e1"][i]), float(cols["e2"][i])) for i in todo]
     if jobs:
@@ -366,7 +418,8 @@ def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, s
                 b0, b1 = max(y0, ymin), min(y0 + n, ymax + 1)
                 if a0 < a1 and b0 < b1:
                     part = stamp[b0 - y0:b1 - y0, a0 - x0:a1 - x0]
-                    image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += part
+                    if image is not None:
+                        image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += part
                     if star_image is not None and is_star[index]:
                         star_image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += part
                 if progress is not None:

@@ -34,7 +34,7 @@ from .. import PerscliError
 from ..detector.effects import DetectorModel, model_table, run_chain
 from ..io.fitsfile import OutHDU, format_card
 from ..io.output import add_provenance, check_output, write_hdus
-from .exposure import Exposure, Optics, draw_sources, plan_objects, read_truth
+from .exposure import SCA_SIZE, Exposure, Optics, draw_sources, plan_objects, read_truth
 
 log = logging.getLogger(__name__)
 
@@ -220,7 +220,7 @@ def open_history(name: str, source: str):
 
 
 def persisting_fluence(fluence: np.ndarray, scale: float = 1.0, *, threshold: float | None = None,
-                       cap: float | None = None) -> np.ndarray:
+                       cap: float | None = None, floor: float = 0.0) -> np.ndarray:
     """What of an earlier exposure's fluence enters the persistence law.
 
     Parameters
@@ -232,6 +232,9 @@ def persisting_fluence(fluence: np.ndarray, scale: float = 1.0, *, threshold: fl
         Electrons: pixels at or below it leave nothing (the 'threshold' source).
     cap : float, optional
         Electrons: larger values count as this (the fluence cap, e.g. the full well).
+    floor : float
+        Electrons: pixels at or below it leave nothing (the persistence effect's
+        ``floor``: how far faint light persists); 0 (the default) changes nothing.
 
     Returns
     -------
@@ -240,6 +243,9 @@ def persisting_fluence(fluence: np.ndarray, scale: float = 1.0, *, threshold: fl
         (so that the default path is the bytes it always was).
     """
     out = fluence
+    if floor:
+        with np.errstate(invalid="ignore"):
+            out = np.where(out * scale > floor, out, 0).astype(fluence.dtype)
     if threshold is not None:
         with np.errstate(invalid="ignore"):
             out = np.where(out * scale > threshold, out, 0).astype(fluence.dtype)
@@ -407,6 +413,112 @@ def no_objects_message(report: dict, *, dry_run: bool = False) -> str:
             "(`perscli catalog --footprints POINTINGS --sca N`)")
 
 
+def simulation_area(bounds) -> tuple:
+    """The detector pixels simulated for a frame of ``bounds``: what makes its pixels those of the whole SCA.
+
+    The frame grown by one pixel (interpixel capacitance brings in each
+    neighbour's signal) and then out to whole noise blocks
+    (:data:`perscli.detector.effects.NOISE_BLOCK`: Poisson noise is only
+    reproducible for a whole block), within the detector.  A cutout is then
+    exactly that part of the whole detector's frame (but for the persistence
+    of pixels outside it, which its earlier frames do not hold).
+    """
+    from ..detector.effects import NOISE_BLOCK
+
+    b = NOISE_BLOCK
+    xmin, xmax, ymin, ymax = (int(v) for v in bounds)
+
+    def grow(lo, hi):
+        lo, hi = max(1, lo - 1), min(SCA_SIZE, hi + 1)
+        return max(1, (lo - 1) // b * b + 1), min(SCA_SIZE, (hi - 1) // b * b + b)
+
+    (x0, x1), (y0, y1) = grow(xmin, xmax), grow(ymin, ymax)
+    return x0, x1, y0, y1
+
+
+def crop(image: np.ndarray, area, bounds) -> np.ndarray:
+    """The part of ``image`` (covering ``area``) that covers ``bounds``, both (xmin, xmax, ymin, ymax)."""
+    return image[bounds[2] - area[2]:bounds[3] - area[2] + 1, bounds[0] - area[0]:bounds[1] - area[0] + 1]
+
+
+def pad_to(image: np.ndarray | None, bounds, area) -> np.ndarray | None:
+    """``image`` (covering ``bounds``) placed in zeros covering ``area``."""
+    if image is None or tuple(bounds) == tuple(area):
+        return image
+    out = np.zeros((area[3] - area[2] + 1, area[1] - area[0] + 1), dtype=image.dtype)
+    crop(out, area, bounds)[...] = image
+    return out
+
+
+def crop_result(result, area, bounds):
+    """A :class:`~perscli.detector.effects.ChainResult` over ``area`` cut to ``bounds``."""
+    import dataclasses
+
+    if tuple(area) == tuple(bounds):
+        return result
+    cut = {f: crop(getattr(result, f), area, bounds) for f in ("sci", "ideal", "fluence")}
+    if result.persistence is not None:
+        cut["persistence"] = crop(result.persistence, area, bounds)
+    return dataclasses.replace(result, **cut)
+
+
+def reaching(plan, bounds) -> np.ndarray:
+    """Per catalogue row: whether its stamp (``plan``: :func:`plan_objects`) reaches ``bounds``."""
+    todo, x, y, _, sizes = plan
+    xmin, xmax, ymin, ymax = bounds
+    out = np.zeros(len(x), dtype=bool)
+    half = sizes[todo] / 2 + 1
+    xt, yt = x[todo], y[todo]
+    out[todo] = (xt + half >= xmin) & (xt - half <= xmax) & (yt + half >= ymin) & (yt - half <= ymax)
+    return out
+
+
+def history_persistence(opened, exposure: Exposure, pmodel, *, threshold=None, cap=None, floor=0.0):
+    """The persistence charge that earlier frames leave in ``exposure``, on its frame's pixels.
+
+    Parameters
+    ----------
+    opened : list of perscli.io.frames.Frame
+        Earlier frames of the same detector area (:func:`open_history`), checked here.
+    exposure : Exposure
+    pmodel : perscli.detector.persistence.PersistenceModel
+    threshold, cap : float, optional
+        See :func:`persisting_fluence`.
+    floor : float
+        Electrons: pixels of an earlier frame at or below it leave nothing (0: every positive pixel).
+
+    Returns
+    -------
+    (ndarray, list of float)
+        Electrons per pixel, and the delays (s) after the earlier exposures used.
+    """
+    from ..detector.apply import check_earlier
+    from ..detector.persistence import order_earlier, persistence_charge
+    from ..io.frames import SECONDS_PER_DAY
+
+    xmin, xmax, ymin, ymax = exposure.full_bounds
+    shape = (ymax - ymin + 1, xmax - xmin + 1)
+    for frame in opened:
+        check_earlier(frame, label="the exposure being rendered", shape=shape, detector=exposure.sca,
+                      offsets=(1 - xmin, 1 - ymin), start=exposure.mjd)
+    # seconds from the start of this exposure (negative: before it), differenced in MJD first as
+    # apply-persistence does, so that both give the same bits
+    start = 0.0
+    ends = [(frame.end - exposure.mjd) * SECONDS_PER_DAY for frame in opened]
+    keep, _ = order_earlier(ends, start, pmodel, [f.label for f in opened])
+    gaps = [start - ends[i] for i in keep]
+    fluences = [frame.fluence() for frame in opened]
+    for frame in opened:
+        frame.verify(frame.fluence_source)
+    fluences = [(persisting_fluence(f, scale, threshold=threshold, cap=cap, floor=floor), scale)
+                for f, scale in fluences]
+    # the window from the header times, as for any frame read from a file
+    window = (exposure.end - exposure.mjd) * SECONDS_PER_DAY
+    charge = persistence_charge([f for f, _ in fluences], ends, start, window, pmodel,
+                                scales=[scale for _, scale in fluences])[0]
+    return charge, gaps
+
+
 def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, seed: int,
                 previous=(), overwrite: bool = False, workers: int = 1, progress=None,
                 plot: str | None = None, compress: str = "none", persistence_source=None,
@@ -477,8 +589,13 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
     source, threshold, cap = Persistence.fluence_input(model)
     cols = read_truth(truth, exposure.filter, columns=columns)
     optics = Optics(exposure)
-    plan = plan_objects(cols, optics, exposure.full_bounds)
-    if len(plan[0]) == 0:
+    # what only the stars' light needs (the history of later frames with star light persisting): the
+    # stars drawn on the frame, no galaxies, no sky, no detector
+    stars_only = set(hdus) <= {"STARFLU", "MODEL"}
+    area = exposure.full_bounds if stars_only else simulation_area(exposure.full_bounds)
+    plan = plan_objects(cols, optics, area)
+    on_frame = reaching(plan, exposure.full_bounds)
+    if not on_frame.any():
         message = no_objects_message(footprint_report(truth, exposure, cols=cols, optics=optics))
         if strict:
             raise PerscliError("--strict: " + message)
@@ -486,49 +603,42 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
     previous = list(previous)
     if previous and not model.enabled("persistence"):
         log.warning("--previous given but the persistence effect is off in the detector model: ignored")
+    if previous and stars_only:
+        log.info("--previous not needed: only the stars' light (STARFLU) is written")
     opened = []
     try:
-        for name in previous if model.enabled("persistence") else []:
+        for name in previous if model.enabled("persistence") and not stars_only else []:
             opened.append(open_history(name, source))
+        is_star = cols["kind"] == "star"
         drawn = draw_sources(cols, exposure, workers=workers, progress=progress, stars="STARFLU" in hdus,
-                             optics=optics, plan=plan)
-        sources, nobj, optics = drawn[:3]
+                             optics=optics, plan=plan, bounds=area, only=is_star if stars_only else None,
+                             image=not stars_only)
+        sources, _, optics = drawn[:3]
         star_light = drawn[3] if len(drawn) > 3 else None
+        nobj = int(np.count_nonzero(on_frame & is_star)) if stars_only else int(np.count_nonzero(on_frame))
         xmin, xmax, ymin, ymax = exposure.full_bounds
         pers_info = []
 
         def persistence():
-            # persistence on arrays: the earlier exposures' FLUENCE or STARFLU (electrons) and their end times
-            from ..detector.apply import check_earlier
-            from ..detector.persistence import order_earlier, persistence_charge
-            from ..io.frames import SECONDS_PER_DAY
+            charge, gaps = history_persistence(opened, exposure, model.persistence_model(), threshold=threshold,
+                                               cap=cap, floor=Persistence.floor(model))
+            pers_info.extend(gaps)
+            return pad_to(charge, exposure.full_bounds, area)
 
-            pmodel = model.persistence_model()
-            for frame in opened:
-                check_earlier(frame, label="the exposure being rendered", shape=sources.shape, detector=exposure.sca,
-                              offsets=(1 - xmin, 1 - ymin), start=exposure.mjd)
-            # seconds from the start of this exposure (negative: before it), differenced in MJD first as
-            # apply-persistence does, so that both give the same bits
-            start = 0.0
-            ends = [(frame.end - exposure.mjd) * SECONDS_PER_DAY for frame in opened]
-            keep, _ = order_earlier(ends, start, pmodel, [f.label for f in opened])
-            pers_info.extend(start - ends[i] for i in keep)
-            fluences = [frame.fluence() for frame in opened]
-            for frame in opened:
-                frame.verify(frame.fluence_source)
-            fluences = [(persisting_fluence(f, scale, threshold=threshold, cap=cap), scale) for f, scale in fluences]
-            # the window from the header times, as for any frame read from a file
-            window = (exposure.end - exposure.mjd) * SECONDS_PER_DAY
-            return persistence_charge([f for f, _ in fluences], ends, start, window, pmodel,
-                                      scales=[scale for _, scale in fluences])[0]
-
-        result = run_chain(sources, model, exptime=exposure.exptime, seed=seed, sky_rate=optics.sky_rate,
-                           persistence=persistence if opened else None)
+        if stars_only:
+            result = None
+        else:
+            result = crop_result(run_chain(sources, model, exptime=exposure.exptime, seed=seed,
+                                           sky_rate=optics.sky_rate, persistence=persistence if opened else None,
+                                           origin=(area[0], area[2])), area, exposure.full_bounds)
+        star_light = None if star_light is None else crop(star_light, area, exposure.full_bounds)
         gain = model.value("gain", "gain", off=1.0)
         well = model.value("saturation", "full_well")
         common = _wcs_cards(optics, exposure.full_bounds)
-        sci_cards = common + _exposure_cards(exposure, optics, seed, result.unit, gain) + [
-            format_card("SKYRATE", result.sky_rate, "[e-/pixel/s] sky background used"),
+        sky_rate = result.sky_rate if result is not None else None
+        unit = result.unit if result is not None else "electron"
+        sci_cards = common + _exposure_cards(exposure, optics, seed, unit, gain) + [
+            format_card("SKYRATE", sky_rate or 0.0, "[e-/pixel/s] sky background used"),
             format_card("NOBJ", nobj, "objects drawn")]
         e_cards = common + _exposure_cards(exposure, optics, seed, "electron", 1.0)
         source_params = _source_params(source, threshold, cap)
@@ -553,12 +663,12 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
             out.append(image(star_light, "STARFLU", e_cards + [
                 format_card("CONTENT", "expected electrons of the stars alone", "what persists for source stars"),
                 format_card("COMMENT", "noise-free, not clipped at the well: the persistence cap applies when used")]))
-        if "PERSIST" in hdus and result.persistence is not None:
+        if "PERSIST" in hdus and result is not None and result.persistence is not None:
             out.append(image(result.persistence, "PERSIST", e_cards + source_cards))
         if "MODEL" in hdus:
             out.append(_model_hdu(model))
         _provenance(out[0], truth, cols["datasum"], exposure, model, seed, opened, pers_info,
-                    source_params if opened else {}, result.sky_rate, nobj, hdus)
+                    source_params if opened else {}, sky_rate, nobj, hdus)
         write_hdus(out, dest, overwrite=overwrite, compress=compress)
         if plot:
             from ..io.output import atomic_path
@@ -567,8 +677,9 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
             with atomic_path(plot, overwrite=overwrite, suffix=".part.png") as tmp:
                 frame_figure(result.sci, tmp, persist=result.persistence, unit=result.unit,
                              title=f"SCA {exposure.sca} {exposure.filter} MJD {exposure.mjd:.5f} seed {seed}")
-        return {"objects": nobj, "sky_rate": result.sky_rate, "unit": result.unit,
-                "persistence_max": float(result.persistence.max()) if result.persistence is not None else 0.0,
+        persist = result.persistence if result is not None else None
+        return {"objects": nobj, "sky_rate": sky_rate, "unit": unit,
+                "persistence_max": float(np.nanmax(persist)) if persist is not None else 0.0,
                 "hdus": tuple(h.extname for h in out[1:]),
                 "persistence_source": "threshold" if source == "threshold" else source,
                 "persistence_threshold": threshold, "fluence_cap": cap}

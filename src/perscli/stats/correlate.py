@@ -172,6 +172,8 @@ class ShapeChanges:
     pair: np.ndarray | None = None
     pairs: list = field(default_factory=list)
     orientation: tuple | None = None
+    #: Delta|e| = |g(A)| - |g(B)| per object, when the input gives it (a ``dabs`` column)
+    dabs: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.de1)
@@ -293,14 +295,18 @@ def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=Fal
     ----------
     catalogs : sequence of str
         One or two paths ('-' for standard input, at most once).  With two,
-        De = g(first) - g(second), objects matched by id.
+        De = g(first) - g(second), objects matched by id.  With
+        ``de_columns``, any number of tables, pooled (e.g. the per-exposure
+        shape changes of a study).
     frames : (int, int), optional
         Frame numbers (the ``frame`` column of ``perscli measure``) of A and
         B.  With one catalogue: both are taken from it (``perscli measure A B``
         writes A as frame 0 and B as frame 1).  With two: frame A of the first
         and frame B of the second (by default each must hold one frame).
     de_columns : (str, str), optional
-        One catalogue only: the columns holding De1 and De2.
+        The columns holding De1 and De2 (tables with De).  Optional columns
+        ``dabs`` (Delta|e|, |g(A)| - |g(B)|) and ``e1_true``/``e2_true`` (the
+        intrinsic shapes) are read too when present.
     common_ids : bool
         Two measurements: correlate the ids both hold, instead of refusing
         tables whose ids differ.
@@ -330,14 +336,14 @@ def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=Fal
         every object flagged, a needed column without a finite value.
     """
     catalogs = list(catalogs)
-    if not 1 <= len(catalogs) <= 2:
-        raise PerscliError(f"give one or two SHAPES tables, not {len(catalogs)}")
+    if not catalogs or (len(catalogs) > 2 and de_columns is None):
+        raise PerscliError(f"give one or two SHAPES tables (or tables with De columns), not {len(catalogs)}")
     if catalogs.count("-") > 1:
         raise PerscliError("only one input can be standard input ('-')")
     if positions not in ("auto", "radec", "xy"):
         raise PerscliError(f"positions must be auto, radec or xy, not {positions!r}")
-    if de_columns is not None and (len(catalogs) != 1 or frames is not None):
-        raise PerscliError("--de1/--de2 name the De columns of one table; they do not go with two tables or --frames")
+    if de_columns is not None and frames is not None:
+        raise PerscliError("--de1/--de2 name the De columns of tables; they do not go with --frames")
     if len(catalogs) == 1 and de_columns is None and frames is None:
         raise PerscliError(f"{catalogs[0]}: one SHAPES table needs --frames A B (two frames of it) or "
                            "--de1 COL --de2 COL (its De columns)")
@@ -347,8 +353,31 @@ def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=Fal
         inputs = [(f"SHAPE{'AB'[k]}" if len(tables) == 2 else "SHAPES", t.name, t.datasum)
                   for k, t in enumerate(tables)]
         if de_columns is not None:
-            return _from_columns(tables[0], de_columns, positions, pixel_scale, inputs)
+            if len(tables) > 2:
+                inputs = [(f"SHAPE{k + 1:03d}", t.name, t.datasum) for k, t in enumerate(tables)]
+            parts = [_from_columns(t, de_columns, positions, pixel_scale, inputs) for t in tables]
+            return parts[0] if len(parts) == 1 else _pool_columns(parts, inputs)
         return _from_frames(tables, frames, common_ids, positions, pixel_scale, inputs, orientation)
+
+
+def _pool_columns(parts, inputs) -> ShapeChanges:
+    """Shape changes read from several tables with De columns, as one catalogue."""
+    coords = {p.coords for p in parts}
+    axes = {p.g_axes for p in parts}
+    if len(coords) > 1 or len(axes) > 1:
+        raise PerscliError("tables with De columns pooled together must all give ra/dec or all x/y, and De in the "
+                           f"same axes (here: {', '.join(sorted(coords | axes))})")
+
+    def cat(key):
+        values = [getattr(p, key) for p in parts]
+        return None if any(v is None for v in values) else np.concatenate(values)
+
+    counts = {k: sum(p.counts.get(k, 0) for p in parts) for k in parts[0].counts}
+    return ShapeChanges(de1=cat("de1"), de2=cat("de2"), e1=cat("e1"), e2=cat("e2"), pos1=cat("pos1"),
+                        pos2=cat("pos2"), coords=parts[0].coords, pos_units=parts[0].pos_units, ids=cat("ids"),
+                        counts=counts, inputs=inputs, params=parts[0].params,
+                        source=f"De columns of {len(parts)} tables pooled", g_axes=parts[0].g_axes,
+                        dabs=cat("dabs"))
 
 
 def _from_columns(table, de_columns, positions, pixel_scale, inputs) -> ShapeChanges:
@@ -372,14 +401,20 @@ def _from_columns(table, de_columns, positions, pixel_scale, inputs) -> ShapeCha
     cols = {f"{table.label}: column '{c1}'": de1, f"{table.label}: column '{c2}'": de2,
             f"{table.label}: position column 1": pos1, f"{table.label}: position column 2": pos2}
     good = _finite_rows(cols, keep, what)
-    ids = table.column("id", kind="integer")[good] if "id" in _names(table) else None
+    names = _names(table)
+    ids = table.column("id", kind="integer")[good] if "id" in names else None
     counts = {"rows_a": n, "rows_b": 0, "matched": n, "flagged": flagged,
               "nonfinite": int(keep.sum() - good.sum()), "used": int(good.sum())}
     params = {"DEMODE": ("columns", "De read from named columns"), "DE1COL": (c1, "column of De1"),
               "DE2COL": (c2, "column of De2"), **pparams}
-    return ShapeChanges(de1=de1[good], de2=de2[good], e1=None, e2=None, pos1=pos1[good], pos2=pos2[good],
-                        coords=coords, pos_units=units, ids=ids, counts=counts, inputs=inputs, params=params,
-                        source=f"De = ({c1}, {c2}) of {table.label}", g_axes=_g_axes(table) or "as given")
+    extra = {}
+    for key, col in (("dabs", "dabs"), ("e1", "e1_true"), ("e2", "e2_true")):
+        if col in names:
+            extra[key] = table.column(names[col]).astype(np.float64)[good]
+    return ShapeChanges(de1=de1[good], de2=de2[good], e1=extra.get("e1"), e2=extra.get("e2"), pos1=pos1[good],
+                        pos2=pos2[good], coords=coords, pos_units=units, ids=ids, counts=counts, inputs=inputs,
+                        params=params, source=f"De = ({c1}, {c2}) of {table.label}",
+                        g_axes=_g_axes(table) or "as given", dabs=extra.get("dabs"))
 
 
 def _side(table, rows, label):
@@ -753,7 +788,7 @@ def _abs(de1, de2) -> np.ndarray:
     return np.sqrt(out, out=out)
 
 
-def de_statistics(de1, de2, *, e1=None, e2=None, thresholds=DEFAULT_THRESHOLDS) -> dict:
+def de_statistics(de1, de2, *, e1=None, e2=None, thresholds=DEFAULT_THRESHOLDS, dabs=None) -> dict:
     """The paper's summary of De.
 
     Parameters
@@ -764,6 +799,10 @@ def de_statistics(de1, de2, *, e1=None, e2=None, thresholds=DEFAULT_THRESHOLDS) 
         Intrinsic shapes (g of the reference frame); NaN means when absent.
     thresholds : sequence of float
         |De| thresholds.
+    dabs : ndarray, optional
+        Delta|e| = |g(A)| - |g(B)| per object (the paper's text says both
+        |De| and Delta|e|): then also n_dabs_ge and frac_dabs_ge, objects
+        with |Delta|e|| >= threshold.
 
     Returns
     -------
@@ -771,7 +810,7 @@ def de_statistics(de1, de2, *, e1=None, e2=None, thresholds=DEFAULT_THRESHOLDS) 
         n; e1_mean, e1_err, e2_mean, e2_err (standard errors); de1_mean,
         de1_err, de2_mean, de2_err; de_abs_mean, de_abs_max; threshold,
         n_ge and frac_ge (arrays: objects with |De| >= threshold, and their
-        fraction of n).
+        fraction of n); with ``dabs``, n_dabs_ge and frac_dabs_ge.
     """
     de1, de2 = np.asarray(de1, dtype=np.float64), np.asarray(de2, dtype=np.float64)
     absde = _abs(de1, de2)
@@ -787,6 +826,10 @@ def de_statistics(de1, de2, *, e1=None, e2=None, thresholds=DEFAULT_THRESHOLDS) 
     out["threshold"] = thresholds
     out["n_ge"] = np.array([np.count_nonzero(absde >= t) for t in thresholds], dtype=np.int64)
     out["frac_ge"] = out["n_ge"] / n if n else np.full(len(thresholds), math.nan)
+    if dabs is not None:
+        a = np.abs(np.asarray(dabs, dtype=np.float64))
+        out["n_dabs_ge"] = np.array([np.count_nonzero(a >= t) for t in thresholds], dtype=np.int64)
+        out["frac_dabs_ge"] = out["n_dabs_ge"] / n if n else np.full(len(thresholds), math.nan)
     return out
 
 
@@ -1396,6 +1439,9 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     scols["threshold"] = stats["threshold"][None, :]
     scols["n_ge"] = stats["n_ge"][None, :].astype(np.int64)
     scols["frac_ge"] = stats["frac_ge"][None, :]
+    if "n_dabs_ge" in stats:
+        scols["n_dabs_ge"] = stats["n_dabs_ge"][None, :].astype(np.int64)
+        scols["frac_dabs_ge"] = stats["frac_dabs_ge"][None, :]
     for key in ("rows_a", "rows_b", "matched", "flagged", "nonfinite"):
         scols[key] = np.array([sc.counts.get(key, 0)], dtype=np.int64)
     stats_hdu = _table_hdu(scols, "STATS")
@@ -1588,7 +1634,7 @@ def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=
                                    bin_slop=bin_slop, npatch=npatch, patch_centers=centers,
                                    cross_patch_weight=cross_patch_weight, var_method=var_method, seed=seed,
                                    workers=workers)
-    stats = de_statistics(sc.de1, sc.de2, e1=sc.e1, e2=sc.e2, thresholds=thresholds)
+    stats = de_statistics(sc.de1, sc.de2, e1=sc.e1, e2=sc.e2, thresholds=thresholds, dabs=sc.dabs)
     hist = de_histogram(_abs(sc.de1, sc.de2))
     theta = theta_distribution(sc.de1, sc.de2, edges=theta_edges, nboot=nboot, seed=seed)
     settings = dict(min_sep=float(min_sep), max_sep=float(max_sep), nbins=int(nbins), sep_units=sep_units,

@@ -25,6 +25,12 @@ DEFAULT_SCHEDULE = os.path.join("..", "shared", "data", "roman", "Roman_WAS_obse
 SCHEMA = {
     "name": "study",
     "seed": 1,
+    # realisations: the study again with seeds seed, seed+1, ... (catalogue and noise); the summary gives
+    # the scatter across them beside the jackknife errors
+    "realisations": 1,
+    # differential: render each final only where persistence can reach a galaxy's stamp and measure only
+    # the galaxies it changed (every other galaxy has De = 0 exactly); None: when only star light persists
+    "differential": None,
     "field": {
         "ra": 10.0,          # deg, centre of the field
         "dec": -44.0,
@@ -251,6 +257,12 @@ def check(s: dict) -> None:
 
     if not (isinstance(s["seed"], int) and 0 <= s["seed"] <= 1000):
         raise PerscliError(f"seed {s['seed']!r}: an integer from 0 to 1000 (frame seeds derive from it)")
+    r = s["realisations"]
+    if not (isinstance(r, int) and not isinstance(r, bool) and 1 <= r and s["seed"] + r - 1 <= 1000):
+        raise PerscliError(f"realisations {r!r}: an integer >= 1, with seed + realisations - 1 <= 1000")
+    if s["differential"] not in (None, True, False):
+        raise PerscliError(f"differential {s['differential']!r}: true, false, or leave it out (true when only "
+                           "star light persists)")
     f = s["field"]
     if not (-90 <= f["dec"] <= 90) or not (0 <= f["ra"] < 360):
         raise PerscliError(f"field ra={f['ra']} dec={f['dec']}: ra must be in [0, 360), dec in [-90, 90] degrees")

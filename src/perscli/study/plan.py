@@ -163,6 +163,23 @@ def frame_path(sca: int, expid: int, variant: str = "ref") -> str:
     return f"frames/sca{sca:02d}/e{expid:06d}_{variant}.fits"
 
 
+def is_differential(s: dict) -> bool:
+    """Whether a study renders only where persistence reaches (``differential``; auto: when only star light persists)."""
+    wanted = s.get("differential")
+    stars_only = all(src == "stars" for src in s["persistence"]["sources"])
+    if wanted is None:
+        return stars_only
+    if wanted and not stars_only:
+        raise PerscliError("differential: true needs persistence.sources [stars] (what persists of an earlier "
+                           "exposure is then its stars' light); use differential: false for all or a threshold")
+    return bool(wanted)
+
+
+def realisation_seeds(s: dict) -> list:
+    """The seed of each realisation: seed, seed + 1, ... (``realisations`` of them)."""
+    return [int(s["seed"]) + k for k in range(int(s["realisations"]))]
+
+
 def build(s: dict, exposures: Exposures | None = None) -> list:
     """The task graph of a study, in an order where every task follows its dependencies.
 
@@ -176,15 +193,93 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
     Returns
     -------
     list of Task
+        With several realisations, each realisation's products live in
+        ``r<seed>/`` and one summary covers them all.
     """
     ex = exposures or select_exposures(s)
+    seeds = realisation_seeds(s)
+    tasks = [Task("pointings", "pointings", "pointings.fits",
+                  params=dict(rows=[_pointing_row(ex, key) for key in sorted(ex.all)]))]
+    make = _build_differential if is_differential(s) else _build_full
+    prefixes = [f"r{seed:04d}/" if len(seeds) > 1 else "" for seed in seeds]
+    for seed, prefix in zip(seeds, prefixes):
+        tasks += make(s, ex, seed, prefix)
+    finals_sorted = [(sca, p.expid) for sca, ps in sorted(ex.finals.items()) for p in ps]
+    variants = [variant_name(src, mod) for src in s["persistence"]["sources"] for mod in s["persistence"]["models"]]
+    tasks.append(Task("summary", "summary", "summary.json", deps=[t.key for t in tasks],
+                      params=dict(variants=variants, finals=[list(k) for k in finals_sorted], name=s["name"],
+                                  realisations=[dict(seed=seed, prefix=prefix) for seed, prefix in zip(seeds, prefixes)],
+                                  differential=is_differential(s), joint=bool(s["measure"]["joint"]),
+                                  thresholds=list(s["correlate"]["thresholds"]))))
+    return tasks
+
+
+def _variant_models(s: dict) -> dict:
+    """Variant name -> (source, model settings) of every persistence variant."""
+    return {variant_name(src, m): (src, model_settings(str(m))) for src in s["persistence"]["sources"]
+            for m in s["persistence"]["models"]}
+
+
+def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
+    """Stars of the earlier exposures, where persistence reaches, each final on those stamps, De, xi, budget."""
+    tasks = [Task(f"{pre}catalog", "catalog", f"{pre}truth.fits", deps=["pointings"],
+                  params=dict(catalog=s["catalog"], bounds=s["bounds"], seed=seed, field=s["field"]))]
+    finals = [(sca, p) for sca, ps in sorted(ex.finals.items()) for p in ps]
+    earlier = sorted({(sca, q.expid) for (sca, _), hist in ex.history.items() for q in hist})
+    # an earlier exposure leaves its stars' light: drawn on its frame, nothing else
+    for sca, expid in earlier:
+        p = ex.all[(sca, expid)]
+        tasks.append(Task(f"{pre}stars/sca{sca:02d}/e{expid:06d}", "render", f"{pre}{frame_path(sca, expid, 'stars')}",
+                          deps=[f"{pre}catalog"],
+                          params=dict(truth=f"{pre}truth.fits", pointing=_pointing_dict(p), sca=sca, bounds=s["bounds"],
+                                      seed=frame_seed(seed, sca, expid), previous=[], hdus=["STARFLU"],
+                                      model=model_settings("typical"), source="stars", set=s["render"]["set"],
+                                      compress=s["render"]["compress"], filter=p.filter)))
+    variants = _variant_models(s)
+    m = s["measure"]
+    tasks.append(Task(f"{pre}regions", "regions", f"{pre}regions.fits", deps=[f"{pre}catalog"],
+                      params=dict(truth=f"{pre}truth.fits", finals=[dict(pointing=_pointing_dict(p),
+                                               history=[_pointing_dict(q) for q in ex.history[(sca, p.expid)]])
+                                          for sca, p in finals],
+                                  bounds=s["bounds"], stamp=m["stamp"], joint=m["joint"],
+                                  models=[list(v[1]) for v in variants.values()], set=s["render"]["set"])))
+    final_keys = []
+    for sca, p in finals:
+        hist = ex.history[(sca, p.expid)]
+        key = f"{pre}final/sca{sca:02d}/e{p.expid:06d}"
+        final_keys.append(key)
+        tasks.append(Task(key, "final", f"{pre}{frame_path(sca, p.expid, 'final')}",
+                          deps=[f"{pre}regions", *(f"{pre}stars/sca{sca:02d}/e{q.expid:06d}" for q in hist)],
+                          params=dict(truth=f"{pre}truth.fits", regions=f"{pre}regions.fits",
+                                      pointing=_pointing_dict(p), sca=sca, bounds=s["bounds"],
+                                      seed=frame_seed(seed, sca, p.expid),
+                                      previous=[f"{pre}{frame_path(sca, q.expid, 'stars')}" for q in hist],
+                                      model=model_settings("typical"), set=s["render"]["set"],
+                                      variants={name: list(v[1]) for name, v in variants.items()},
+                                      stamp=m["stamp"], compress=s["render"]["compress"])))
+    c, b = s["correlate"], s["budget"]
+    paths = [f"{pre}{frame_path(sca, p.expid, 'final')}" for sca, p in finals]
+    for name in variants:
+        tasks.append(Task(f"{pre}measure/{name}", "changes", f"{pre}shapes/{name}.fits",
+                          deps=[f"{pre}catalog", *final_keys],
+                          params=dict(truth=f"{pre}truth.fits", finals=paths, expids=[p.expid for _, p in finals],
+                                      variant=name,
+                                      joint=m["joint"], min_snr=m["min_snr"], stamp=m["stamp"])))
+        tasks.append(Task(f"{pre}correlate/{name}", "correlate", f"{pre}xi/{name}.fits",
+                          deps=[f"{pre}measure/{name}"],
+                          params=dict(tables=[f"{pre}shapes/{name}.fits"], figures=f"{pre}figures/{name}",
+                                      seed=seed, **c)))
+        tasks.append(Task(f"{pre}budget/{name}", "budget", f"{pre}budget/{name}.fits", deps=[f"{pre}correlate/{name}"],
+                          params=dict(xi=f"{pre}xi/{name}.fits", plot=f"{pre}figures/{name}/budget.png", **b)))
+    return tasks
+
+
+def _build_full(s: dict, ex: Exposures, seed: int, pre: str) -> list:
+    """Every SCA-exposure rendered whole, every final again per variant, every galaxy measured in each."""
     tasks = []
     final_keys = {(sca, p.expid) for sca, ps in ex.finals.items() for p in ps}
-    tasks.append(Task("pointings", "pointings", "pointings.fits",
-                      params=dict(rows=[_pointing_row(ex, key) for key in sorted(ex.all)])))
-    tasks.append(Task("catalog", "catalog", "truth.fits", deps=["pointings"],
-                      params=dict(catalog=s["catalog"], bounds=s["bounds"], seed=s["seed"],
-                                  field=s["field"])))
+    tasks.append(Task(f"{pre}catalog", "catalog", f"{pre}truth.fits", deps=["pointings"],
+                      params=dict(catalog=s["catalog"], bounds=s["bounds"], seed=seed, field=s["field"])))
     sources = s["persistence"]["sources"]
     need_stars = any(src == "stars" for src in sources)
     need_all = any(src != "stars" for src in sources)
@@ -196,24 +291,24 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
         # (MODEL with SCI: measure takes its noise model from the frame)
         hdus = (["SCI", "MODEL"] if is_final else []) + (["FLUENCE"] if need_all else []) + \
             (["STARFLU"] if need_stars else [])
-        tasks.append(Task(f"render/ref/sca{sca:02d}/e{expid:06d}", "render", frame_path(sca, expid),
-                          deps=["catalog"],
-                          params=dict(pointing=_pointing_dict(p), sca=sca, bounds=s["bounds"],
-                                      seed=frame_seed(s["seed"], sca, expid), previous=[], hdus=hdus,
+        tasks.append(Task(f"{pre}render/ref/sca{sca:02d}/e{expid:06d}", "render", f"{pre}{frame_path(sca, expid)}",
+                          deps=[f"{pre}catalog"],
+                          params=dict(truth=f"{pre}truth.fits", pointing=_pointing_dict(p), sca=sca,
+                                      bounds=s["bounds"], seed=frame_seed(seed, sca, expid), previous=[], hdus=hdus,
                                       model=model_settings("typical"), source="all", set=s["render"]["set"],
                                       compress=s["render"]["compress"], filter=p.filter)))
     variants = [(src, m) for src in sources for m in s["persistence"]["models"]]
     for sca, ps in sorted(ex.finals.items()):
         for p in ps:
             hist = ex.history[(sca, p.expid)]
-            prev_keys = [f"render/ref/sca{sca:02d}/e{q.expid:06d}" for q in hist]
+            prev_keys = [f"{pre}render/ref/sca{sca:02d}/e{q.expid:06d}" for q in hist]
             for src, model in variants:
                 name = variant_name(src, model)
-                tasks.append(Task(f"render/{name}/sca{sca:02d}/e{p.expid:06d}", "render",
-                                  frame_path(sca, p.expid, name), deps=["catalog", *prev_keys],
-                                  params=dict(pointing=_pointing_dict(p), sca=sca, bounds=s["bounds"],
-                                              seed=frame_seed(s["seed"], sca, p.expid),
-                                              previous=[frame_path(sca, q.expid) for q in hist],
+                tasks.append(Task(f"{pre}render/{name}/sca{sca:02d}/e{p.expid:06d}", "render",
+                                  f"{pre}{frame_path(sca, p.expid, name)}", deps=[f"{pre}catalog", *prev_keys],
+                                  params=dict(truth=f"{pre}truth.fits", pointing=_pointing_dict(p), sca=sca,
+                                              bounds=s["bounds"], seed=frame_seed(seed, sca, p.expid),
+                                              previous=[f"{pre}{frame_path(sca, q.expid)}" for q in hist],
                                               hdus=["SCI", "MODEL"] + (["PERSIST"] if s["render"]["write_persist"] else []),
                                               model=model_settings(model), source=src,
                                               set=s["render"]["set"], compress=s["render"]["compress"],
@@ -222,20 +317,22 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
     m = s["measure"]
     shape_tasks = {}
     for name in ["ref"] + [variant_name(src, mod) for src, mod in variants]:
-        frames = [frame_path(sca, expid, name) for sca, expid in finals_sorted]
-        deps = [f"render/{name}/sca{sca:02d}/e{expid:06d}" for sca, expid in finals_sorted]
+        frames = [f"{pre}{frame_path(sca, expid, name)}" for sca, expid in finals_sorted]
+        deps = [f"{pre}render/{name}/sca{sca:02d}/e{expid:06d}" for sca, expid in finals_sorted]
         if m["joint"]:
-            key = f"measure/{name}"
-            tasks.append(Task(key, "measure", f"shapes/{name}.fits", deps=["catalog", *deps],
-                              params=dict(frames=frames, joint=True, min_snr=m["min_snr"], stamp=m["stamp"])))
-            shape_tasks[name] = [(key, f"shapes/{name}.fits")]
+            key = f"{pre}measure/{name}"
+            tasks.append(Task(key, "measure", f"{pre}shapes/{name}.fits", deps=[f"{pre}catalog", *deps],
+                              params=dict(truth=f"{pre}truth.fits", frames=frames, joint=True, min_snr=m["min_snr"],
+                                          stamp=m["stamp"])))
+            shape_tasks[name] = [(key, f"{pre}shapes/{name}.fits")]
         else:
             shape_tasks[name] = []
             for (sca, expid), frame, dep in zip(finals_sorted, frames, deps):
-                key = f"measure/{name}/sca{sca:02d}/e{expid:06d}"
-                out = f"shapes/{name}/sca{sca:02d}_e{expid:06d}.fits"
-                tasks.append(Task(key, "measure", out, deps=["catalog", dep],
-                                  params=dict(frames=[frame], joint=False, min_snr=m["min_snr"],
+                key = f"{pre}measure/{name}/sca{sca:02d}/e{expid:06d}"
+                out = f"{pre}shapes/{name}/sca{sca:02d}_e{expid:06d}.fits"
+                tasks.append(Task(key, "measure", out, deps=[f"{pre}catalog", dep],
+                                  params=dict(truth=f"{pre}truth.fits", frames=[frame], joint=False,
+                                              min_snr=m["min_snr"],
                                               stamp=m["stamp"])))
                 shape_tasks[name].append((key, out))
     c, b = s["correlate"], s["budget"]
@@ -243,14 +340,10 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
         name = variant_name(src, mod)
         pairs = [[a[1], r[1]] for a, r in zip(shape_tasks[name], shape_tasks["ref"])]
         deps = [a[0] for a in shape_tasks[name]] + [r[0] for r in shape_tasks["ref"]]
-        tasks.append(Task(f"correlate/{name}", "correlate", f"xi/{name}.fits", deps=deps,
-                          params=dict(pairs=pairs, figures=f"figures/{name}", seed=s["seed"], **c)))
-        tasks.append(Task(f"budget/{name}", "budget", f"budget/{name}.fits", deps=[f"correlate/{name}"],
-                          params=dict(xi=f"xi/{name}.fits", plot=f"figures/{name}/budget.png", **b)))
-    tasks.append(Task("summary", "summary", "summary.json",
-                      deps=[t.key for t in tasks],
-                      params=dict(variants=[variant_name(src, mod) for src, mod in variants],
-                                  finals=[list(k) for k in finals_sorted], name=s["name"])))
+        tasks.append(Task(f"{pre}correlate/{name}", "correlate", f"{pre}xi/{name}.fits", deps=deps,
+                          params=dict(pairs=pairs, figures=f"{pre}figures/{name}", seed=seed, **c)))
+        tasks.append(Task(f"{pre}budget/{name}", "budget", f"{pre}budget/{name}.fits", deps=[f"{pre}correlate/{name}"],
+                          params=dict(xi=f"{pre}xi/{name}.fits", plot=f"{pre}figures/{name}/budget.png", **b)))
     return tasks
 
 

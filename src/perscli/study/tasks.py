@@ -14,6 +14,8 @@ import os
 import resource
 import time
 
+import numpy as np
+
 from .. import PerscliError
 
 STATE = ".state"
@@ -129,7 +131,7 @@ def _render(study_dir, p, out):
                         bounds=tuple(p["bounds"]) if p["bounds"] else None, expid=pt["expid"])
     model = load_detector_model("roman", [*p["model"], *p["set"]])
     previous = [os.path.join(study_dir, q) for q in p["previous"]]
-    summary = render_file(os.path.join(study_dir, "truth.fits"), exposure, out, model=model, seed=p["seed"],
+    summary = render_file(os.path.join(study_dir, p["truth"]), exposure, out, model=model, seed=p["seed"],
                           previous=previous, overwrite=True, compress=p["compress"],
                           persistence_source=p["source"], hdus=tuple(p["hdus"]))
     return {"objects": int(summary.get("drawn", summary.get("objects", 0)) or 0), "hdus": list(p["hdus"])}
@@ -142,20 +144,110 @@ def _measure(study_dir, p, out):
     kw = dict(stamp=p["stamp"], joint=p["joint"])
     if p["min_snr"] is not None:
         kw["min_snr"] = p["min_snr"]
-    summary = measure_files(frames, os.path.join(study_dir, "truth.fits"), out, overwrite=True, **kw)
+    summary = measure_files(frames, os.path.join(study_dir, p["truth"]), out, overwrite=True, **kw)
     return {"galaxies": int(summary.get("rows", 0)), "usable": int(summary.get("unflagged", 0)),
             "frames": len(frames)}
+
+
+def _exposure(p) -> "Exposure":
+    from ..render.exposure import Exposure
+
+    pt = p["pointing"] if "pointing" in p else p
+    bounds = p.get("bounds")
+    return Exposure(ra=pt["ra"], dec=pt["dec"], pa=pt["pa"], sca=pt["sca"] or p.get("sca"), filter=pt["filter"],
+                    mjd=pt["mjd"], exptime=pt["exptime"], bounds=tuple(bounds) if bounds else None,
+                    expid=pt["expid"])
+
+
+def _variant_model(settings, extra):
+    from ..detector.effects import load_detector_model
+    from ..render.run import with_persistence_source
+
+    return with_persistence_source(load_detector_model("roman", [*settings, *extra]), "stars")
+
+
+def _regions(study_dir, p, out):
+    from ..render.differential import plan_regions
+    from ..render.exposure import read_truth
+
+    finals = [(_exposure(dict(f["pointing"], bounds=p["bounds"])),
+               [_exposure(dict(q, bounds=p["bounds"])) for q in f["history"]]) for f in p["finals"]]
+    floors = [_floor(_variant_model(m, p["set"])) for m in p["models"]]
+    cols = read_truth(os.path.join(study_dir, p["truth"]), finals[0][0].filter) if finals else None
+    table, counts = plan_regions(cols, finals, stamp=p["stamp"], joint=p["joint"], floor=min(floors or [0.0]))
+    write_regions_table(out, table, counts)
+    return {"galaxies": counts["candidates"], "frames": len(finals)}
+
+
+def _floor(model) -> float:
+    from ..detector.effects import Persistence
+
+    return Persistence.floor(model)
+
+
+def write_regions_table(out: str, table: dict, counts: dict) -> None:
+    from ..io.fitsfile import OutHDU, format_card, table_hdu
+    from ..io.output import write_hdus
+
+    hdu = table_hdu(table, "REGIONS", descriptions={"id": "catalogue id of a galaxy whose stamps are simulated",
+                                                     "sca": "detector", "expid": "final exposure"})
+    for key, (value, comment) in {
+        "NONFRAME": (counts["on_frames"], "galaxy-final pairs with the galaxy's stamp on the frame"),
+        "NGALON": (counts["galaxies_on"], "galaxies on at least one final"),
+        "NCAND": (counts["candidates"], "galaxies persistence can reach (simulated)"),
+        "NREACH": (counts["reached"], "galaxy-final pairs whose stamp persistence can reach"),
+        "FPIXRCH": (round(counts["pixel_fraction"], 6), "fraction of final pixels persistence can reach"),
+        "FLOOR": (counts["floor"], "[e-] star light at or below this does not persist"),
+    }.items():
+        hdu[key] = (value, comment)
+    write_hdus([OutHDU([]), hdu], out, overwrite=True)
+
+
+def _final(study_dir, p, out):
+    from ..io.tables import read_table
+    from ..render.differential import render_final
+    from ..render.exposure import read_truth
+
+    exposure = _exposure(p)
+    model = _variant_model(p["model"], p["set"])
+    variants = {name: _variant_model(settings, p["set"]) for name, settings in p["variants"].items()}
+    truth = os.path.join(study_dir, p["truth"])
+    regions = read_table(os.path.join(study_dir, p["regions"]), what="study regions")
+    here = (regions.column("sca", kind="integer") == exposure.sca) & \
+        (regions.column("expid", kind="integer") == exposure.expid)
+    ids = regions.column("id", kind="integer")[here]
+    cols = read_truth(truth, exposure.filter)
+    rows = np.isin(cols["id"], ids)
+    summary = render_final(truth, exposure, out, model=model, variants=variants, seed=p["seed"],
+                           histories=[os.path.join(study_dir, q) for q in p["previous"]], rows=rows,
+                           stamp=p["stamp"], compress=p["compress"], overwrite=True)
+    return {"galaxies": summary["rows"], "objects": summary["objects"], "blocks": summary["blocks"],
+            "block_fraction": round(summary["block_fraction"], 6), "changed": summary["changed"]}
+
+
+def _changes(study_dir, p, out):
+    from ..measure.changes import write_changes
+
+    finals = [os.path.join(study_dir, f) for f in p["finals"]]
+    summary = write_changes(finals, p["variant"], os.path.join(study_dir, p["truth"]), out, joint=p["joint"],
+                            stamp=p["stamp"], min_snr=p["min_snr"], expids=p["expids"])
+    return {"galaxies": summary["sample"], "fitted": summary["fitted"], "frames": len(finals)}
 
 
 def _correlate(study_dir, p, out):
     from ..stats.correlate import correlate_files
 
-    pairs = [(os.path.join(study_dir, a), os.path.join(study_dir, b)) for a, b in p["pairs"]]
     figures = os.path.join(study_dir, p["figures"])
     os.makedirs(figures, exist_ok=True)
-    correlate_files([], out, pairs=pairs, min_sep=p["min_sep"], max_sep=p["max_sep"], nbins=p["nbins"],
-                    npatch=p["npatch"], thresholds=tuple(p["thresholds"]), seed=p["seed"],
-                    plots_dir=figures, overwrite=True)
+    common = dict(min_sep=p["min_sep"], max_sep=p["max_sep"], nbins=p["nbins"], npatch=p["npatch"],
+                  thresholds=tuple(p["thresholds"]), seed=p["seed"], plots_dir=figures, overwrite=True)
+    if "tables" in p:
+        # the differential study's shape changes: one row per galaxy of the sample, De in columns
+        correlate_files([os.path.join(study_dir, t) for t in p["tables"]], out, de_columns=("de1", "de2"),
+                        **common)
+        return
+    pairs = [(os.path.join(study_dir, a), os.path.join(study_dir, b)) for a, b in p["pairs"]]
+    correlate_files([], out, pairs=pairs, **common)
 
 
 def _budget(study_dir, p, out):
@@ -174,7 +266,7 @@ def _summary(study_dir, p, out):
 
 
 RUNNERS = dict(pointings=_pointings, catalog=_catalog, render=_render, measure=_measure, correlate=_correlate,
-               budget=_budget, summary=_summary)
+               budget=_budget, summary=_summary, regions=_regions, final=_final, changes=_changes)
 
 
 def check_kind(kind: str) -> None:

@@ -1,0 +1,217 @@
+"""Shape changes De measured only where the pixels changed: the differential study's measurement.
+
+A final exposure rendered with and without persistence differs only where
+persistence reached (:mod:`perscli.render.differential` writes the
+reference's pixels around the galaxies that persistence could reach, and a
+variant's only around those whose stamps it changed).  A fit depends on
+nothing but its stamp's pixels and the catalogue (:mod:`.shapes`), so a
+galaxy whose stamps are the same bits in both has the same fit in both: its
+De is exactly 0 and it is not fitted.  The others are fitted twice, on the
+reference and on the variant (the reference's pixels where the variant has
+none), with the very code of ``perscli measure``.
+
+The result (:func:`measure_changes`) has one row per galaxy of the sample:
+every galaxy that ``perscli measure`` would fit (on a frame, predicted S/N
+above the cut), fitted or not, so that statistics count all of them, as
+the paper does ("all galaxies are used").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import PerscliError
+from .shapes import MIN_SNR_DEFAULT, measure_frame, measure_joint, read_positions
+
+#: the CHANGED table of a final's file: the catalogue ids whose stamps a variant changed
+CHANGED_EXTNAME = "CHANGED"
+
+#: |De| of a galaxy fitted on both: De = g(variant) - g(reference); Delta|e| = |g(variant)| - |g(reference)|
+COLUMNS = ("id", "ra", "dec", "expid", "g1", "g2", "g1_ref", "g2_ref", "de1", "de2", "dabs", "e1_true",
+           "e2_true", "snr_pred", "fitted", "flags")
+
+
+def variant_extname(variant: str) -> str:
+    """The image HDU of a final's file that holds a variant ('stars-typical' -> 'STARS-TYPICAL')."""
+    return variant.upper()
+
+
+def read_changed(path: str, variant: str) -> np.ndarray:
+    """The catalogue ids whose stamps ``variant`` changed in the final's file ``path``."""
+    from ..io.tables import read_table
+
+    table = read_table(f"{path}[{CHANGED_EXTNAME}]", what="changed stamps (perscli study)")
+    column = variant_extname(variant)
+    names = {n.upper(): n for n in table.names}
+    if column not in names:
+        raise PerscliError(f"{path}: its {CHANGED_EXTNAME} table has no column {column} (variants: "
+                           f"{', '.join(n for n in names if n != 'ID')})")
+    ids = table.column("id", kind="integer")
+    return ids[np.asarray(table.column(names[column], kind="integer"), dtype=bool)]
+
+
+def _truth_shapes(catalog: str, n: int):
+    from ..io.tables import read_table
+
+    table = read_table(catalog, what="truth catalogue")
+    names = {c.lower(): c for c in table.names}
+    if "e1" in names and "e2" in names:
+        return table.column("e1").astype(np.float64), table.column("e2").astype(np.float64)
+    return np.full(n, np.nan), np.full(n, np.nan)
+
+
+def _variant_view(path: str, variant: str):
+    """A function giving the variant's pixels of a final: its own where it has them, else the reference's."""
+
+    def read():
+        from ..io.frames import open_frame
+
+        with open_frame(f"{path}[SCI]") as ref, open_frame(f"{path}[{variant_extname(variant)}]") as var:
+            a = np.asarray(ref.planes()[0], dtype=np.float32)
+            b = np.asarray(var.planes()[0], dtype=np.float32)
+        return np.where(np.isfinite(b), b, a)
+
+    return read
+
+
+def measure_changes(finals, variant: str, catalog: str, *, joint: bool = True, stamp: int = 48,
+                    min_snr=MIN_SNR_DEFAULT, expids=None, workers: int = 1) -> dict:
+    """De of every galaxy of the sample between a variant and the reference, fitting only those that changed.
+
+    Parameters
+    ----------
+    finals : sequence of str
+        The finals' files (:func:`perscli.render.differential.render_final`):
+        SCI (the reference), one HDU per variant, MODEL and CHANGED.
+    variant : str
+        Which variant (e.g. 'stars-typical').
+    catalog : str
+        The truth catalogue.
+    joint : bool
+        One fit per galaxy over all its finals (the paper's pipeline), or one
+        per galaxy and final.
+    stamp, min_snr
+        As for ``perscli measure``.
+    expids : sequence of int, optional
+        Per final, its exposure id (the ``expid`` column of per-final rows).
+    workers : int
+
+    Returns
+    -------
+    dict
+        Column arrays (:data:`COLUMNS`), one row per galaxy of the sample
+        (per galaxy and final without ``joint``), and '_counts': the sample,
+        the galaxies fitted and those flagged.
+    """
+    finals = list(finals)
+    cat = read_positions(catalog)
+    e1_true, e2_true = _truth_shapes(catalog, len(cat["id"]))
+    index = {int(i): k for k, i in enumerate(cat["id"])}
+    parts = []
+    changed_sets = []
+    for path in finals:
+        ids = read_changed(path, variant)
+        mask = np.zeros(len(cat["id"]), dtype=bool)
+        mask[[index[int(i)] for i in ids if int(i) in index]] = True
+        changed_sets.append(mask)
+    kw = dict(stamp=stamp, min_snr=min_snr, workers=workers)
+    if joint:
+        only = np.logical_or.reduce(changed_sets) if changed_sets else np.zeros(len(cat["id"]), dtype=bool)
+        refs = [f"{p}[SCI]" for p in finals]
+        ref = measure_joint(refs, cat, only=only, **kw)
+        var = measure_joint(refs, cat, only=only, data=[_variant_view(p, variant) for p in finals], **kw)
+        parts.append(_assemble(cat, ref, var, only, -1, e1_true, e2_true))
+    else:
+        from ..io.frames import open_frame
+
+        for k, path in enumerate(finals):
+            with open_frame(f"{path}[SCI]") as frame:
+                ref = measure_frame(frame, cat, only=changed_sets[k], **kw)
+                var = measure_frame(frame, cat, only=changed_sets[k], data=_variant_view(path, variant)(), **kw)
+            expid = int(expids[k]) if expids is not None else k
+            parts.append(_assemble(cat, ref, var, changed_sets[k], expid, e1_true, e2_true))
+    out = {c: np.concatenate([p[c] for p in parts]) for c in COLUMNS}
+    fitted = out["fitted"].astype(bool)
+    out["_counts"] = {"sample": len(out["id"]), "fitted": int(fitted.sum()),
+                      "flagged": int(np.count_nonzero(fitted & (out["flags"] != 0)))}
+    return out
+
+
+def _assemble(cat, ref: dict, var: dict, changed: np.ndarray, expid: int, e1_true, e2_true) -> dict:
+    """Rows for the sample of one measurement: the fitted rows' De, exactly 0 for the others."""
+    rows = np.asarray(ref["_todo"])
+    n = len(rows)
+    pos = {int(r): k for k, r in enumerate(rows)}
+    out = {c: np.full(n, np.nan) for c in ("ra", "dec", "g1", "g2", "g1_ref", "g2_ref", "snr_pred")}
+    out["id"] = np.asarray(cat["id"])[rows].astype(np.int64)
+    out["expid"] = np.full(n, expid, dtype=np.int64)
+    out["de1"] = np.zeros(n)
+    out["de2"] = np.zeros(n)
+    out["dabs"] = np.zeros(n)
+    out["e1_true"], out["e2_true"] = e1_true[rows], e2_true[rows]
+    out["fitted"] = np.zeros(n, dtype=np.int16)
+    out["flags"] = np.zeros(n, dtype=np.int32)
+    if "ra" in cat:
+        out["ra"], out["dec"] = cat["ra"][rows], cat["dec"][rows]
+    for side, tag in ((ref, "_ref"), (var, "")):
+        ids = np.asarray(side["id"])
+        if len(ids) and not np.array_equal(ids, out["id"][[pos[int(r)] for r in _rows_of(cat, ids)]]):
+            raise PerscliError("measure_changes: fitted rows out of step")  # pragma: no cover - internal check
+        k = np.array([pos[int(r)] for r in _rows_of(cat, ids)], dtype=np.int64)
+        out[f"g1{tag}"][k] = side["g1"]
+        out[f"g2{tag}"][k] = side["g2"]
+        out["flags"][k] |= np.asarray(side["flags"], dtype=np.int32)
+        out["fitted"][k] = 1
+        if tag == "_ref":
+            out["snr_pred"][k] = side["snr_pred"]
+    fit = out["fitted"].astype(bool)
+    out["de1"][fit] = out["g1"][fit] - out["g1_ref"][fit]
+    out["de2"][fit] = out["g2"][fit] - out["g2_ref"][fit]
+    out["dabs"][fit] = np.hypot(out["g1"][fit], out["g2"][fit]) - np.hypot(out["g1_ref"][fit], out["g2_ref"][fit])
+    return out
+
+
+def _rows_of(cat, ids) -> np.ndarray:
+    index = {int(i): k for k, i in enumerate(cat["id"])}
+    return np.array([index[int(i)] for i in ids], dtype=np.int64)
+
+
+def write_changes(finals, variant: str, catalog: str, dest: str, *, joint: bool = True, stamp: int = 48,
+                  min_snr=MIN_SNR_DEFAULT, expids=None, workers: int = 1, overwrite: bool = True) -> dict:
+    """:func:`measure_changes`, written as a CHANGES table (one row per galaxy of the sample) into ``dest``.
+
+    Returns
+    -------
+    dict
+        The counts of :func:`measure_changes`.
+    """
+    from ..io.fitsfile import OutHDU, table_hdu
+    from ..io.output import add_provenance, check_output, write_hdus
+
+    check_output(dest, overwrite=overwrite, inputs=[catalog, *finals])
+    cols = measure_changes(finals, variant, catalog, joint=joint, stamp=stamp, min_snr=min_snr, expids=expids,
+                           workers=workers)
+    counts = cols.pop("_counts")
+    descriptions = {
+        "de1": "g1 - g1_ref (0: no pixel of the stamps changed)", "de2": "g2 - g2_ref",
+        "dabs": "|g| - |g_ref| (Delta|e|)", "g1_ref": "g1 without persistence (NaN: not fitted)",
+        "e1_true": "intrinsic e1 of the catalogue", "e2_true": "intrinsic e2 of the catalogue",
+        "fitted": "1: stamps changed, fitted with and without", "expid": "final (-1: joint over all)",
+        "flags": "flags of the two fits (ORed)"}
+    hdu = table_hdu({c: cols[c] for c in COLUMNS}, "CHANGES", units={"ra": "deg", "dec": "deg"},
+                    descriptions=descriptions)
+    primary = OutHDU([])
+    add_provenance(primary.header, step=f"measure changes variant={variant} joint={joint}",
+                   params={"VARIANT": (variant, "persistence variant"),
+                           "JOINT": (bool(joint), "one fit per galaxy over its finals"),
+                           "GAXES": ("sky" if joint else "pixel", "axes of g and De"),
+                           "NSAMPLE": (counts["sample"], "galaxies (per final without JOINT) of the sample"),
+                           "NFITTED": (counts["fitted"], "of them fitted: their stamps changed"),
+                           "NFLAGGED": (counts["flagged"], "fitted and flagged: left out of the statistics"),
+                           "MINSNR": (float(min_snr) if min_snr is not None else MIN_SNR_DEFAULT,
+                                      "cut on the predicted S/N"),
+                           "NFINALS": (len(finals), "final exposures' files read"),
+                           "CAT": (catalog.rsplit("/", 1)[-1][-68:], "truth catalogue")})
+    hdu.header["GAXES"] = ("sky" if joint else "pixel", "axes of g and De")
+    write_hdus([primary, hdu], dest, overwrite=overwrite)
+    return counts

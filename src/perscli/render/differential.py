@@ -1,0 +1,439 @@
+"""A final exposure rendered only where persistence can change a galaxy: the differential study.
+
+What persists of an earlier exposure, when star light persists (the paper's
+setting), is its stars' light: the persistence of a final exposure can only
+be non-zero on the pixels that some star of an earlier exposure lit, the
+union of those stars' stamps (:func:`reach_mask`).  A galaxy whose measured
+stamp (:func:`window_boxes`, one pixel wider for interpixel capacitance) does
+not touch that union has exactly the same pixels with and without
+persistence, hence exactly the same fit: De = 0.  Only the others
+(:func:`candidate_rows`) need pixels, and only theirs are simulated
+(:func:`render_final`): the detector's noise blocks that their stamps reach
+(:data:`perscli.detector.effects.NOISE_BLOCK`), with every object whose light
+reaches those blocks.  Because each pixel's noise is keyed on its block and
+each pixel is the sum of the same stamps in the same order, those pixels are
+the very bits a whole-frame render gives: the differential result is the full
+result, not an approximation of it (tests/test_differential.py checks this
+galaxy by galaxy).
+
+The final's file holds the reference (no persistence) in SCI, and one image
+per variant (persistence model and source) holding only the stamps it
+changed, NaN elsewhere, with a CHANGED table of which galaxies changed in
+which variant; :func:`perscli.measure.changes.measure_changes` fits those.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from .. import PerscliError
+from ..detector.effects import NOISE_BLOCK, DetectorModel, Persistence, active_pixels, block_grid, run_chains
+from .exposure import Exposure, Optics, draw_sources, plan_objects, read_truth
+
+log = logging.getLogger(__name__)
+
+#: pixels added to each side of a measured stamp: the render places a galaxy with GalSim's WCS and
+#: measure with the header's (astropy), which may round it to the neighbouring pixel
+WINDOW_MARGIN = 1
+#: interpixel capacitance brings each neighbour's signal into a pixel
+IPC_REACH = 1
+
+
+def _subset(cols: dict, rows: np.ndarray) -> dict:
+    return {k: (v[rows] if isinstance(v, np.ndarray) and v.shape[:1] == cols["ra"].shape else v)
+            for k, v in cols.items()}
+
+
+def star_boxes(cols: dict, exposure: Exposure, *, optics: Optics | None = None, floor: float = 0.0) -> np.ndarray:
+    """The detector pixels each star's stamp covers on an exposure's frame: (k, 4) [x0, x1, y0, y1], inclusive.
+
+    These are the pixels :func:`perscli.render.exposure.draw_sources` gives
+    the star light (STARFLU), hence the only ones whose light can persist.
+
+    Parameters
+    ----------
+    cols : dict
+        The catalogue (:func:`perscli.render.exposure.read_truth`).
+    exposure : Exposure
+        The earlier exposure (its pointing, SCA and frame bounds).
+    optics : Optics, optional
+    floor : float
+        Electrons: light at or below it does not persist.  A star whose
+        flux, with that of every star whose stamp overlaps its own, is at
+        most ``floor`` cannot raise any pixel above it and is left out.
+
+    Returns
+    -------
+    ndarray of int, shape (k, 4)
+    """
+    stars = np.flatnonzero(cols["kind"] == "star")
+    if not len(stars):
+        return np.zeros((0, 4), dtype=np.int64)
+    optics = optics if optics is not None else Optics(exposure)
+    sub = _subset(cols, stars)
+    todo, x, y, flux, sizes = plan_objects(sub, optics, exposure.full_bounds)
+    ix = np.floor(x[todo] + 0.5).astype(np.int64)
+    iy = np.floor(y[todo] + 0.5).astype(np.int64)
+    n = sizes[todo]
+    boxes = np.stack([ix - n // 2, ix - n // 2 + n - 1, iy - n // 2, iy - n // 2 + n - 1], axis=1)
+    if floor > 0 and len(boxes):
+        f = flux[todo]
+        overlap = ((boxes[:, None, 0] <= boxes[None, :, 1]) & (boxes[None, :, 0] <= boxes[:, None, 1])
+                   & (boxes[:, None, 2] <= boxes[None, :, 3]) & (boxes[None, :, 2] <= boxes[:, None, 3]))
+        boxes = boxes[(overlap * f[None, :]).sum(axis=1) > floor]
+    return _clip(boxes, exposure.full_bounds)
+
+
+def _clip(boxes: np.ndarray, bounds) -> np.ndarray:
+    xmin, xmax, ymin, ymax = bounds
+    out = boxes.copy()
+    out[:, 0] = np.maximum(out[:, 0], xmin)
+    out[:, 1] = np.minimum(out[:, 1], xmax)
+    out[:, 2] = np.maximum(out[:, 2], ymin)
+    out[:, 3] = np.minimum(out[:, 3], ymax)
+    return out[(out[:, 0] <= out[:, 1]) & (out[:, 2] <= out[:, 3])]
+
+
+def reach_mask(boxes, bounds) -> np.ndarray:
+    """The frame's pixels inside any of ``boxes`` (detector pixels, inclusive): where persistence can be non-zero.
+
+    Returns
+    -------
+    ndarray of bool, the frame's shape (ny, nx)
+    """
+    xmin, xmax, ymin, ymax = bounds
+    mask = np.zeros((ymax - ymin + 1, xmax - xmin + 1), dtype=bool)
+    for x0, x1, y0, y1 in _clip(np.asarray(boxes, dtype=np.int64).reshape(-1, 4), bounds):
+        mask[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
+    return mask
+
+
+def window_boxes(x, y, stamp: int, margin: int = WINDOW_MARGIN) -> np.ndarray:
+    """The detector pixels of the stamps ``perscli measure`` cuts around positions (x, y), grown by ``margin``.
+
+    ``perscli measure`` cuts a stamp of side n around the pixel nearest the
+    galaxy (:func:`perscli.measure.shapes.cut_stamp`); every side it may
+    choose is at most ``stamp``, and a smaller stamp lies inside the larger.
+
+    Returns
+    -------
+    ndarray of int, shape (k, 4): [x0, x1, y0, y1], inclusive
+    """
+    ix = np.floor(np.asarray(x, dtype=np.float64) + 0.5).astype(np.int64)
+    iy = np.floor(np.asarray(y, dtype=np.float64) + 0.5).astype(np.int64)
+    h = stamp // 2
+    return np.stack([ix - h - margin, ix - h + stamp - 1 + margin, iy - h - margin, iy - h + stamp - 1 + margin],
+                    axis=1)
+
+
+def touches(mask: np.ndarray, boxes, bounds) -> np.ndarray:
+    """Per box (detector pixels, inclusive): whether any pixel of ``mask`` (the frame at ``bounds``) lies in it."""
+    xmin, xmax, ymin, ymax = bounds
+    boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+    table = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=np.int64)
+    np.cumsum(np.cumsum(mask, axis=0, dtype=np.int64), axis=1, out=table[1:, 1:])
+    x0 = np.clip(boxes[:, 0] - xmin, 0, mask.shape[1])
+    x1 = np.clip(boxes[:, 1] - xmin + 1, 0, mask.shape[1])
+    y0 = np.clip(boxes[:, 2] - ymin, 0, mask.shape[0])
+    y1 = np.clip(boxes[:, 3] - ymin + 1, 0, mask.shape[0])
+    inside = (x0 < x1) & (y0 < y1)
+    total = table[y1, x1] - table[y0, x1] - table[y1, x0] + table[y0, x0]
+    return inside & (total > 0)
+
+
+def galaxy_positions(cols: dict, optics: Optics, bounds, stamp: int):
+    """Catalogue rows of the galaxies whose measured stamps reach the frame, and their detector positions."""
+    xmin, xmax, ymin, ymax = bounds
+    gal = np.flatnonzero(cols["kind"] == "galaxy")
+    x, y = optics.positions(cols["ra"][gal], cols["dec"][gal])
+    reach = stamp // 2 + WINDOW_MARGIN + IPC_REACH + 1
+    with np.errstate(invalid="ignore"):
+        near = (x >= xmin - reach) & (x <= xmax + reach) & (y >= ymin - reach) & (y <= ymax + reach)
+    return gal[near], x[near], y[near]
+
+
+def candidate_rows(cols: dict, final: Exposure, masks, *, stamp: int, optics: Optics | None = None) -> np.ndarray:
+    """Per catalogue row: whether the galaxy's measured stamp on ``final`` touches where persistence can be.
+
+    Parameters
+    ----------
+    cols : dict
+        The catalogue.
+    final : Exposure
+    masks : ndarray of bool, or None
+        :func:`reach_mask` of the final's earlier exposures (None: nothing reaches).
+    stamp : int
+        The largest stamp ``perscli measure`` cuts (its ``--stamp``).
+    """
+    out = np.zeros(len(cols["ra"]), dtype=bool)
+    if masks is None or not masks.any():
+        return out
+    optics = optics if optics is not None else Optics(final)
+    rows, x, y = galaxy_positions(cols, optics, final.full_bounds, stamp)
+    boxes = window_boxes(x, y, stamp, WINDOW_MARGIN + IPC_REACH)
+    out[rows[touches(masks, boxes, final.full_bounds)]] = True
+    return out
+
+
+def on_final_rows(cols: dict, final: Exposure, *, stamp: int, optics: Optics | None = None) -> np.ndarray:
+    """Per catalogue row: whether the galaxy's measured stamp reaches ``final``'s frame at all."""
+    out = np.zeros(len(cols["ra"]), dtype=bool)
+    optics = optics if optics is not None else Optics(final)
+    rows, x, y = galaxy_positions(cols, optics, final.full_bounds, stamp)
+    out[rows] = True
+    return out
+
+
+def _active_blocks(boxes, area) -> np.ndarray:
+    """The noise blocks of ``area`` (block_grid of it) that any box (detector pixels, inclusive) reaches."""
+    ax0, ax1, ay0, ay1 = area
+    shape = (ay1 - ay0 + 1, ax1 - ax0 + 1)
+    by0, bx0, nby, nbx = block_grid((ax0, ay0), shape)
+    active = np.zeros((nby, nbx), dtype=bool)
+    for x0, x1, y0, y1 in _clip(np.asarray(boxes, dtype=np.int64).reshape(-1, 4), area):
+        active[(y0 - 1) // NOISE_BLOCK - by0:(y1 - 1) // NOISE_BLOCK - by0 + 1,
+               (x0 - 1) // NOISE_BLOCK - bx0:(x1 - 1) // NOISE_BLOCK - bx0 + 1] = True
+    return active
+
+
+def _objects_reaching(plan, active, area) -> np.ndarray:
+    """Per catalogue row: whether its stamp reaches an active noise block of ``area``."""
+    todo, x, y, _, sizes = plan
+    out = np.zeros(len(x), dtype=bool)
+    if not active.any() or not len(todo):
+        return out
+    ax0, ax1, ay0, ay1 = area
+    by0, bx0, nby, nbx = block_grid((ax0, ay0), (ay1 - ay0 + 1, ax1 - ax0 + 1))
+    n = sizes[todo]
+    ix = np.floor(x[todo] + 0.5).astype(np.int64)
+    iy = np.floor(y[todo] + 0.5).astype(np.int64)
+    boxes = np.stack([ix - n // 2, ix - n // 2 + n - 1, iy - n // 2, iy - n // 2 + n - 1], axis=1)
+    table = np.zeros((nby + 1, nbx + 1), dtype=np.int64)
+    np.cumsum(np.cumsum(active, axis=0, dtype=np.int64), axis=1, out=table[1:, 1:])
+    c = np.clip(boxes, [ax0, ax0, ay0, ay0], [ax1, ax1, ay1, ay1])
+    bxa = (c[:, 0] - 1) // NOISE_BLOCK - bx0
+    bxb = (c[:, 1] - 1) // NOISE_BLOCK - bx0 + 1
+    bya = (c[:, 2] - 1) // NOISE_BLOCK - by0
+    byb = (c[:, 3] - 1) // NOISE_BLOCK - by0 + 1
+    inside = (boxes[:, 0] <= ax1) & (boxes[:, 1] >= ax0) & (boxes[:, 2] <= ay1) & (boxes[:, 3] >= ay0)
+    total = table[byb, bxb] - table[bya, bxb] - table[byb, bxa] + table[bya, bxa]
+    out[todo[inside & (total > 0)]] = True
+    return out
+
+
+def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, variants: dict, seed: int,
+                 histories=(), rows=None, stamp: int = 48, compress: str = "gzip", overwrite: bool = False) -> dict:
+    """The reference and every variant of a final exposure, on the stamps of ``rows`` only; write ``dest``.
+
+    Parameters
+    ----------
+    truth : str
+        The truth catalogue.
+    exposure : Exposure
+        The final exposure (with its frame's bounds).
+    dest : str
+        Output file: SCI (the reference: ``model`` without earlier
+        exposures) holding the pixels of the rows' stamps (NaN elsewhere);
+        one image per variant (:func:`perscli.measure.changes.variant_extname`)
+        holding the stamps it changed (NaN elsewhere); MODEL (the
+        reference's detector model); CHANGED (id, and per variant whether
+        it changed that galaxy's stamp).
+    model : DetectorModel
+        The reference's detector model.
+    variants : dict
+        Variant name -> DetectorModel: the model with its persistence law and
+        source (only star light persists here: source 'stars').
+    seed : int
+        The frame's seed: the reference and every variant share its noise.
+    histories : sequence of str
+        The earlier exposures' frames with STARFLU (``render --hdus STARFLU``).
+    rows : ndarray of bool, optional
+        Per catalogue row: the galaxies whose stamps to simulate (default: none).
+    stamp : int
+        The largest stamp ``perscli measure`` cuts.
+    compress, overwrite
+        As for :func:`perscli.render.run.render_file`.
+
+    Returns
+    -------
+    dict
+        rows simulated, objects drawn, active blocks and their fraction, and
+        per variant the galaxies changed.
+    """
+    from ..io.fitsfile import OutHDU, format_card, table_hdu
+    from ..io.output import check_output, write_hdus
+    from .run import (_exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, history_persistence, open_history,
+                      pad_to, simulation_area)
+
+    check_output(dest, overwrite=overwrite, inputs=[truth, *histories])
+    cols = read_truth(truth, exposure.filter)
+    for name, vm in variants.items():
+        source = Persistence.fluence_input(vm)[0]
+        if source != "stars":
+            raise PerscliError(f"variant {name}: a differential render needs star light persisting "
+                               f"(persistence.source stars), not {source}")
+    optics = Optics(exposure)
+    bounds = exposure.full_bounds
+    xmin, xmax, ymin, ymax = bounds
+    area = simulation_area(bounds)
+    rows = np.zeros(len(cols["ra"]), dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
+    gal, gx, gy = galaxy_positions(cols, optics, bounds, stamp)
+    keep = rows[gal]
+    gal, gx, gy = gal[keep], gx[keep], gy[keep]
+    windows = _clip_keep(window_boxes(gx, gy, stamp), bounds)
+    active = _active_blocks(window_boxes(gx, gy, stamp, WINDOW_MARGIN + IPC_REACH), area)
+    plan = plan_objects(cols, optics, area)
+    drawn = _objects_reaching(plan, active, area)
+    opened = []
+    try:
+        sources = draw_sources(cols, exposure, optics=optics, plan=plan, bounds=area, only=drawn)[0] \
+            if active.any() else np.zeros((area[3] - area[2] + 1, area[1] - area[0] + 1))
+        charges = {}
+        if active.any() and histories:
+            for name in histories:
+                opened.append(open_history(name, "stars"))
+            for name, vm in variants.items():
+                _, threshold, cap = Persistence.fluence_input(vm)
+                charge, _ = history_persistence(opened, exposure, vm.persistence_model(), threshold=threshold, cap=cap,
+                                                floor=Persistence.floor(vm))
+                charges[name] = pad_to(charge, bounds, area)
+        models = {"": model, **variants}
+        results = run_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=optics.sky_rate,
+                             persistence=charges, origin=(area[0], area[2]), active=active)
+        ref = crop(results[""].sci, area, bounds)
+        inside = np.zeros(ref.shape, dtype=bool)
+        for x0, x1, y0, y1 in windows[1]:
+            inside[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
+        if np.any(inside & ~np.isfinite(ref)):          # pragma: no cover - the blocks cover the windows
+            raise PerscliError("render_final: a stamp reaches pixels that were not simulated")
+        ref_out = np.where(inside, ref, np.nan).astype(np.float32)
+        changed, var_out = {}, {}
+        for name in variants:
+            sci = crop(results[name].sci, area, bounds)
+            out = np.full(ref.shape, np.nan, dtype=np.float32)
+            flags = np.zeros(len(windows[0]), dtype=bool)
+            for k, (x0, x1, y0, y1) in enumerate(windows[1]):
+                part = (slice(y0 - ymin, y1 - ymin + 1), slice(x0 - xmin, x1 - xmin + 1))
+                a, b = sci[part].astype(np.float32), ref_out[part]
+                if not np.array_equal(a, b):
+                    flags[k] = True
+                    out[part] = a
+            changed[name], var_out[name] = flags, out
+        gain = model.value("gain", "gain", off=1.0)
+        unit = results[""].unit
+        sky_rate = results[""].sky_rate
+        common = _wcs_cards(optics, bounds)
+        frame_cards = common + _exposure_cards(exposure, optics, seed, unit, gain) + [
+            format_card("SKYRATE", sky_rate, "[e-/pixel/s] sky background used"),
+            format_card("NOBJ", int(np.count_nonzero(drawn)), "objects drawn (those reaching the stamps)")]
+        region = [format_card("REGION", "stamps", "only the stamps of galaxies persistence can reach"),
+                  format_card("NBLOCKS", int(active.sum()), f"noise blocks ({NOISE_BLOCK} px) simulated"),
+                  format_card("FBLOCKS", round(float(active.mean()) if active.size else 0.0, 6),
+                              "fraction of the blocks simulated")]
+        out = [OutHDU([format_card("SIMPLE", True), format_card("BITPIX", 8), format_card("NAXIS", 0),
+                       format_card("EXTEND", True)])]
+        out.append(OutHDU(frame_cards + region + [
+            format_card("CONTENT", "reference: no persistence", "NaN outside the stamps simulated")],
+            ref_out, extname="SCI"))
+        from ..measure.changes import CHANGED_EXTNAME, variant_extname
+
+        for name, vm in variants.items():
+            pm = vm.persistence_model()
+            out.append(OutHDU(frame_cards + region + [
+                format_card("CONTENT", f"variant {name}", "NaN where it equals SCI: only changed stamps"),
+                format_card("VARIANT", name), format_card("PS_LAW", pm.name[-68:], "persistence law"),
+                format_card("PS_FLOOR", Persistence.floor(vm), "[e-] fluence at or below leaves nothing"),
+                format_card("NCHANGED", int(changed[name].sum()), "galaxies whose stamps changed")],
+                var_out[name], extname=variant_extname(name)))
+        out.append(_model_hdu(model))
+        ids = np.asarray(cols["id"])[gal[windows[0]]].astype(np.int64)
+        table = {"id": ids, **{variant_extname(n): changed[n].astype(np.int16) for n in variants}}
+        out.append(table_hdu(table, CHANGED_EXTNAME, descriptions={"id": "catalogue id of a galaxy simulated"}))
+        _provenance(out[0], truth, cols["datasum"], exposure, model, seed, opened, [], {}, sky_rate,
+                    int(np.count_nonzero(drawn)), ("SCI", *[variant_extname(n) for n in variants]))
+        write_hdus(out, dest, overwrite=overwrite, compress=compress)
+        return {"rows": int(len(windows[0])), "objects": int(np.count_nonzero(drawn)), "blocks": int(active.sum()),
+                "block_fraction": float(active.mean()) if active.size else 0.0,
+                "changed": {n: int(c.sum()) for n, c in changed.items()}}
+    finally:
+        for frame in opened:
+            frame.close()
+
+
+def _clip_keep(boxes: np.ndarray, bounds):
+    """(indices of the boxes that reach ``bounds``, the boxes clipped to it)."""
+    xmin, xmax, ymin, ymax = bounds
+    c = boxes.copy()
+    c[:, 0] = np.maximum(c[:, 0], xmin)
+    c[:, 1] = np.minimum(c[:, 1], xmax)
+    c[:, 2] = np.maximum(c[:, 2], ymin)
+    c[:, 3] = np.minimum(c[:, 3], ymax)
+    ok = (c[:, 0] <= c[:, 1]) & (c[:, 2] <= c[:, 3])
+    return np.flatnonzero(ok), c[ok]
+
+
+def plan_regions(cols: dict, finals, *, stamp: int = 48, joint: bool = True, floor: float = 0.0):
+    """Which galaxies of which finals a differential study simulates.
+
+    Parameters
+    ----------
+    cols : dict
+        The truth catalogue (:func:`perscli.render.exposure.read_truth`).
+    finals : sequence of (Exposure, sequence of Exposure)
+        Each final exposure with its earlier exposures (same detector).
+    stamp : int
+        The largest stamp ``perscli measure`` cuts.
+    joint : bool
+        Galaxies fitted over all their finals: a galaxy that persistence can
+        reach on any final is simulated on every final it falls on.
+    floor : float
+        Electrons: star light at or below it does not persist (the smallest
+        floor of the study's variants).
+
+    Returns
+    -------
+    (dict, dict)
+        The table (columns sca, expid, id: a galaxy to simulate on a final),
+        and counts: on_frames (galaxy-final pairs with the stamp on the
+        frame), galaxies_on, candidates (galaxies simulated), reached
+        (galaxy-final pairs persistence can reach), pixel_fraction (of the
+        finals' pixels persistence can reach, mean), floor.
+    """
+    boxes = {}
+    per_final, on_any, reached_any = [], None, None
+    reached, on_frames, fractions = 0, 0, []
+    n = len(cols["ra"]) if cols is not None else 0
+    on_any = np.zeros(n, dtype=bool)
+    reached_any = np.zeros(n, dtype=bool)
+    for final, history in finals:
+        parts = []
+        for h in history:
+            key = (h.sca, h.expid, h.full_bounds)
+            if key not in boxes:
+                boxes[key] = star_boxes(cols, h, floor=floor)
+            parts.append(boxes[key])
+        mask = reach_mask(np.concatenate(parts) if parts else np.zeros((0, 4), dtype=np.int64), final.full_bounds)
+        fractions.append(float(mask.mean()))
+        optics = Optics(final)
+        cand = candidate_rows(cols, final, mask, stamp=stamp, optics=optics)
+        on = on_final_rows(cols, final, stamp=stamp, optics=optics)
+        per_final.append((final, cand, on))
+        on_any |= on
+        reached_any |= cand
+        reached += int(cand.sum())
+        on_frames += int(on.sum())
+    sca, expid, ids = [], [], []
+    for final, cand, on in per_final:
+        rows = np.flatnonzero((reached_any & on) if joint else cand)
+        sca.append(np.full(len(rows), final.sca, dtype=np.int16))
+        expid.append(np.full(len(rows), final.expid, dtype=np.int64))
+        ids.append(np.asarray(cols["id"])[rows].astype(np.int64))
+    cat = (lambda parts, dtype: np.concatenate(parts) if parts else np.zeros(0, dtype=dtype))
+    table = {"sca": cat(sca, np.int16), "expid": cat(expid, np.int64), "id": cat(ids, np.int64)}
+    counts = {"on_frames": on_frames, "galaxies_on": int(on_any.sum()), "candidates": int(reached_any.sum()),
+              "reached": reached, "pixel_fraction": float(np.mean(fractions)) if fractions else 0.0,
+              "floor": float(floor)}
+    return table, counts
