@@ -66,8 +66,48 @@ def test_presets_file_and_overrides_stack(tmp_path):
     assert s["persistence"]["sources"] == ["stars", 1.0e5]
 
 
+def test_differential_plan_draws_earlier_stars_once_and_each_final_once():
+    s = load_study(None, preset="ci", overrides=CI + ["exposures.count=3", "exposures.history=2",
+                                                      "persistence.models=[typical, pessimistic]"])
+    tasks = build(s)
+    keys = [t.key for t in tasks]
+    assert len(keys) == len(set(keys))
+    stars = [t for t in tasks if t.key.startswith("stars/")]
+    finals = [t for t in tasks if t.kind == "final"]
+    assert len(finals) == 3
+    # earlier exposures: the 2 before the first final, and the first two finals for the later ones
+    assert len(stars) == 4 and all(t.params["hdus"] == ["STARFLU"] for t in stars)
+    assert not any(t.kind == "render" and "SCI" in t.params.get("hdus", []) for t in tasks)
+    for t in finals:
+        assert set(t.params["variants"]) == {"stars-typical", "stars-pessimistic"}   # one render for all
+        assert len(t.params["previous"]) <= 2 and "regions" in t.deps
+        assert all(dep in keys[:keys.index(t.key)] for dep in t.deps)
+    assert [t.kind for t in tasks].count("changes") == 2
+    corr = [t for t in tasks if t.kind == "correlate"]
+    assert all(t.params["tables"] for t in corr)
+
+
+def test_realisations_repeat_the_study_with_their_own_seeds():
+    s = load_study(None, preset="ci", overrides=CI + ["realisations=3", "seed=5"])
+    tasks = build(s)
+    cats = [t for t in tasks if t.kind == "catalog"]
+    assert [t.output for t in cats] == ["r0005/truth.fits", "r0006/truth.fits", "r0007/truth.fits"]
+    assert [t.params["seed"] for t in cats] == [5, 6, 7]
+    finals = [t for t in tasks if t.kind == "final"]
+    assert len({t.params["seed"] for t in finals}) == len(finals)
+    summary = tasks[-1]
+    assert summary.kind == "summary" and [r["seed"] for r in summary.params["realisations"]] == [5, 6, 7]
+    with pytest.raises(PerscliError, match="realisations"):
+        load_study(None, preset="ci", overrides=["realisations=0"])
+    with pytest.raises(PerscliError, match="realisations"):
+        load_study(None, preset="ci", overrides=["seed=1000", "realisations=2"])
+    with pytest.raises(PerscliError, match="differential"):
+        build(load_study(None, preset="ci", overrides=["differential=true", "persistence.sources=[all]"]))
+
+
 def test_plan_renders_each_sca_exposure_once_and_shares_seeds():
-    s = load_study(None, preset="ci", overrides=CI + ["exposures.count=3", "exposures.history=2"])
+    s = load_study(None, preset="ci", overrides=CI + ["exposures.count=3", "exposures.history=2",
+                                                      "differential=false"])
     tasks = build(s)
     keys = [t.key for t in tasks]
     assert len(keys) == len(set(keys))
@@ -151,23 +191,44 @@ def serial_study(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def full_study(tmp_path_factory):
+    """The same study computed in full: every frame rendered whole, every galaxy measured in each variant."""
+    out = tmp_path_factory.mktemp("full") / "study"
+    run("study", "--preset", "ci", "-o", out, "--scheduler", "serial",
+        *sum([["--set", c] for c in [*CI, "differential=false"]], []))
+    return out
+
+
 @pytest.mark.slow
 def test_ci_study_makes_every_product(serial_study):
     out = serial_study
     summary = json.loads((out / "summary.json").read_text())
     assert [r["variant"] for r in summary["results"]] == ["stars-typical"]
     res = summary["results"][0]
-    assert res["n"] > 0 and "frac_ge" in res
-    for rel in ["truth.fits", "pointings.fits", "shapes/ref.fits", "shapes/stars-typical.fits",
+    assert res["n"] > 0 and "frac_ge" in res and "frac_dabs_ge" in res and res["catalogue"] >= res["sample"]
+    assert summary["differential"] is True
+    for rel in ["truth.fits", "pointings.fits", "regions.fits", "shapes/stars-typical.fits",
                 "xi/stars-typical.fits", "budget/stars-typical.fits", "summary.md",
+                "frames/sca01/e000003_final.fits", "frames/sca01/e000000_stars.fits",
                 "figures/ghosts_by_magnitude.png", "figures/galaxy_beside_ghost.png", "cost.json"]:
+        assert (out / rel).exists(), rel
+    cost = json.loads((out / "cost.json").read_text())
+    assert cost["final"]["tasks"] == 2 and cost["render_stars"]["tasks"] == 4 and cost["changes"]["tasks"] == 1
+    assert cost["render_stars"]["bytes"] > 0 and cost["regions"]["tasks"] == 1
+    # a rerun makes nothing
+    result = run("study", "--preset", "ci", "-o", out, "--scheduler", "serial", *sum([["--set", c] for c in CI], []))
+    assert "0 products made" in result.output
+
+
+@pytest.mark.slow
+def test_full_ci_study_makes_every_product(full_study):
+    out = full_study
+    for rel in ["shapes/ref.fits", "shapes/stars-typical.fits", "xi/stars-typical.fits", "summary.md"]:
         assert (out / rel).exists(), rel
     cost = json.loads((out / "cost.json").read_text())
     assert cost["render_ref_final"]["tasks"] == 2 and cost["render_ref_history"]["tasks"] == 3
     assert cost["render_ref_history"]["bytes"] > 0 and cost["render_persist"]["tasks"] == 2
-    # a rerun makes nothing
-    result = run("study", "--preset", "ci", "-o", out, "--scheduler", "serial", *sum([["--set", c] for c in CI], []))
-    assert "0 products made" in result.output
 
 
 @pytest.mark.slow
@@ -187,14 +248,14 @@ def test_a_killed_run_resumes_and_finishes_with_the_same_products(serial_study, 
     state = out / ".state"
     deadline = time.time() + 300
     while time.time() < deadline and proc.poll() is None:
-        if state.exists() and len(list(state.glob("render__*.json"))) >= 3:
+        if state.exists() and len(list(state.glob("*.json"))) >= 5:
             break
         time.sleep(0.05)
     assert proc.poll() is None, "the study finished before it could be killed"
     proc.kill()
     proc.wait()
     made = {p.name for p in state.glob("*.json")}
-    assert 0 < len(made) < 14
+    assert 0 < len(made) < 13
     result = subprocess.run(cmd, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     assert_same_products(serial_study, out)
@@ -209,7 +270,7 @@ def _fits_data(path):
 
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
-def test_the_makefile_of_single_commands_agrees_with_the_study(serial_study, tmp_path):
+def test_the_makefile_of_single_commands_agrees_with_the_study(full_study, tmp_path):
     # examples/persistence-study composes the same study from catalog, pointings, render, measure,
     # correlate and budget; with the same settings its products hold the same data
     here = os.path.join(os.path.dirname(__file__), "..", "examples", "persistence-study")
@@ -221,7 +282,7 @@ def test_the_makefile_of_single_commands_agrees_with_the_study(serial_study, tmp
     made = [os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs if f.endswith(".fits")]
     assert len(made) >= 12 and "xi/stars-typical.fits" in made and "shapes/ref.fits" in made
     for rel in made:
-        assert _fits_data(out / rel) == _fits_data(serial_study / rel), rel
+        assert _fits_data(out / rel) == _fits_data(full_study / rel), rel
 
 
 def test_persistence_models_by_name_or_file_are_checked_before_anything_runs(tmp_path):
@@ -232,8 +293,8 @@ def test_persistence_models_by_name_or_file_are_checked_before_anything_runs(tmp
     s = load_study(str(study))
     assert s["persistence"]["models"][1] == str(model)
     tasks = build(s)
-    strong = [t for t in tasks if t.key.startswith("render/stars-strong/")]
-    assert strong and "persistence.A=0.03" in strong[0].params["model"]
+    finals = [t for t in tasks if t.kind == "final"]
+    assert finals and "persistence.A=0.03" in finals[0].params["variants"]["stars-strong"]
     with pytest.raises(PerscliError, match="unknown persistence model 'nomodel'"):
         load_study(None, preset="ci", overrides=["persistence.models=[nomodel]"])
     with pytest.raises(PerscliError, match="read_noise"):

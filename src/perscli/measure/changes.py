@@ -28,7 +28,7 @@ CHANGED_EXTNAME = "CHANGED"
 
 #: |De| of a galaxy fitted on both: De = g(variant) - g(reference); Delta|e| = |g(variant)| - |g(reference)|
 COLUMNS = ("id", "ra", "dec", "expid", "g1", "g2", "g1_ref", "g2_ref", "de1", "de2", "dabs", "e1_true",
-           "e2_true", "snr_pred", "fitted", "flags")
+           "e2_true", "snr_pred", "fitted", "fit_flags")
 
 
 def variant_extname(variant: str) -> str:
@@ -133,7 +133,7 @@ def measure_changes(finals, variant: str, catalog: str, *, joint: bool = True, s
     out = {c: np.concatenate([p[c] for p in parts]) for c in COLUMNS}
     fitted = out["fitted"].astype(bool)
     out["_counts"] = {"sample": len(out["id"]), "fitted": int(fitted.sum()),
-                      "flagged": int(np.count_nonzero(fitted & (out["flags"] != 0)))}
+                      "flagged": int(np.count_nonzero(fitted & (out["fit_flags"] != 0)))}
     return out
 
 
@@ -150,7 +150,7 @@ def _assemble(cat, ref: dict, var: dict, changed: np.ndarray, expid: int, e1_tru
     out["dabs"] = np.zeros(n)
     out["e1_true"], out["e2_true"] = e1_true[rows], e2_true[rows]
     out["fitted"] = np.zeros(n, dtype=np.int16)
-    out["flags"] = np.zeros(n, dtype=np.int32)
+    out["fit_flags"] = np.zeros(n, dtype=np.int32)
     if "ra" in cat:
         out["ra"], out["dec"] = cat["ra"][rows], cat["dec"][rows]
     for side, tag in ((ref, "_ref"), (var, "")):
@@ -160,7 +160,7 @@ def _assemble(cat, ref: dict, var: dict, changed: np.ndarray, expid: int, e1_tru
         k = np.array([pos[int(r)] for r in _rows_of(cat, ids)], dtype=np.int64)
         out[f"g1{tag}"][k] = side["g1"]
         out[f"g2{tag}"][k] = side["g2"]
-        out["flags"][k] |= np.asarray(side["flags"], dtype=np.int32)
+        out["fit_flags"][k] |= np.asarray(side["flags"], dtype=np.int32)
         out["fitted"][k] = 1
         if tag == "_ref":
             out["snr_pred"][k] = side["snr_pred"]
@@ -197,7 +197,7 @@ def write_changes(finals, variant: str, catalog: str, dest: str, *, joint: bool 
         "dabs": "|g| - |g_ref| (Delta|e|)", "g1_ref": "g1 without persistence (NaN: not fitted)",
         "e1_true": "intrinsic e1 of the catalogue", "e2_true": "intrinsic e2 of the catalogue",
         "fitted": "1: stamps changed, fitted with and without", "expid": "final (-1: joint over all)",
-        "flags": "flags of the two fits (ORed)"}
+        "fit_flags": "flags of the two fits (ORed): kept, as every galaxy of the sample counts"}
     hdu = table_hdu({c: cols[c] for c in COLUMNS}, "CHANGES", units={"ra": "deg", "dec": "deg"},
                     descriptions=descriptions)
     primary = OutHDU([])
@@ -207,7 +207,7 @@ def write_changes(finals, variant: str, catalog: str, dest: str, *, joint: bool 
                            "GAXES": ("sky" if joint else "pixel", "axes of g and De"),
                            "NSAMPLE": (counts["sample"], "galaxies (per final without JOINT) of the sample"),
                            "NFITTED": (counts["fitted"], "of them fitted: their stamps changed"),
-                           "NFLAGGED": (counts["flagged"], "fitted and flagged: left out of the statistics"),
+                           "NFLAGGED": (counts["flagged"], "fitted with a flag (fit_flags; still counted)"),
                            "MINSNR": (float(min_snr) if min_snr is not None else MIN_SNR_DEFAULT,
                                       "cut on the predicted S/N"),
                            "NFINALS": (len(finals), "final exposures' files read"),

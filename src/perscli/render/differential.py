@@ -265,8 +265,8 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     """
     from ..io.fitsfile import OutHDU, format_card, table_hdu
     from ..io.output import check_output, write_hdus
-    from .run import (_exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, history_persistence, open_history,
-                      pad_to, simulation_area)
+    from .run import (_exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, history_persistences,
+                      open_history, pad_to, simulation_area)
 
     check_output(dest, overwrite=overwrite, inputs=[truth, *histories])
     cols = read_truth(truth, exposure.filter)
@@ -295,11 +295,10 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         if active.any() and histories:
             for name in histories:
                 opened.append(open_history(name, "stars"))
-            for name, vm in variants.items():
-                _, threshold, cap = Persistence.fluence_input(vm)
-                charge, _ = history_persistence(opened, exposure, vm.persistence_model(), threshold=threshold, cap=cap,
-                                                floor=Persistence.floor(vm))
-                charges[name] = pad_to(charge, bounds, area)
+            laws = {name: (vm.persistence_model(), *Persistence.fluence_input(vm)[1:], Persistence.floor(vm))
+                    for name, vm in variants.items()}
+            charges = {name: pad_to(charge, bounds, area)
+                       for name, charge in history_persistences(opened, exposure, laws)[0].items()}
         models = {"": model, **variants}
         results = run_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=optics.sky_rate,
                              persistence=charges, origin=(area[0], area[2]), active=active)
@@ -312,16 +311,13 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         ref_out = np.where(inside, ref, np.nan).astype(np.float32)
         changed, var_out = {}, {}
         for name in variants:
-            sci = crop(results[name].sci, area, bounds)
-            out = np.full(ref.shape, np.nan, dtype=np.float32)
-            flags = np.zeros(len(windows[0]), dtype=bool)
-            for k, (x0, x1, y0, y1) in enumerate(windows[1]):
-                part = (slice(y0 - ymin, y1 - ymin + 1), slice(x0 - xmin, x1 - xmin + 1))
-                a, b = sci[part].astype(np.float32), ref_out[part]
-                if not np.array_equal(a, b):
-                    flags[k] = True
-                    out[part] = a
-            changed[name], var_out[name] = flags, out
+            sci = crop(results[name].sci, area, bounds).astype(np.float32)
+            # a stamp changed when any of its pixels (as written: float32) differs from the reference's
+            flags = touches(inside & (sci != ref_out), windows[1], bounds)
+            keep = np.zeros(ref.shape, dtype=bool)
+            for x0, x1, y0, y1 in windows[1][flags]:
+                keep[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
+            changed[name], var_out[name] = flags, np.where(keep, sci, np.float32(np.nan))
         gain = model.value("gain", "gain", off=1.0)
         unit = results[""].unit
         sky_rate = results[""].sky_rate

@@ -243,16 +243,14 @@ def persisting_fluence(fluence: np.ndarray, scale: float = 1.0, *, threshold: fl
         (so that the default path is the bytes it always was).
     """
     out = fluence
-    if floor:
-        with np.errstate(invalid="ignore"):
-            out = np.where(out * scale > floor, out, 0).astype(fluence.dtype)
-    if threshold is not None:
-        with np.errstate(invalid="ignore"):
-            out = np.where(out * scale > threshold, out, 0).astype(fluence.dtype)
-    if cap is not None:
-        with np.errstate(invalid="ignore"):
-            if np.any(out * scale > cap):
-                out = np.minimum(out, cap / scale).astype(fluence.dtype)
+    zero = fluence.dtype.type(0)
+    with np.errstate(invalid="ignore"):
+        for level in (floor or None, threshold):
+            if level is not None:
+                out = np.where(out * scale > level, out, zero)
+        if cap is not None and np.nanmax(out) * scale > cap:
+            # in the image's own type: a float64 copy of a whole frame costs more than the rest together
+            out = np.minimum(out, fluence.dtype.type(cap / scale))
     return out
 
 
@@ -492,6 +490,50 @@ def history_persistence(opened, exposure: Exposure, pmodel, *, threshold=None, c
     (ndarray, list of float)
         Electrons per pixel, and the delays (s) after the earlier exposures used.
     """
+    charges, gaps = history_persistences(opened, exposure, {"": (pmodel, threshold, cap, floor)})
+    return charges[""], gaps
+
+
+#: earlier frames' fluence kept by :func:`history_persistences` for the next exposure (a study's worker
+#: renders the finals of one detector one after the other: each shares all but one earlier exposure
+#: with the one before): (path, size, mtime) -> (array, scale)
+_FLUENCE_CACHE: dict = {}
+_FLUENCE_CACHE_SIZE = 12
+
+
+def _fluence_of(frame):
+    """An earlier frame's fluence and scale, read and its checksum verified once per process and file."""
+    key = None
+    name = getattr(frame, "name", None)
+    if name and name != "-" and os.path.isfile(name):
+        st = os.stat(name)
+        key = (os.path.realpath(name), frame.fluence_source, st.st_size, st.st_mtime_ns)
+        if key in _FLUENCE_CACHE:
+            _FLUENCE_CACHE[key] = _FLUENCE_CACHE.pop(key)       # most recently used last
+            return _FLUENCE_CACHE[key]
+    value = frame.fluence()
+    frame.verify(frame.fluence_source)
+    if key is not None:
+        _FLUENCE_CACHE[key] = value
+        while len(_FLUENCE_CACHE) > _FLUENCE_CACHE_SIZE:
+            _FLUENCE_CACHE.pop(next(iter(_FLUENCE_CACHE)))
+    return value
+
+
+def history_persistences(opened, exposure: Exposure, laws: dict):
+    """:func:`history_persistence` for several laws, each earlier frame read once.
+
+    Parameters
+    ----------
+    laws : dict
+        Name -> (PersistenceModel, threshold, cap, floor).
+
+    Returns
+    -------
+    (dict, list of float)
+        Name -> electrons per pixel, and the delays (s) after the earlier
+        exposures the first law uses.
+    """
     from ..detector.apply import check_earlier
     from ..detector.persistence import order_earlier, persistence_charge
     from ..io.frames import SECONDS_PER_DAY
@@ -505,18 +547,20 @@ def history_persistence(opened, exposure: Exposure, pmodel, *, threshold=None, c
     # apply-persistence does, so that both give the same bits
     start = 0.0
     ends = [(frame.end - exposure.mjd) * SECONDS_PER_DAY for frame in opened]
-    keep, _ = order_earlier(ends, start, pmodel, [f.label for f in opened])
-    gaps = [start - ends[i] for i in keep]
-    fluences = [frame.fluence() for frame in opened]
-    for frame in opened:
-        frame.verify(frame.fluence_source)
-    fluences = [(persisting_fluence(f, scale, threshold=threshold, cap=cap, floor=floor), scale)
-                for f, scale in fluences]
+    gaps = None
+    for pmodel, *_ in laws.values():
+        keep, _ = order_earlier(ends, start, pmodel, [f.label for f in opened])
+        gaps = [start - ends[i] for i in keep] if gaps is None else gaps
+    read = [_fluence_of(frame) for frame in opened]
     # the window from the header times, as for any frame read from a file
     window = (exposure.end - exposure.mjd) * SECONDS_PER_DAY
-    charge = persistence_charge([f for f, _ in fluences], ends, start, window, pmodel,
-                                scales=[scale for _, scale in fluences])[0]
-    return charge, gaps
+    charges = {}
+    for name, (pmodel, threshold, cap, floor) in laws.items():
+        fluences = [(persisting_fluence(f, scale, threshold=threshold, cap=cap, floor=floor), scale)
+                    for f, scale in read]
+        charges[name] = persistence_charge([f for f, _ in fluences], ends, start, window, pmodel,
+                                           scales=[scale for _, scale in fluences])[0]
+    return charges, gaps or []
 
 
 def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, seed: int,

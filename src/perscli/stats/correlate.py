@@ -413,7 +413,7 @@ def _from_columns(table, de_columns, positions, pixel_scale, inputs) -> ShapeCha
             extra[key] = table.column(names[col]).astype(np.float64)[good]
     return ShapeChanges(de1=de1[good], de2=de2[good], e1=extra.get("e1"), e2=extra.get("e2"), pos1=pos1[good],
                         pos2=pos2[good], coords=coords, pos_units=units, ids=ids, counts=counts, inputs=inputs,
-                        params=params, source=f"De = ({c1}, {c2}) of {table.label}",
+                        params=params, source=f"De = ({c1}, {c2}) of {os.path.basename(table.label)}",
                         g_axes=_g_axes(table) or "as given", dabs=extra.get("dabs"))
 
 

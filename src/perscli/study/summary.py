@@ -51,9 +51,12 @@ def _num(v):
     return None if not math.isfinite(v) else v
 
 
-def variant_results(study_dir: str, name: str) -> dict:
-    """What the study found for one persistence variant: De statistics, uniformity, budget."""
-    xi_path = os.path.join(study_dir, "xi", f"{name}.fits")
+def variant_results(study_dir: str, name: str, prefix: str = "") -> dict:
+    """What one realisation of the study found for one persistence variant: De statistics, uniformity, budget.
+
+    ``prefix`` is the realisation's folder ('' for a study of one realisation).
+    """
+    xi_path = os.path.join(study_dir, prefix, "xi", f"{name}.fits")
     stats = _table(xi_path, "STATS")
     out = {"variant": name}
     if stats:
@@ -64,10 +67,29 @@ def variant_results(study_dir: str, name: str) -> dict:
             if key in row:
                 out[key] = _num(np.asarray(row[key]).ravel()[0])
         thr = np.atleast_1d(stats.get("threshold", [[]])[0]).astype(float)
-        frac = np.atleast_1d(stats.get("frac_ge", [[]])[0]).astype(float)
-        nge = np.atleast_1d(stats.get("n_ge", [[]])[0]).astype(int)
-        out["frac_ge"] = {f"{t:.0e}": _num(f) for t, f in zip(thr, frac)}
-        out["n_ge"] = {f"{t:.0e}": int(n) for t, n in zip(thr, nge)}
+        for stem in ("", "dabs_"):
+            if f"frac_{stem}ge" in stats:
+                frac = np.atleast_1d(stats[f"frac_{stem}ge"][0]).astype(float)
+                nge = np.atleast_1d(stats[f"n_{stem}ge"][0]).astype(int)
+                out[f"frac_{stem}ge"] = {f"{t:.0e}": _num(f) for t, f in zip(thr, frac)}
+                out[f"n_{stem}ge"] = {f"{t:.0e}": int(n) for t, n in zip(thr, nge)}
+    changes = os.path.join(study_dir, prefix, "shapes", f"{name}.fits")
+    if os.path.exists(changes) and _table(changes, "CHANGES"):
+        # the differential study: every galaxy of the sample is counted, only those whose stamps changed fitted
+        h = _header(changes, 0)
+        out["sample"] = int(h.get("NSAMPLE", 0))
+        out["fitted"] = int(h.get("NFITTED", 0))
+        out["fitted_flagged"] = int(h.get("NFLAGGED", 0))
+        out["measured_fraction"] = out["fitted"] / out["sample"] if out["sample"] else None
+    regions = os.path.join(study_dir, prefix, "regions.fits")
+    if os.path.exists(regions):
+        h = _header(regions, "REGIONS")
+        joint = bool(_header(changes, 0).get("JOINT", True)) if os.path.exists(changes) else True
+        # the whole catalogue as denominator: every galaxy on a final (per final without a joint fit)
+        out["catalogue"] = int(h["NGALON"] if joint else h["NONFRAME"])
+        out["reach_pixel_fraction"] = _num(h.get("FPIXRCH", math.nan))
+        if "n_ge" in out and out["catalogue"]:
+            out["frac_ge_catalogue"] = {k: v / out["catalogue"] for k, v in out["n_ge"].items()}
     theta = _table(xi_path, "THETA_DE")
     if theta and "de_lo" in theta:
         # one row per angle bin and |De| bin: the test against uniform, once per |De| bin
@@ -82,30 +104,111 @@ def variant_results(study_dir: str, name: str) -> dict:
                     row[col] = _num(theta[col][k])
             bins.append(row)
         out["theta_uniformity"] = bins
-    xi = _table(xi_path, "XI")
-    b_path = os.path.join(study_dir, "budget", f"{name}.fits")
+    b_path = os.path.join(study_dir, prefix, "budget", f"{name}.fits")
     if os.path.exists(b_path):
         h = _header(b_path, "BUDGET")
         out["budget_verdict"] = str(h.get("VERDICT", ""))
         if "BUDWORST" in h:
             # min over bins of log10(|budget| / |xi+|): how many orders below the budget
             out["orders_below_budget_min"] = _num(h["BUDWORST"])
-        ratio = _table(b_path, "BUDGET").get("ratio")
+        table = _table(b_path, "BUDGET")
+        ratio = table.get("ratio")
         if ratio is not None:
             r = np.abs(np.asarray(ratio, dtype=float))
             r = r[np.isfinite(r)]
             if r.size:
                 out["xi_over_budget_median"] = _num(np.median(r))
                 out["xi_over_budget_max"] = _num(r.max())
-    if xi:
-        out["xi_bins"] = int(len(xi.get("xip", [])))
+        if "theta" in table:
+            out["xi_bins"] = [{"theta": _num(t), "xip": _num(x), "sigma_xip": _num(e), "budget": _num(b)}
+                              for t, x, e, b in zip(table["theta"], table["xip"], table["sigma_xip"],
+                                                    table["xip_budget"])]
+    return out
+
+
+def combine_realisations(per: list) -> dict:
+    """One variant over several realisations: means, their scatter, and xi+ per separation against the budget.
+
+    Parameters
+    ----------
+    per : list of dict
+        :func:`variant_results` of each realisation.
+
+    Returns
+    -------
+    dict
+        ``realisations``; for each fraction and mean, ``mean``, ``scatter``
+        (standard deviation across realisations) and ``error`` (of the mean:
+        scatter / sqrt(N)) beside the mean of the per-realisation (jackknife,
+        standard) errors; ``xi``: per separation bin the mean xi+, its
+        realisation scatter, the mean jackknife sigma, the budget, the error
+        used (the larger of the scatter's and the jackknife's, for the mean of
+        N realisations) and a verdict: 'below' when xi+ + 2 error < budget,
+        'above' when xi+ - 2 error > budget, 'cannot tell' otherwise.
+    """
+    n = len(per)
+    out = {"variant": per[0]["variant"], "realisations": n}
+
+    def stat(values, within=None):
+        v = np.array([x for x in values if x is not None], dtype=float)
+        if not v.size:
+            return None
+        d = {"mean": float(v.mean()), "scatter": float(v.std(ddof=1)) if v.size > 1 else None}
+        d["error"] = d["scatter"] / math.sqrt(v.size) if d["scatter"] is not None else None
+        w = np.array([x for x in (within or []) if x is not None], dtype=float)
+        if w.size:
+            d["within"] = float(np.sqrt(np.mean(w ** 2)) / math.sqrt(w.size))
+        return d
+
+    for key in ("frac_ge", "frac_dabs_ge", "frac_ge_catalogue"):
+        thresholds = sorted({t for r in per for t in (r.get(key) or {})}, key=float)
+        if thresholds:
+            out[key] = {t: stat([(r.get(key) or {}).get(t) for r in per]) for t in thresholds}
+    for key in ("n", "sample", "fitted", "catalogue"):
+        values = [r.get(key) for r in per if r.get(key) is not None]
+        if values:
+            out[key] = int(sum(values))
+    if out.get("sample"):
+        out["measured_fraction"] = out.get("fitted", 0) / out["sample"]
+    for key in ("de1", "de2"):
+        out[f"{key}_mean"] = stat([r.get(f"{key}_mean") for r in per], [r.get(f"{key}_err") for r in per])
+    bins = [r.get("xi_bins") or [] for r in per]
+    nb = min((len(b) for b in bins), default=0)
+    xi = []
+    for k in range(nb):
+        xs = np.array([b[k]["xip"] for b in bins], dtype=float)
+        sj = np.array([b[k]["sigma_xip"] for b in bins], dtype=float)
+        budget = bins[0][k]["budget"]
+        mean = float(np.nanmean(xs))
+        scatter = float(np.nanstd(xs, ddof=1)) if n > 1 else math.nan
+        jack = float(np.sqrt(np.nanmean(sj ** 2)))
+        error = max(x for x in (scatter, jack) if math.isfinite(x)) / math.sqrt(n) if n else math.nan
+        if mean + 2 * error < budget:
+            verdict = "below"
+        elif mean - 2 * error > budget:
+            verdict = "above"
+        else:
+            verdict = "cannot tell"
+        bound = abs(mean) + 2 * error
+        xi.append({"theta": bins[0][k]["theta"], "xip": mean, "scatter": _num(scatter), "sigma_jackknife": jack,
+                   "error": error, "budget": budget, "verdict": verdict,
+                   "orders_below_at_2sigma": _num(math.log10(budget / bound)) if bound > 0 and budget > 0 else None})
+    out["xi"] = xi
     return out
 
 
 def write_summary(study_dir: str, params: dict, out: str) -> None:
     """summary.json, summary.md, the paper's Figs. 1-2 and cost.json (atomically each)."""
-    results = [variant_results(study_dir, name) for name in params["variants"]]
-    summary = {"study": params["name"], "finals": params["finals"], "paper": PAPER, "results": results}
+    reals = params.get("realisations") or [{"seed": None, "prefix": ""}]
+    per_real = [[variant_results(study_dir, name, r["prefix"]) for name in params["variants"]] for r in reals]
+    results = per_real[0] if len(reals) == 1 else [combine_realisations([p[k] for p in per_real])
+                                                   for k in range(len(params["variants"]))]
+    combined = [combine_realisations([p[k] for p in per_real]) for k in range(len(params["variants"]))]
+    summary = {"study": params["name"], "finals": params["finals"], "paper": PAPER, "results": results,
+               "combined": combined, "realisations": [r["seed"] for r in reals],
+               "differential": bool(params.get("differential")), "joint": params.get("joint")}
+    if len(reals) > 1:
+        summary["per_realisation"] = {str(r["seed"]): p for r, p in zip(reals, per_real)}
     _write_text(out, json.dumps(summary, indent=1, sort_keys=True) + "\n")
     _write_text(os.path.join(study_dir, "summary.md"), markdown(summary))
     figs = os.path.join(study_dir, "figures")
@@ -120,29 +223,73 @@ def write_summary(study_dir: str, params: dict, out: str) -> None:
 
 
 def markdown(summary: dict) -> str:
-    """The comparison with the paper as a Markdown table."""
+    """The comparison with the paper as Markdown: fractions, means and xi+ per separation with their errors."""
+    reals = summary.get("realisations") or [None]
+    nreal = len(reals)
     lines = [f"# Study {summary['study']}: persistence and galaxy shapes", "",
-             f"{len(summary['finals'])} final SCA-exposures.  The paper: Lin et al., 0.9M galaxies on 6.25 deg^2.", "",
-             "| variant | galaxies | |De| >= 1e-8 | |De| >= 1e-4 | <De1> | <De2> | xi+ / budget (median) |",
-             "|---|---:|---:|---:|---:|---:|---:|",
-             f"| paper | {PAPER['galaxies']:,} | ~1% | ~0.5% | {PAPER['de1_mean']:.1e} | {PAPER['de2_mean']:.1e} | "
-             "1e-2 (two orders below) |"]
-    for r in summary["results"]:
-        f = r.get("frac_ge", {})
-        lines.append(f"| {r['variant']} | {r.get('n', 0):,} | {_pct(f.get('1e-08'))} | {_pct(f.get('1e-04'))} | "
-                     f"{_pm(r, 'de1')} | {_pm(r, 'de2')} | {_g(r.get('xi_over_budget_median'))} |")
-    lines += ["", "Position angle of De against uniform (p-values per |De| bin, the test's variance under "
-              "uniform angles):", ""]
-    for r in summary["results"]:
+             f"{len(summary['finals'])} final SCA-exposures"
+             + (f", {nreal} realisations (seeds {', '.join(map(str, reals))})" if nreal > 1 else "")
+             + ".  The paper: Lin et al., 0.9M galaxies on 6.25 deg^2.", ""]
+    if summary.get("differential"):
+        lines += ["Differential: each final simulated only on the stamps of galaxies that earlier exposures' star "
+                  "light can reach; a galaxy whose stamps persistence did not change has De = 0 exactly and is "
+                  "counted without a fit (the sample: every galaxy measure fits, predicted S/N above the cut).", ""]
+    lines += ["| variant | galaxies | measured | |De| >= 1e-8 | |De| >= 1e-4 | |D|e|| >= 1e-8 | |D|e|| >= 1e-4 | "
+              "|De| >= 1e-8 of catalogue | <De1> | <De2> |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+              f"| paper | {PAPER['galaxies']:,} | | ~1% | ~0.5% | ~1% | ~0.5% | | {PAPER['de1_mean']:.1e} | "
+              f"{PAPER['de2_mean']:.1e} |"]
+    for r in summary["combined"]:
+        f, a, c = r.get("frac_ge", {}), r.get("frac_dabs_ge", {}), r.get("frac_ge_catalogue", {})
+        measured = r.get("measured_fraction")
+        lines.append(f"| {r['variant']} | {r.get('n', 0):,} | {_pct(measured) if measured is not None else 'all'} | "
+                     f"{_pct_pm(f.get('1e-08'))} | {_pct_pm(f.get('1e-04'))} | {_pct_pm(a.get('1e-08'))} | "
+                     f"{_pct_pm(a.get('1e-04'))} | {_pct_pm(c.get('1e-08'))} | {_mean_pm(r.get('de1_mean'))} | "
+                     f"{_mean_pm(r.get('de2_mean'))} |")
+    lines += ["", "Errors: " + ("the scatter across realisations over sqrt(N)." if nreal > 1 else
+                                "the standard error of the mean (one realisation: no scatter across "
+                                "realisations; fractions without errors)."), ""]
+    lines += ["xi+ of De against the additive budget per separation (mean over realisations; error: the larger "
+              "of the realisation scatter and the jackknife, for the mean; verdict at 2 sigma):", ""]
+    for r in summary["combined"]:
+        lines += [f"**{r['variant']}**", "", "| theta (arcmin) | xi+ | scatter | jackknife | budget | verdict | "
+                  "orders below (2 sigma) |", "|---:|---:|---:|---:|---:|---|---:|"]
+        for b in r.get("xi", []):
+            lines.append(f"| {b['theta']:.3g} | {b['xip']:.2e} | {_e(b.get('scatter'))} | {_e(b['sigma_jackknife'])} | "
+                         f"{_e(b['budget'])} | {b['verdict']} | {_g(b.get('orders_below_at_2sigma'))} |")
+        told = [b for b in r.get("xi", []) if b["verdict"] != "cannot tell"]
+        below = [b for b in told if b["verdict"] == "below"]
+        where = ", ".join(f"{b['theta']:.3g}" for b in told)
+        lines += ["", f"The data tell xi+ from the budget at {len(told)} of {len(r.get('xi', []))} separations "
+                      f"({len(below)} below it)" + (f": {where} arcmin" if told else "") + ".", ""]
+    lines += ["Position angle of De against uniform (p-values per |De| bin, first realisation):", ""]
+    for r in summary["results"] if nreal == 1 else summary["per_realisation"][str(reals[0])]:
         bins = r.get("theta_uniformity") or []
         text = ", ".join(f"[{b['de_lo']:.0e}, {b['de_hi']:.0e}): "
                          + (f"p = {_g(b.get('p_uniform'))}" if b.get("n_eff") else "no objects") for b in bins)
         lines.append(f"- {r['variant']}: {text or 'n/a'}")
-    lines += ["", "Budget verdicts:", ""]
-    lines += [f"- {r['variant']}: {r.get('budget_verdict', 'n/a')}" for r in summary["results"]]
     lines += ["", "In frames rounded to whole DN, |De| >= 1e-8 means in effect that at least one pixel of the "
               "galaxy's stamp changed by one DN.", ""]
     return "\n".join(lines)
+
+
+def _e(v):
+    return "n/a" if v is None else f"{v:.1e}"
+
+
+def _pct_pm(d):
+    if not d:
+        return "n/a"
+    text = _pct(d["mean"])
+    err = d.get("error") if d.get("error") is not None else None
+    return text + (f" +- {100 * err:.2f}" if err is not None else "")
+
+
+def _mean_pm(d):
+    if not d:
+        return "n/a"
+    err = d.get("error") if d.get("error") is not None else d.get("within")
+    return f"{d['mean']:.2g}" + (f" +- {err:.1g}" if err is not None else "")
 
 
 def _pct(v):
@@ -151,13 +298,6 @@ def _pct(v):
 
 def _g(v):
     return "n/a" if v is None else f"{v:.2g}"
-
-
-def _pm(r, key):
-    m, e = r.get(f"{key}_mean"), r.get(f"{key}_err")
-    if m is None:
-        return "n/a"
-    return f"{m:.2g} +- {e:.1g}" if e is not None else f"{m:.2g}"
 
 
 def cost(study_dir: str) -> dict:
@@ -184,10 +324,12 @@ def cost(study_dir: str) -> dict:
 
 
 def _cost_kind(kind: str, key: str, hdus) -> str:
-    # renders differ by what they write: a history frame only its fluence, a final's reference
-    # also SCI, a final with persistence SCI alone
+    # renders differ by what they write: an earlier exposure's stars only, a history frame only its
+    # fluence, a final's reference also SCI, a final with persistence SCI alone
     if kind != "render":
         return kind
+    if "stars/" in key:
+        return "render_stars"
     if "/ref/" not in key:
         return "render_persist"
     return "render_ref_final" if "SCI" in hdus else "render_ref_history"
@@ -219,7 +361,7 @@ def project(tasks, measured: dict) -> dict:
     need = {}
     for t in tasks:
         kind = _cost_kind(t["kind"], t["key"], t["params"].get("hdus", []))
-        units = len(t["params"].get("frames", [])) if kind == "measure" else 1
+        units = len(t["params"].get("frames", t["params"].get("finals", []))) if kind in ("measure", "changes", "regions") else 1
         need[kind] = need.get(kind, 0) + max(1, units)
     cpu = bytes_ = 0.0
     per = {}
@@ -227,7 +369,7 @@ def project(tasks, measured: dict) -> dict:
         m = measured.get(kind)
         if not m:
             continue
-        units = m["tasks"] if kind != "measure" else max(1, m.get("frames", m["tasks"]))
+        units = m["tasks"] if kind not in ("measure", "changes", "regions") else max(1, m.get("frames", m["tasks"]))
         c, b = m["cpu_s"] / units, m["bytes"] / units
         per[kind] = {"units": n, "cpu_s_each": c, "bytes_each": b}
         cpu += n * c

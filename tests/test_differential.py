@@ -1,0 +1,178 @@
+"""The differential study: noise keyed on detector blocks, frames simulated only where persistence reaches,
+and the result galaxy by galaxy identical to the full computation."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from perscli.cli.main import cli
+from perscli.detector.effects import NOISE_BLOCK, block_grid, default_model, run_chain, run_chains
+
+
+def run(*args):
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    assert result.exit_code == 0, result.output + str(result.exception)
+    return result
+
+
+def _sources(shape, seed=3):
+    rng = np.random.default_rng(seed)
+    img = rng.uniform(0, 50, shape)
+    img[40:44, 70:74] += 2e5          # a saturated star
+    return img
+
+
+# -- the noise -----------------------------------------------------------------------------------
+
+def test_a_pixel_gets_the_same_noise_whatever_else_is_simulated():
+    model = default_model()
+    big = _sources((160, 192))
+    whole = run_chain(big, model, exptime=139.8, seed=7, sky_rate=0.5, origin=(33, 65))
+    # a part of it that starts and ends on block edges (detector x 65..160, y 97..160), simulated alone
+    y0, x0 = 97 - 65, 65 - 33
+    part = run_chain(big[y0:y0 + 64, x0:x0 + 96], model, exptime=139.8, seed=7, sky_rate=0.5, origin=(65, 97))
+    inner = (slice(1, -1), slice(1, -1))     # interpixel capacitance reaches one pixel beyond
+    np.testing.assert_array_equal(part.sci[inner], whole.sci[y0:y0 + 64, x0:x0 + 96][inner])
+    np.testing.assert_array_equal(part.fluence, whole.fluence[y0:y0 + 64, x0:x0 + 96])
+    # another seed is other noise
+    other = run_chain(big, model, exptime=139.8, seed=8, sky_rate=0.5, origin=(33, 65))
+    assert not np.array_equal(other.sci, whole.sci)
+
+
+def test_only_the_active_blocks_are_simulated_and_they_are_the_whole_frames_pixels():
+    model = default_model()
+    img = _sources((128, 128))
+    whole = run_chain(img, model, exptime=139.8, seed=5, sky_rate=0.5)
+    _, _, nby, nbx = block_grid((1, 1), img.shape)
+    active = np.zeros((nby, nbx), dtype=bool)
+    active[1, 2] = active[2, 1] = active[2, 2] = True
+    part = run_chain(img, model, exptime=139.8, seed=5, sky_rate=0.5, active=active)
+    b = NOISE_BLOCK
+    # block (row 2, column 2) but its edge pixels: interpixel capacitance brings in neighbours of inactive blocks
+    core = (slice(2 * b + 1, 3 * b - 1), slice(2 * b + 1, 3 * b - 1))
+    np.testing.assert_array_equal(part.sci[core], whole.sci[core])
+    assert np.isnan(part.sci[:b, :b]).all() and np.isnan(part.fluence[:b, :b]).all()
+    assert np.isfinite(part.sci[core]).all()
+
+
+def test_chains_sharing_their_first_steps_give_each_models_own_frame():
+    from perscli.detector.effects import load_detector_model
+
+    img = _sources((96, 96))
+    pers = np.linspace(0, 40, img.size).reshape(img.shape)
+    a = load_detector_model("roman", ["persistence.base=typical"])
+    b = load_detector_model("roman", ["persistence.base=pessimistic", "read_noise.sigma=5"])
+    both = run_chains(img, {"ref": a, "p": b}, exptime=139.8, seed=2, sky_rate=0.5,
+                      persistence={"ref": None, "p": pers})
+    np.testing.assert_array_equal(both["ref"].sci, run_chain(img, a, exptime=139.8, seed=2, sky_rate=0.5).sci)
+    np.testing.assert_array_equal(both["p"].sci, run_chain(img, b, exptime=139.8, seed=2, sky_rate=0.5,
+                                                            persistence=pers).sci)
+    np.testing.assert_array_equal(both["p"].persistence, pers)
+
+
+def test_a_cutout_is_that_part_of_a_larger_frame(tmp_path):
+    run("catalog", "--ra", 9.5386, "--dec", -44.0435, "--size", 2, "--star-density", 10, "--seed", 1,
+        "-o", tmp_path / "t.fits")
+    common = ["--ra", 10, "--dec", -44, "--pa", 30, "--filter", "J129", "--sca", 7, "--mjd", 61541.97,
+              "--seed", 11, "--hdus", "SCI,FLUENCE,STARFLU"]
+    run("render", tmp_path / "t.fits", *common, "--bounds", 1001, 1100, 2001, 2090, "-o", tmp_path / "a.fits")
+    run("render", tmp_path / "t.fits", *common, "--bounds", 950, 1130, 1990, 2120, "-o", tmp_path / "b.fits")
+    import fitsio
+
+    for ext in ("SCI", "FLUENCE", "STARFLU"):
+        a = fitsio.read(str(tmp_path / "a.fits"), ext)
+        b = fitsio.read(str(tmp_path / "b.fits"), ext)
+        np.testing.assert_array_equal(a, b[2001 - 1990:2091 - 1990, 1001 - 950:1101 - 950])
+    stars = tmp_path / "s.fits"
+    run("render", tmp_path / "t.fits", *common[:-2], "--bounds", 950, 1130, 1990, 2120, "--hdus", "STARFLU",
+        "-o", stars)
+    np.testing.assert_array_equal(fitsio.read(str(stars), "STARFLU"), fitsio.read(str(tmp_path / "b.fits"), "STARFLU"))
+
+
+# -- where persistence reaches ----------------------------------------------------------------------------
+
+def test_reach_mask_windows_and_touches():
+    from perscli.render.differential import reach_mask, touches, window_boxes
+
+    bounds = (101, 200, 301, 380)
+    mask = reach_mask([[90, 110, 290, 305], [150, 151, 350, 350]], bounds)
+    assert mask.shape == (80, 100) and mask.sum() == 10 * 5 + 2
+    boxes = window_boxes([120.4, 160.6], [320.2, 340.0], 16, margin=0)
+    assert boxes.tolist() == [[112, 127, 312, 327], [153, 168, 332, 347]]
+    assert touches(mask, boxes, bounds).tolist() == [False, False]
+    assert touches(mask, window_boxes([120.4, 160.6], [320.2, 340.0], 16, margin=3), bounds).tolist() == [False, True]
+    assert touches(mask, [[60, 90, 300, 400]], bounds).tolist() == [False]      # off the frame
+
+
+# -- the whole study, both ways ----------------------------------------------------------------------------
+
+#: a 1024-pixel corner with the paper's star density: persistence reaches part of it, not all
+FIELD = ["exposures.source=plan", "catalog.star_density=2.5", "bounds=[1,1024,1,1024]"]
+
+
+def _study(tmp, differential, *extra):
+    out = tmp / f"{'diff' if differential else 'full'}"
+    run("study", "--preset", "ci", "-o", out, "--scheduler", "serial", "-q",
+        *sum([["--set", c] for c in [*FIELD, f"differential={str(differential).lower()}", *extra]], []))
+    return out
+
+
+def _table(path, ext):
+    import fitsio
+
+    return fitsio.read(str(path), ext)
+
+
+def _assert_same_de(full, diff, variant, joint):
+    ch = _table(diff / "shapes" / f"{variant}.fits", "CHANGES")
+    assert len(np.unique(ch["id"] if joint else ch["id"] * 100000 + ch["expid"])) == len(ch)
+    if joint:
+        sides = [(_table(full / "shapes" / "ref.fits", "JOINT"), _table(full / "shapes" / f"{variant}.fits", "JOINT"),
+                  ch)]
+    else:
+        sides = []
+        for f in sorted((full / "shapes" / "ref").glob("*.fits")):
+            expid = int(f.stem.split("_e")[1])
+            sides.append((_table(f, "SHAPES"), _table(full / "shapes" / variant / f.name, "SHAPES"),
+                          ch[ch["expid"] == expid]))
+    nonzero = 0
+    for ref, var, rows in sides:
+        # the same sample: every galaxy measure fits
+        assert sorted(ref["id"]) == sorted(rows["id"])
+        where = {int(i): k for k, i in enumerate(ref["id"])}
+        for r in rows:
+            k = where[int(r["id"])]
+            de = (var["g1"][k] - ref["g1"][k], var["g2"][k] - ref["g2"][k])
+            if r["fitted"]:
+                np.testing.assert_array_equal([r["de1"], r["de2"]], de)
+                assert r["fit_flags"] == ref["flags"][k] | var["flags"][k]
+            else:
+                # not fitted: the full computation's two fits are the same numbers
+                assert r["de1"] == 0 and r["de2"] == 0
+                assert var["g1"][k] == ref["g1"][k] and var["g2"][k] == ref["g2"][k]
+                assert var["flags"][k] == ref["flags"][k]
+            nonzero += bool(de[0] or de[1])
+    return ch, nonzero
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("joint", [True, False])
+def test_the_differential_study_gives_every_galaxy_the_full_computations_de(tmp_path, joint):
+    extra = [] if joint else ["measure.joint=false", "catalog.star_density=5"]
+    full = _study(tmp_path, False, *extra)
+    diff = _study(tmp_path, True, *extra)
+    regions = _table(diff / "regions.fits", "REGIONS")
+    import fitsio
+
+    h = fitsio.read_header(str(diff / "regions.fits"), "REGIONS")
+    assert 0 < h["FPIXRCH"] < 0.5 and 0 < h["NCAND"] < h["NGALON"]    # persistence reaches part of the field
+    assert len(regions) > 0
+    for variant in ("stars-typical", "stars-pessimistic"):
+        ch, nonzero = _assert_same_de(full, diff, variant, joint)
+        assert 0 < ch["fitted"].sum() < len(ch)                          # some fitted, most not
+        assert nonzero > 0
+    summary = json.loads((diff / "summary.json").read_text())
+    res = summary["results"][0]
+    assert res["measured_fraction"] < 0.5
