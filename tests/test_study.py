@@ -66,25 +66,26 @@ def test_presets_file_and_overrides_stack(tmp_path):
     assert s["persistence"]["sources"] == ["stars", 1.0e5]
 
 
-def test_differential_plan_draws_earlier_stars_once_and_each_final_once():
+@pytest.mark.parametrize("joint", [True, False])
+def test_differential_plan_renders_each_final_once_for_every_variant(joint):
     s = load_study(None, preset="ci", overrides=CI + ["exposures.count=3", "exposures.history=2",
-                                                      "persistence.models=[typical, pessimistic]"])
+                                                      "persistence.models=[typical, pessimistic]",
+                                                      f"measure.joint={str(joint).lower()}"])
     tasks = build(s)
     keys = [t.key for t in tasks]
     assert len(keys) == len(set(keys))
-    stars = [t for t in tasks if t.key.startswith("stars/")]
     finals = [t for t in tasks if t.kind == "final"]
     assert len(finals) == 3
-    # earlier exposures: the 2 before the first final, and the first two finals for the later ones
-    assert len(stars) == 4 and all(t.params["hdus"] == ["STARFLU"] for t in stars)
-    assert not any(t.kind == "render" and "SCI" in t.params.get("hdus", []) for t in tasks)
+    # earlier exposures are drawn inside each final (their stars alone): no frame of theirs is rendered or kept
+    assert not any(t.kind == "render" for t in tasks)
     for t in finals:
         assert set(t.params["variants"]) == {"stars-typical", "stars-pessimistic"}   # one render for all
-        assert len(t.params["previous"]) <= 2 and "regions" in t.deps
+        assert len(t.params["history"]) == 2 and "regions" in t.deps
         assert all(dep in keys[:keys.index(t.key)] for dep in t.deps)
-    assert [t.kind for t in tasks].count("changes") == 2
+        assert t.output.startswith("frames/" if joint else "shapes/")
+    assert [t.kind for t in tasks].count("changes") == (2 if joint else 0)
     corr = [t for t in tasks if t.kind == "correlate"]
-    assert all(t.params["tables"] for t in corr)
+    assert all(len(t.params["tables"]) == (1 if joint else 3) for t in corr)
 
 
 def test_realisations_repeat_the_study_with_their_own_seeds():
@@ -140,7 +141,7 @@ def test_schedule_finals_and_their_histories_of_the_same_sca():
 
 def test_dry_run_reports_the_graph(tmp_path):
     result = run("study", "--preset", "ci", "-o", tmp_path / "o", "--dry-run", *sum([["--set", c] for c in CI], []))
-    assert "tasks" in result.output and "render" in result.output
+    assert "tasks" in result.output and "final" in result.output
     assert not (tmp_path / "o").exists()
 
 
@@ -210,12 +211,13 @@ def test_ci_study_makes_every_product(serial_study):
     assert summary["differential"] is True
     for rel in ["truth.fits", "pointings.fits", "regions.fits", "shapes/stars-typical.fits",
                 "xi/stars-typical.fits", "budget/stars-typical.fits", "summary.md",
-                "frames/sca01/e000003_final.fits", "frames/sca01/e000000_stars.fits",
+                "frames/sca01/e000003_final.fits",
                 "figures/ghosts_by_magnitude.png", "figures/galaxy_beside_ghost.png", "cost.json"]:
         assert (out / rel).exists(), rel
+    assert not list((out / "frames").glob("*/*_stars.fits")) and not list((out / "frames").glob("*/*_ref.fits"))
     cost = json.loads((out / "cost.json").read_text())
-    assert cost["final"]["tasks"] == 2 and cost["render_stars"]["tasks"] == 4 and cost["changes"]["tasks"] == 1
-    assert cost["render_stars"]["bytes"] > 0 and cost["regions"]["tasks"] == 1
+    assert cost["final"]["tasks"] == 2 and cost["changes"]["tasks"] == 1 and cost["regions"]["tasks"] == 1
+    assert cost["final"]["bytes"] > 0
     # a rerun makes nothing
     result = run("study", "--preset", "ci", "-o", out, "--scheduler", "serial", *sum([["--set", c] for c in CI], []))
     assert "0 products made" in result.output

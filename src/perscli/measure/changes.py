@@ -176,42 +176,55 @@ def _rows_of(cat, ids) -> np.ndarray:
     return np.array([index[int(i)] for i in ids], dtype=np.int64)
 
 
-def write_changes(finals, variant: str, catalog: str, dest: str, *, joint: bool = True, stamp: int = 48,
+def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = True, stamp: int = 48,
                   min_snr=MIN_SNR_DEFAULT, expids=None, workers: int = 1, overwrite: bool = True) -> dict:
-    """:func:`measure_changes`, written as a CHANGES table (one row per galaxy of the sample) into ``dest``.
+    """:func:`measure_changes` of each variant, written into ``dest``: one table per variant, named after it.
+
+    Parameters
+    ----------
+    variants : str or sequence of str
+        The variants; each table's EXTNAME is :func:`variant_extname` of its
+        variant (one row per galaxy of the sample, :data:`COLUMNS`).
+    Others as for :func:`measure_changes`.
 
     Returns
     -------
     dict
-        The counts of :func:`measure_changes`.
+        Variant -> the counts of :func:`measure_changes`, and 'sample', 'fitted' summed.
     """
     from ..io.fitsfile import OutHDU, table_hdu
     from ..io.output import add_provenance, check_output, write_hdus
 
+    variants = [variants] if isinstance(variants, str) else list(variants)
     check_output(dest, overwrite=overwrite, inputs=[catalog, *finals])
-    cols = measure_changes(finals, variant, catalog, joint=joint, stamp=stamp, min_snr=min_snr, expids=expids,
-                           workers=workers)
-    counts = cols.pop("_counts")
     descriptions = {
         "de1": "g1 - g1_ref (0: no pixel of the stamps changed)", "de2": "g2 - g2_ref",
         "dabs": "|g| - |g_ref| (Delta|e|)", "g1_ref": "g1 without persistence (NaN: not fitted)",
         "e1_true": "intrinsic e1 of the catalogue", "e2_true": "intrinsic e2 of the catalogue",
         "fitted": "1: stamps changed, fitted with and without", "expid": "final (-1: joint over all)",
         "fit_flags": "flags of the two fits (ORed): kept, as every galaxy of the sample counts"}
-    hdu = table_hdu({c: cols[c] for c in COLUMNS}, "CHANGES", units={"ra": "deg", "dec": "deg"},
-                    descriptions=descriptions)
     primary = OutHDU([])
-    add_provenance(primary.header, step=f"measure changes variant={variant} joint={joint}",
-                   params={"VARIANT": (variant, "persistence variant"),
-                           "JOINT": (bool(joint), "one fit per galaxy over its finals"),
+    hdus, counts = [primary], {}
+    for variant in variants:
+        cols = measure_changes(finals, variant, catalog, joint=joint, stamp=stamp, min_snr=min_snr, expids=expids,
+                               workers=workers)
+        c = counts[variant] = cols.pop("_counts")
+        hdu = table_hdu({k: cols[k] for k in COLUMNS}, variant_extname(variant), units={"ra": "deg", "dec": "deg"},
+                        descriptions=descriptions)
+        hdu["GAXES"] = ("sky" if joint else "pixel", "axes of g and De")
+        hdu["VARIANT"] = (variant, "persistence variant")
+        hdu["NSAMPLE"] = (c["sample"], "galaxies (per final without a joint fit) of the sample")
+        hdu["NFITTED"] = (c["fitted"], "of them fitted: their stamps changed")
+        hdu["NFLAGGED"] = (c["flagged"], "fitted with a flag (fit_flags; still counted)")
+        hdus.append(hdu)
+    add_provenance(primary.header, step=f"measure changes variants={','.join(variants)} joint={joint}",
+                   params={"JOINT": (bool(joint), "one fit per galaxy over its finals"),
                            "GAXES": ("sky" if joint else "pixel", "axes of g and De"),
-                           "NSAMPLE": (counts["sample"], "galaxies (per final without JOINT) of the sample"),
-                           "NFITTED": (counts["fitted"], "of them fitted: their stamps changed"),
-                           "NFLAGGED": (counts["flagged"], "fitted with a flag (fit_flags; still counted)"),
                            "MINSNR": (float(min_snr) if min_snr is not None else MIN_SNR_DEFAULT,
                                       "cut on the predicted S/N"),
                            "NFINALS": (len(finals), "final exposures' files read"),
                            "CAT": (catalog.rsplit("/", 1)[-1][-68:], "truth catalogue")})
-    hdu.header["GAXES"] = ("sky" if joint else "pixel", "axes of g and De")
-    write_hdus([primary, hdu], dest, overwrite=overwrite)
+    write_hdus(hdus, dest, overwrite=overwrite)
+    counts["sample"] = sum(c["sample"] for c in counts.values())
+    counts["fitted"] = sum(c["fitted"] for k, c in counts.items() if k != "sample")
     return counts

@@ -224,6 +224,98 @@ def _objects_reaching(plan, active, area) -> np.ndarray:
     return out
 
 
+#: the stars' light of earlier exposures drawn by :func:`star_light`, kept for the next final of the same
+#: detector (which shares all but one of its earlier exposures): key -> float32 image
+_STAR_LIGHT: dict = {}
+_STAR_LIGHT_SIZE = 12
+_TRUTH: dict = {}
+
+
+def _truth_columns(truth: str, filter_name: str) -> dict:
+    """The catalogue's columns for a filter, read once per process and file (size and time keyed)."""
+    import os
+
+    st = os.stat(truth)
+    key = (os.path.realpath(truth), st.st_size, st.st_mtime_ns, filter_name)
+    if key not in _TRUTH:
+        if len(_TRUTH) >= 4:
+            _TRUTH.pop(next(iter(_TRUTH)))
+        _TRUTH[key] = read_truth(truth, filter_name)
+    return _TRUTH[key]
+
+
+def star_light(truth: str, exposure: Exposure) -> np.ndarray:
+    """The expected electrons of the catalogue's stars on an exposure's frame: its STARFLU, as render writes it.
+
+    What an earlier exposure leaves when star light persists (the paper's
+    setting): drawn here from the catalogue rather than read from a file, and
+    kept for the next final (a study's earlier exposures would be most of its
+    bytes).  The same stamps added in the same order as ``perscli render``
+    adds them, in float32 as it writes them: the same bits as its STARFLU.
+    """
+    import os
+
+    st = os.stat(truth)
+    key = (os.path.realpath(truth), st.st_size, st.st_mtime_ns, exposure.sca, exposure.expid, exposure.mjd,
+           exposure.filter, exposure.full_bounds)
+    if key in _STAR_LIGHT:
+        _STAR_LIGHT[key] = _STAR_LIGHT.pop(key)        # most recently used last
+        return _STAR_LIGHT[key]
+    cols = _truth_columns(truth, exposure.filter)
+    optics = Optics(exposure)
+    plan = plan_objects(cols, optics, exposure.full_bounds)
+    light = draw_sources(cols, exposure, stars=True, optics=optics, plan=plan, only=cols["kind"] == "star",
+                         image=False)[3].astype(np.float32)
+    _STAR_LIGHT[key] = light
+    while len(_STAR_LIGHT) > _STAR_LIGHT_SIZE:
+        _STAR_LIGHT.pop(next(iter(_STAR_LIGHT)))
+    return light
+
+
+def star_persistence(truth: str, final: Exposure, histories, laws: dict) -> dict:
+    """The persistence charge that the star light of ``histories`` leaves in ``final``, per law.
+
+    The computation of ``perscli render --previous`` with the earlier
+    frames' STARFLU (:func:`perscli.render.run.history_persistences`), on
+    their light drawn here (:func:`star_light`).
+
+    Parameters
+    ----------
+    laws : dict
+        Name -> (PersistenceModel, threshold, cap, floor).
+
+    Returns
+    -------
+    dict
+        Name -> electrons per pixel of the final's frame.
+    """
+    from ..detector.persistence import order_earlier, persistence_charge
+    from ..io.frames import SECONDS_PER_DAY
+    from .run import persisting_fluence
+
+    histories = list(histories)
+    for h in histories:
+        if h.full_bounds != final.full_bounds or h.sca != final.sca:
+            raise PerscliError(f"earlier exposure {h.expid}: not the frame of final {final.expid} (SCA {h.sca}, "
+                               f"bounds {h.full_bounds})")
+    ends = [(h.end - final.mjd) * SECONDS_PER_DAY for h in histories]
+    window = (final.end - final.mjd) * SECONDS_PER_DAY
+    names = [f"earlier exposure {h.expid}" for h in histories]
+    xmin, xmax, ymin, ymax = final.full_bounds
+    unused = np.zeros((ymax - ymin + 1, xmax - xmin + 1), dtype=np.float32)
+    lights, charges = {}, {}
+    for name, (pmodel, threshold, cap, floor) in laws.items():
+        keep, _ = order_earlier(ends, 0.0, pmodel, names)
+        for i in keep:
+            if i not in lights:
+                lights[i] = star_light(truth, histories[i])
+        # exposures beyond the law's look-back or count are left out by persistence_charge: not drawn
+        fluences = [persisting_fluence(lights[i], 1.0, threshold=threshold, cap=cap, floor=floor)
+                    if i in keep else unused for i in range(len(histories))]
+        charges[name] = persistence_charge(fluences, ends, 0.0, window, pmodel)[0] if histories else None
+    return charges
+
+
 def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, variants: dict, seed: int,
                  histories=(), rows=None, stamp: int = 48, compress: str = "gzip", overwrite: bool = False) -> dict:
     """The reference and every variant of a final exposure, on the stamps of ``rows`` only; write ``dest``.
@@ -248,8 +340,9 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         source (only star light persists here: source 'stars').
     seed : int
         The frame's seed: the reference and every variant share its noise.
-    histories : sequence of str
-        The earlier exposures' frames with STARFLU (``render --hdus STARFLU``).
+    histories : sequence of Exposure
+        The earlier exposures of the same frame: their stars' light persists
+        (:func:`star_persistence`).
     rows : ndarray of bool, optional
         Per catalogue row: the galaxies whose stamps to simulate (default: none).
     stamp : int
@@ -265,11 +358,10 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     """
     from ..io.fitsfile import OutHDU, format_card, table_hdu
     from ..io.output import check_output, write_hdus
-    from .run import (_exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, history_persistences,
-                      open_history, pad_to, simulation_area)
+    from .run import _exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, pad_to, simulation_area
 
-    check_output(dest, overwrite=overwrite, inputs=[truth, *histories])
-    cols = read_truth(truth, exposure.filter)
+    check_output(dest, overwrite=overwrite, inputs=[truth])
+    cols = _truth_columns(truth, exposure.filter)
     for name, vm in variants.items():
         source = Persistence.fluence_input(vm)[0]
         if source != "stars":
@@ -287,76 +379,73 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     active = _active_blocks(window_boxes(gx, gy, stamp, WINDOW_MARGIN + IPC_REACH), area)
     plan = plan_objects(cols, optics, area)
     drawn = _objects_reaching(plan, active, area)
-    opened = []
-    try:
-        sources = draw_sources(cols, exposure, optics=optics, plan=plan, bounds=area, only=drawn)[0] \
-            if active.any() else np.zeros((area[3] - area[2] + 1, area[1] - area[0] + 1))
-        charges = {}
-        if active.any() and histories:
-            for name in histories:
-                opened.append(open_history(name, "stars"))
-            laws = {name: (vm.persistence_model(), *Persistence.fluence_input(vm)[1:], Persistence.floor(vm))
-                    for name, vm in variants.items()}
-            charges = {name: pad_to(charge, bounds, area)
-                       for name, charge in history_persistences(opened, exposure, laws)[0].items()}
-        models = {"": model, **variants}
-        results = run_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=optics.sky_rate,
-                             persistence=charges, origin=(area[0], area[2]), active=active)
-        ref = crop(results[""].sci, area, bounds)
-        inside = np.zeros(ref.shape, dtype=bool)
-        for x0, x1, y0, y1 in windows[1]:
-            inside[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
-        if np.any(inside & ~np.isfinite(ref)):          # pragma: no cover - the blocks cover the windows
-            raise PerscliError("render_final: a stamp reaches pixels that were not simulated")
-        ref_out = np.where(inside, ref, np.nan).astype(np.float32)
-        changed, var_out = {}, {}
-        for name in variants:
-            sci = crop(results[name].sci, area, bounds).astype(np.float32)
-            # a stamp changed when any of its pixels (as written: float32) differs from the reference's
-            flags = touches(inside & (sci != ref_out), windows[1], bounds)
-            keep = np.zeros(ref.shape, dtype=bool)
-            for x0, x1, y0, y1 in windows[1][flags]:
-                keep[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
-            changed[name], var_out[name] = flags, np.where(keep, sci, np.float32(np.nan))
-        gain = model.value("gain", "gain", off=1.0)
-        unit = results[""].unit
-        sky_rate = results[""].sky_rate
-        common = _wcs_cards(optics, bounds)
-        frame_cards = common + _exposure_cards(exposure, optics, seed, unit, gain) + [
-            format_card("SKYRATE", sky_rate, "[e-/pixel/s] sky background used"),
-            format_card("NOBJ", int(np.count_nonzero(drawn)), "objects drawn (those reaching the stamps)")]
-        region = [format_card("REGION", "stamps", "only the stamps of galaxies persistence can reach"),
-                  format_card("NBLOCKS", int(active.sum()), f"noise blocks ({NOISE_BLOCK} px) simulated"),
-                  format_card("FBLOCKS", round(float(active.mean()) if active.size else 0.0, 6),
-                              "fraction of the blocks simulated")]
-        out = [OutHDU([format_card("SIMPLE", True), format_card("BITPIX", 8), format_card("NAXIS", 0),
-                       format_card("EXTEND", True)])]
-        out.append(OutHDU(frame_cards + region + [
-            format_card("CONTENT", "reference: no persistence", "NaN outside the stamps simulated")],
-            ref_out, extname="SCI"))
-        from ..measure.changes import CHANGED_EXTNAME, variant_extname
+    sources = draw_sources(cols, exposure, optics=optics, plan=plan, bounds=area, only=drawn)[0] \
+        if active.any() else np.zeros((area[3] - area[2] + 1, area[1] - area[0] + 1))
+    charges = {}
+    if active.any() and histories:
+        laws = {name: (vm.persistence_model(), *Persistence.fluence_input(vm)[1:], Persistence.floor(vm))
+                for name, vm in variants.items()}
+        charges = {name: pad_to(charge, bounds, area)
+                   for name, charge in star_persistence(truth, exposure, histories, laws).items()}
+    models = {"": model, **variants}
+    results = run_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=optics.sky_rate,
+                         persistence=charges, origin=(area[0], area[2]), active=active)
+    ref = crop(results[""].sci, area, bounds)
+    inside = np.zeros(ref.shape, dtype=bool)
+    for x0, x1, y0, y1 in windows[1]:
+        inside[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
+    if np.any(inside & ~np.isfinite(ref)):          # pragma: no cover - the blocks cover the windows
+        raise PerscliError("render_final: a stamp reaches pixels that were not simulated")
+    ref_out = np.where(inside, ref, np.nan).astype(np.float32)
+    changed, var_out = {}, {}
+    for name in variants:
+        sci = crop(results[name].sci, area, bounds).astype(np.float32)
+        # a stamp changed when any of its pixels (as written: float32) differs from the reference's
+        flags = touches(inside & (sci != ref_out), windows[1], bounds)
+        keep = np.zeros(ref.shape, dtype=bool)
+        for x0, x1, y0, y1 in windows[1][flags]:
+            keep[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
+        changed[name], var_out[name] = flags, np.where(keep, sci, np.float32(np.nan))
+    gain = model.value("gain", "gain", off=1.0)
+    unit = results[""].unit
+    sky_rate = results[""].sky_rate
+    common = _wcs_cards(optics, bounds)
+    frame_cards = common + _exposure_cards(exposure, optics, seed, unit, gain) + [
+        format_card("SKYRATE", sky_rate, "[e-/pixel/s] sky background used"),
+        format_card("NOBJ", int(np.count_nonzero(drawn)), "objects drawn (those reaching the stamps)")]
+    region = [format_card("REGION", "stamps", "only the stamps of galaxies persistence can reach"),
+              format_card("NBLOCKS", int(active.sum()), f"noise blocks ({NOISE_BLOCK} px) simulated"),
+              format_card("FBLOCKS", round(float(active.mean()) if active.size else 0.0, 6),
+                          "fraction of the blocks simulated")]
+    out = [OutHDU([format_card("SIMPLE", True), format_card("BITPIX", 8), format_card("NAXIS", 0),
+                   format_card("EXTEND", True)])]
+    out.append(OutHDU(frame_cards + region + [
+        format_card("CONTENT", "reference: no persistence", "NaN outside the stamps simulated")],
+        ref_out, extname="SCI"))
+    from ..measure.changes import CHANGED_EXTNAME, variant_extname
 
-        for name, vm in variants.items():
-            pm = vm.persistence_model()
-            out.append(OutHDU(frame_cards + region + [
-                format_card("CONTENT", f"variant {name}", "NaN where it equals SCI: only changed stamps"),
-                format_card("VARIANT", name), format_card("PS_LAW", pm.name[-68:], "persistence law"),
-                format_card("PS_FLOOR", Persistence.floor(vm), "[e-] fluence at or below leaves nothing"),
-                format_card("NCHANGED", int(changed[name].sum()), "galaxies whose stamps changed")],
-                var_out[name], extname=variant_extname(name)))
-        out.append(_model_hdu(model))
-        ids = np.asarray(cols["id"])[gal[windows[0]]].astype(np.int64)
-        table = {"id": ids, **{variant_extname(n): changed[n].astype(np.int16) for n in variants}}
-        out.append(table_hdu(table, CHANGED_EXTNAME, descriptions={"id": "catalogue id of a galaxy simulated"}))
-        _provenance(out[0], truth, cols["datasum"], exposure, model, seed, opened, [], {}, sky_rate,
-                    int(np.count_nonzero(drawn)), ("SCI", *[variant_extname(n) for n in variants]))
-        write_hdus(out, dest, overwrite=overwrite, compress=compress)
-        return {"rows": int(len(windows[0])), "objects": int(np.count_nonzero(drawn)), "blocks": int(active.sum()),
-                "block_fraction": float(active.mean()) if active.size else 0.0,
-                "changed": {n: int(c.sum()) for n, c in changed.items()}}
-    finally:
-        for frame in opened:
-            frame.close()
+    for name, vm in variants.items():
+        pm = vm.persistence_model()
+        out.append(OutHDU(frame_cards + region + [
+            format_card("CONTENT", f"variant {name}", "NaN where it equals SCI: only changed stamps"),
+            format_card("VARIANT", name), format_card("PS_LAW", pm.name[-68:], "persistence law"),
+            format_card("PS_FLOOR", Persistence.floor(vm), "[e-] fluence at or below leaves nothing"),
+            format_card("NCHANGED", int(changed[name].sum()), "galaxies whose stamps changed")],
+            var_out[name], extname=variant_extname(name)))
+    out.append(_model_hdu(model))
+    ids = np.asarray(cols["id"])[gal[windows[0]]].astype(np.int64)
+    table = {"id": ids, **{variant_extname(n): changed[n].astype(np.int16) for n in variants}}
+    out.append(table_hdu(table, CHANGED_EXTNAME, descriptions={"id": "catalogue id of a galaxy simulated"}))
+    _provenance(out[0], truth, cols["datasum"], exposure, model, seed, [], [], {}, sky_rate,
+                int(np.count_nonzero(drawn)), ("SCI", *[variant_extname(n) for n in variants]))
+    out[0]["NPREV"] = (len(histories), "earlier exposures whose star light persists")
+    for k, h in enumerate(histories, 1):
+        if k <= 99:
+            out[0][f"PRV{k:02d}ID"] = (int(h.expid), f"earlier exposure, ended MJD {h.end:.6f}")
+    write_hdus(out, dest, overwrite=overwrite, compress=compress)
+    return {"rows": int(len(windows[0])), "objects": int(np.count_nonzero(drawn)), "blocks": int(active.sum()),
+            "block_fraction": float(active.mean()) if active.size else 0.0,
+            "changed": {n: int(c.sum()) for n, c in changed.items()}}
 
 
 def _clip_keep(boxes: np.ndarray, bounds):

@@ -221,20 +221,18 @@ def _variant_models(s: dict) -> dict:
 
 
 def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
-    """Stars of the earlier exposures, where persistence reaches, each final on those stamps, De, xi, budget."""
+    """Where persistence reaches, each final on those stamps (its earlier exposures' stars drawn in it), De, xi.
+
+    With a joint fit, each final's stamps are written (frames/...final.fits) and one task per variant
+    fits the galaxies whose stamps changed over all their finals; without, each final's task fits them
+    right away and writes only their shape changes (shapes/scaNN/eNNNNNN.fits), so that a study of
+    thousands of finals keeps no frames.
+    """
+    from ..measure.changes import variant_extname
+
     tasks = [Task(f"{pre}catalog", "catalog", f"{pre}truth.fits", deps=["pointings"],
                   params=dict(catalog=s["catalog"], bounds=s["bounds"], seed=seed, field=s["field"]))]
     finals = [(sca, p) for sca, ps in sorted(ex.finals.items()) for p in ps]
-    earlier = sorted({(sca, q.expid) for (sca, _), hist in ex.history.items() for q in hist})
-    # an earlier exposure leaves its stars' light: drawn on its frame, nothing else
-    for sca, expid in earlier:
-        p = ex.all[(sca, expid)]
-        tasks.append(Task(f"{pre}stars/sca{sca:02d}/e{expid:06d}", "render", f"{pre}{frame_path(sca, expid, 'stars')}",
-                          deps=[f"{pre}catalog"],
-                          params=dict(truth=f"{pre}truth.fits", pointing=_pointing_dict(p), sca=sca, bounds=s["bounds"],
-                                      seed=frame_seed(seed, sca, expid), previous=[], hdus=["STARFLU"],
-                                      model=model_settings("typical"), source="stars", set=s["render"]["set"],
-                                      compress=s["render"]["compress"], filter=p.filter)))
     variants = _variant_models(s)
     m = s["measure"]
     tasks.append(Task(f"{pre}regions", "regions", f"{pre}regions.fits", deps=[f"{pre}catalog"],
@@ -243,32 +241,35 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
                                           for sca, p in finals],
                                   bounds=s["bounds"], stamp=m["stamp"], joint=m["joint"],
                                   models=[list(v[1]) for v in variants.values()], set=s["render"]["set"])))
-    final_keys = []
+    final_keys, outputs = [], []
     for sca, p in finals:
-        hist = ex.history[(sca, p.expid)]
         key = f"{pre}final/sca{sca:02d}/e{p.expid:06d}"
+        out = f"{pre}{frame_path(sca, p.expid, 'final')}" if m["joint"] else \
+            f"{pre}shapes/sca{sca:02d}/e{p.expid:06d}.fits"
         final_keys.append(key)
-        tasks.append(Task(key, "final", f"{pre}{frame_path(sca, p.expid, 'final')}",
-                          deps=[f"{pre}regions", *(f"{pre}stars/sca{sca:02d}/e{q.expid:06d}" for q in hist)],
-                          params=dict(truth=f"{pre}truth.fits", regions=f"{pre}regions.fits",
-                                      pointing=_pointing_dict(p), sca=sca, bounds=s["bounds"],
-                                      seed=frame_seed(seed, sca, p.expid),
-                                      previous=[f"{pre}{frame_path(sca, q.expid, 'stars')}" for q in hist],
-                                      model=model_settings("typical"), set=s["render"]["set"],
-                                      variants={name: list(v[1]) for name, v in variants.items()},
-                                      stamp=m["stamp"], compress=s["render"]["compress"])))
+        outputs.append(out)
+        params = dict(truth=f"{pre}truth.fits", regions=f"{pre}regions.fits", pointing=_pointing_dict(p), sca=sca,
+                      bounds=s["bounds"], seed=frame_seed(seed, sca, p.expid),
+                      history=[_pointing_dict(q) for q in ex.history[(sca, p.expid)]],
+                      model=model_settings("typical"), set=s["render"]["set"],
+                      variants={name: list(v[1]) for name, v in variants.items()},
+                      stamp=m["stamp"], compress=s["render"]["compress"])
+        if not m["joint"]:
+            params["measure"] = dict(min_snr=m["min_snr"], stamp=m["stamp"])
+        tasks.append(Task(key, "final", out, deps=[f"{pre}regions"], params=params))
     c, b = s["correlate"], s["budget"]
-    paths = [f"{pre}{frame_path(sca, p.expid, 'final')}" for sca, p in finals]
     for name in variants:
-        tasks.append(Task(f"{pre}measure/{name}", "changes", f"{pre}shapes/{name}.fits",
-                          deps=[f"{pre}catalog", *final_keys],
-                          params=dict(truth=f"{pre}truth.fits", finals=paths, expids=[p.expid for _, p in finals],
-                                      variant=name,
-                                      joint=m["joint"], min_snr=m["min_snr"], stamp=m["stamp"])))
-        tasks.append(Task(f"{pre}correlate/{name}", "correlate", f"{pre}xi/{name}.fits",
-                          deps=[f"{pre}measure/{name}"],
-                          params=dict(tables=[f"{pre}shapes/{name}.fits"], figures=f"{pre}figures/{name}",
-                                      seed=seed, **c)))
+        if m["joint"]:
+            tasks.append(Task(f"{pre}measure/{name}", "changes", f"{pre}shapes/{name}.fits",
+                              deps=[f"{pre}catalog", *final_keys],
+                              params=dict(truth=f"{pre}truth.fits", finals=outputs,
+                                          expids=[p.expid for _, p in finals], variant=name, joint=True,
+                                          min_snr=m["min_snr"], stamp=m["stamp"])))
+            tables, deps = [f"{pre}shapes/{name}.fits[{variant_extname(name)}]"], [f"{pre}measure/{name}"]
+        else:
+            tables, deps = [f"{out}[{variant_extname(name)}]" for out in outputs], final_keys
+        tasks.append(Task(f"{pre}correlate/{name}", "correlate", f"{pre}xi/{name}.fits", deps=deps,
+                          params=dict(tables=tables, figures=f"{pre}figures/{name}", seed=seed, **c)))
         tasks.append(Task(f"{pre}budget/{name}", "budget", f"{pre}budget/{name}.fits", deps=[f"{pre}correlate/{name}"],
                           params=dict(xi=f"{pre}xi/{name}.fits", plot=f"{pre}figures/{name}/budget.png", **b)))
     return tasks

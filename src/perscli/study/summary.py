@@ -51,7 +51,7 @@ def _num(v):
     return None if not math.isfinite(v) else v
 
 
-def variant_results(study_dir: str, name: str, prefix: str = "") -> dict:
+def variant_results(study_dir: str, name: str, prefix: str = "", differential: bool = False) -> dict:
     """What one realisation of the study found for one persistence variant: De statistics, uniformity, budget.
 
     ``prefix`` is the realisation's folder ('' for a study of one realisation).
@@ -73,18 +73,21 @@ def variant_results(study_dir: str, name: str, prefix: str = "") -> dict:
                 nge = np.atleast_1d(stats[f"n_{stem}ge"][0]).astype(int)
                 out[f"frac_{stem}ge"] = {f"{t:.0e}": _num(f) for t, f in zip(thr, frac)}
                 out[f"n_{stem}ge"] = {f"{t:.0e}": int(n) for t, n in zip(thr, nge)}
-    changes = os.path.join(study_dir, prefix, "shapes", f"{name}.fits")
-    if os.path.exists(changes) and _table(changes, "CHANGES"):
+    ext = name.upper()
+    joint = True
+    tables = (sorted(glob.glob(os.path.join(study_dir, prefix, "shapes", f"{name}.fits"))) or
+              sorted(glob.glob(os.path.join(study_dir, prefix, "shapes", "sca*", "e*.fits")))) if differential else []
+    if tables:
         # the differential study: every galaxy of the sample is counted, only those whose stamps changed fitted
-        h = _header(changes, 0)
-        out["sample"] = int(h.get("NSAMPLE", 0))
-        out["fitted"] = int(h.get("NFITTED", 0))
-        out["fitted_flagged"] = int(h.get("NFLAGGED", 0))
+        heads = [_header(t, ext) for t in tables]
+        out["sample"] = sum(int(h.get("NSAMPLE", 0)) for h in heads)
+        out["fitted"] = sum(int(h.get("NFITTED", 0)) for h in heads)
+        out["fitted_flagged"] = sum(int(h.get("NFLAGGED", 0)) for h in heads)
         out["measured_fraction"] = out["fitted"] / out["sample"] if out["sample"] else None
+        joint = str(heads[0].get("GAXES", "sky")) == "sky"
     regions = os.path.join(study_dir, prefix, "regions.fits")
     if os.path.exists(regions):
         h = _header(regions, "REGIONS")
-        joint = bool(_header(changes, 0).get("JOINT", True)) if os.path.exists(changes) else True
         # the whole catalogue as denominator: every galaxy on a final (per final without a joint fit)
         out["catalogue"] = int(h["NGALON"] if joint else h["NONFRAME"])
         out["reach_pixel_fraction"] = _num(h.get("FPIXRCH", math.nan))
@@ -200,7 +203,8 @@ def combine_realisations(per: list) -> dict:
 def write_summary(study_dir: str, params: dict, out: str) -> None:
     """summary.json, summary.md, the paper's Figs. 1-2 and cost.json (atomically each)."""
     reals = params.get("realisations") or [{"seed": None, "prefix": ""}]
-    per_real = [[variant_results(study_dir, name, r["prefix"]) for name in params["variants"]] for r in reals]
+    per_real = [[variant_results(study_dir, name, r["prefix"], bool(params.get("differential")))
+                 for name in params["variants"]] for r in reals]
     results = per_real[0] if len(reals) == 1 else [combine_realisations([p[k] for p in per_real])
                                                    for k in range(len(params["variants"]))]
     combined = [combine_realisations([p[k] for p in per_real]) for k in range(len(params["variants"]))]

@@ -205,8 +205,7 @@ def write_regions_table(out: str, table: dict, counts: dict) -> None:
 
 def _final(study_dir, p, out):
     from ..io.tables import read_table
-    from ..render.differential import render_final
-    from ..render.exposure import read_truth
+    from ..render.differential import _truth_columns, render_final
 
     exposure = _exposure(p)
     model = _variant_model(p["model"], p["set"])
@@ -215,14 +214,28 @@ def _final(study_dir, p, out):
     regions = read_table(os.path.join(study_dir, p["regions"]), what="study regions")
     here = (regions.column("sca", kind="integer") == exposure.sca) & \
         (regions.column("expid", kind="integer") == exposure.expid)
-    ids = regions.column("id", kind="integer")[here]
-    cols = read_truth(truth, exposure.filter)
-    rows = np.isin(cols["id"], ids)
-    summary = render_final(truth, exposure, out, model=model, variants=variants, seed=p["seed"],
-                           histories=[os.path.join(study_dir, q) for q in p["previous"]], rows=rows,
-                           stamp=p["stamp"], compress=p["compress"], overwrite=True)
-    return {"galaxies": summary["rows"], "objects": summary["objects"], "blocks": summary["blocks"],
-            "block_fraction": round(summary["block_fraction"], 6), "changed": summary["changed"]}
+    cols = _truth_columns(truth, exposure.filter)
+    rows = np.isin(cols["id"], regions.column("id", kind="integer")[here])
+    history = [_exposure(dict(q, bounds=p["bounds"])) for q in p["history"]]
+    measure = p.get("measure")
+    # without a joint fit the final's stamps are measured here and not kept
+    frame = out if measure is None else f"{out}.{os.getpid()}.frame.fits"
+    try:
+        summary = render_final(truth, exposure, frame, model=model, variants=variants, seed=p["seed"],
+                               histories=history, rows=rows, stamp=p["stamp"],
+                               compress=p["compress"] if measure is None else "none", overwrite=True)
+        rec = {"galaxies": summary["rows"], "objects": summary["objects"], "blocks": summary["blocks"],
+               "block_fraction": round(summary["block_fraction"], 6), "changed": summary["changed"]}
+        if measure is not None:
+            from ..measure.changes import write_changes
+
+            counts = write_changes([frame], list(variants), truth, out, joint=False, stamp=measure["stamp"],
+                                   min_snr=measure["min_snr"], expids=[exposure.expid])
+            rec.update(sample=counts["sample"], fitted=counts["fitted"])
+        return rec
+    finally:
+        if measure is not None and os.path.exists(frame):
+            os.unlink(frame)
 
 
 def _changes(study_dir, p, out):
