@@ -163,10 +163,25 @@ def _assert_same_de(full, diff, variant, joint):
     return ch, nonzero
 
 
+def test_persisting_stars_are_whole_groups_of_overlapping_stamps():
+    from perscli.render.differential import persisting_stars
+
+    boxes = np.array([[0, 10, 0, 10], [5, 15, 5, 15], [14, 20, 14, 20], [100, 110, 100, 110], [200, 210, 0, 5]])
+    flux = [10, 10, 10, 50, 200]
+    assert persisting_stars(flux, boxes, 0).all()
+    # the chain of three sums to 30: it lights no pixel above 40, the others can
+    assert persisting_stars(flux, boxes, 40).tolist() == [False, False, False, True, True]
+    assert persisting_stars(flux, boxes, 25).all()
+    assert persisting_stars(flux, boxes, 1000).tolist() == [False] * 5
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("joint", [True, False])
-def test_the_differential_study_gives_every_galaxy_the_full_computations_de(tmp_path, joint):
+@pytest.mark.parametrize("joint,floor", [(True, 0), (False, 0), (True, 300)])
+def test_the_differential_study_gives_every_galaxy_the_full_computations_de(tmp_path, joint, floor):
     extra = [] if joint else ["measure.joint=false", "catalog.star_density=5"]
+    if floor:
+        # star light at or below 300 e- per pixel does not persist: fewer stars drawn, smaller regions
+        extra += [f"render.set=[persistence.floor={floor}]"]
     full = _study(tmp_path, False, *extra)
     diff = _study(tmp_path, True, *extra)
     regions = _table(diff / "regions.fits", "REGIONS")

@@ -117,10 +117,14 @@ def test_fields_across_ra_zero_and_at_the_poles(ra, dec):
 
 # -- counts ------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
-def test_counts_are_poisson_with_the_densities(seed):
-    table = make_truth_catalog(RA, DEC, 10.0, seed=seed)
-    for kind, mean in (("galaxy", 40.0 * 100.0), ("star", 2.5 * 100.0)):
+@pytest.mark.parametrize("seed, star_density", [(1, None), (2, None), (3, None), (1, 2.5), (2, 7.0)])
+def test_counts_are_poisson_with_the_densities(seed, star_density):
+    """Power-law stars at the density given; Galactic-model stars (default) at the model's density there."""
+    table = make_truth_catalog(RA, DEC, 10.0, seed=seed, star_density=star_density)
+    stars_per_arcmin2 = table.meta["SDENSC"] if star_density is None else star_density
+    if star_density is None:
+        assert stars_per_arcmin2 == pytest.approx(2.504, abs=0.005)      # module docstring of starcounts
+    for kind, mean in (("galaxy", 40.0 * 100.0), ("star", stars_per_arcmin2 * 100.0)):
         n = int((table["kind"] == kind).sum())
         assert abs(n - mean) < 4 * math.sqrt(mean), (kind, n)
     assert table.meta["NGAL"] == (table["kind"] == "galaxy").sum()
@@ -290,11 +294,22 @@ def test_output_file_columns_units_and_header(tmp_path):
         assert set(np.char.strip(data["kind"])) == {"galaxy", "star"}
         assert np.all(data["gaia_id"] == -1)
         assert hdr["FIELDRA"] == RA and hdr["FIELDDEC"] == DEC and hdr["FIELDSZ"] == 4.0
-        assert hdr["GALDENS"] == 40.0 and hdr["STARDENS"] == 2.5 and hdr["STARSRC"] == "model"
-        assert hdr["GMAGSLP"] == 0.28 and hdr["SMAGSLP"] == 0.15 and hdr["GESIG"] == 0.27
+        assert hdr["GALDENS"] == 40.0 and hdr["STARSRC"] == "model" and hdr["STARMOD"] == "galactic"
+        assert "STARDENS" not in hdr and hdr["SDENSC"] == pytest.approx(2.504, abs=0.005)
+        assert hdr["GMAGSLP"] == 0.28 and hdr["SGH1"] == 360.0 and hdr["SMAGMIN"] == 4.0 and hdr["GESIG"] == 0.27
         assert hdr["SEED"] == 3 and hdr["CREATOR"].startswith("perscli ")
-        assert "catalog ra=10.0" in str(hdr["HISTORY"])
+        history = str(hdr["HISTORY"]).replace("\n", "")
+        assert "catalog ra=10.0" in history and "star-model=galactic" in history
         assert "CHECKSUM" in hdr and "DATASUM" in hdr
+    # an explicit density: the power-law stars, recorded as before
+    out = tmp_path / "powerlaw.fits"
+    assert invoke("catalog", "--ra", RA, "--dec", DEC, "--size", 4, "--seed", 3, "--star-density", 2.5,
+                  "-o", out).exit_code == 0
+    with fits.open(out) as hdul:
+        hdr = hdul["TRUTH"].header
+        assert hdr["STARDENS"] == 2.5 and hdr["STARSRC"] == "model" and hdr["STARMOD"] == "powerlaw"
+        assert hdr["SMAGSLP"] == 0.15 and "SGH1" not in hdr
+        assert "star-density=2.5" in str(hdr["HISTORY"]).replace("\n", "")
 
 
 def test_catalog_to_stdout(tmp_path):

@@ -31,8 +31,12 @@ log = logging.getLogger("perscli")
                    f"--bounds) [default: the full {ROMAN_SCA_SIZE} x {ROMAN_SCA_SIZE}].")
 @click.option("--galaxy-density", type=click.FloatRange(min=0), default=40.0, show_default=True,
               metavar="PER_ARCMIN2", help="Mean number of galaxies per arcmin^2 (Poisson).")
-@click.option("--star-density", type=click.FloatRange(min=0), default=2.5, show_default=True,
-              metavar="PER_ARCMIN2", help="Mean number of model stars per arcmin^2 (Poisson); not used with --gaia.")
+@click.option("--star-density", type=click.FloatRange(min=0), default=None, metavar="PER_ARCMIN2",
+              help="Instead of the Galactic star model: power-law stars at this mean number per arcmin^2 "
+                   "(Poisson, uniform; the paper: 2.5); not used with --gaia.")
+@click.option("--star-param", "star_params", multiple=True, metavar="KEY=VALUE",
+              help="Set a parameter of the Galactic star model (e.g. thin_height=300, mag_min=8, lf_scale=1.2; "
+                   "the names are listed in the description). Repeatable.")
 @click.option("--gaia", "gaia", multiple=True, metavar="FILE", type=FILE,
               help="Gaia DR2 reference-catalog chunk (LSST format; '-' for standard input): its stars in the "
                    "field replace the model stars. Repeatable.")
@@ -44,8 +48,8 @@ log = logging.getLogger("perscli")
 @verbosity_opts
 @click.pass_context
 @report_errors
-def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density, star_density, gaia, columns, seed,
-            output, overwrite):
+def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density, star_density, star_params, gaia,
+            columns, seed, output, overwrite):
     """Draw a truth catalog of galaxies and stars for a square field or detector footprints.
 
     The field is a square of --size arcmin on the tangent plane at (--ra,
@@ -54,14 +58,34 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density,
     or each row's own sca), each grown by --margin arcsec (default 30) so
     that objects just off an edge still spill light onto the detector: only
     what the exposures see is drawn.  Positions are uniform in solid angle
-    and counts are Poisson, at the same densities in both cases.
+    (stars: at the model's density, which varies over the field) and counts
+    are Poisson, at the same densities in both cases.
     Galaxies are exponential profiles: J129 (AB) from dN/dm ~ 10^(0.28 m)
     for 20 <= J <= 25.5 (deep near-infrared counts), J-H ~ N(0.30, 0.15),
     log10(hlr/arcsec) ~ N(log10(0.35) - 0.08 (J - 23), 0.2) within
     [0.08, 1.5], intrinsic g per component ~ N(0, 0.27) redrawn until
-    |g| <= 0.7, no shear.  Model stars: J129 from dN/dm ~ 10^(0.15 m) for
-    10 <= J <= 24 (215 per deg^2 brighter than J = 14 at 2.5 per arcmin^2),
-    J-H ~ N(0.45, 0.15) within [0, 1].
+    |g| <= 0.7, no shear.
+
+    Model stars (default) come from a Galactic structure model: the thin
+    disc, thick disc and halo of Chang, Ko & Peng (2011; a fit of the
+    whole-sky 2MASS counts) integrated along the line of sight, times a
+    luminosity function in M_J calibrated on Gaia DR2 (M_J < 8) and taken
+    from Juric et al. (2008) and Covey et al. (2008) for M dwarfs, so that
+    their counts per magnitude and their rise towards the Galactic plane
+    follow the real sky: at RA 10, Dec -44 (b = -73) 25 stars per deg^2
+    brighter than J129 = 12, 122 brighter than 14 (Gaia DR2: 25, 126) and
+    2.5 per arcmin^2 for 4 <= J <= 24.  The density varies over the field
+    (model on a 0.5-degree grid, Poisson process thinned).  J-H per
+    luminosity-function bin (Gaia stars for M_J < 4, the mean dwarf sequence
+    fainter).  --star-param KEY=VALUE sets its parameters: sun_radius,
+    sun_height, thin_height, thin_length, thick_height, thick_length (pc),
+    thick_fraction, halo_fraction, halo_axis_ratio, halo_index,
+    max_distance (pc), lf_scale, mag_min, mag_max (J129 AB, default 4 and
+    24), dwarf_jh_sigma.  --star-density N draws instead power-law stars,
+    J129 from dN/dm ~ 10^(0.15 m) for 10 <= J <= 24 at N per arcmin^2
+    uniformly, J-H ~ N(0.45, 0.15) within [0, 1] (at the paper's 2.5 per
+    arcmin^2, 215 per deg^2 brighter than J = 14: 1.7 times Gaia DR2 at
+    b = -73).
 
     With --gaia, the stars are those of Gaia DR2 reference-catalog chunks
     (coord_ra/coord_dec in radians, fluxes in nJy) inside the field, with
@@ -86,6 +110,8 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density,
       perscli catalog --ra 10 --dec -44 --size 150 --seed 7 --galaxy-density 1 -o cat_wide.fits
       perscli catalog --ra 10 --dec -44 --gaia 145649.fits --gaia 145650.fits -o cat_gaia.fits
       perscli catalog --ra 10 --dec -44 --galaxy-density 0 -o - | gzip > cat_stars.fits.gz
+      perscli catalog --ra 150 --dec 2 --star-param thin_height=300 --star-param mag_min=10 -o cat_cosmos.fits
+      perscli catalog --ra 10 --dec -44 --size 5 --star-density 20 -o cat_dense_stars.fits
       perscli pointings --plan --ra 10 --dec -44 --n 2 --sca 7 -o cat_plan.fits
       perscli catalog --footprints cat_plan.fits --margin 30 --gaia 145649.fits --gaia 145650.fits -o cat_sca7.fits
       perscli catalog --footprints cat_plan.fits --sca 1 --bounds 1 128 1 128 -o cat_sca1_cut.fits
@@ -93,6 +119,7 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density,
     from click.core import ParameterSource
 
     from ..scene.catalog import DEFAULT_MARGIN_ARCSEC, make_truth_catalog_file
+    from ..scene.starcounts import galactic_star_model
 
     given = {name for name in ctx.params
              if ctx.get_parameter_source(name) not in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)}
@@ -108,20 +135,26 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density,
             if value is None:
                 raise click.UsageError(f"Missing option '--{name}': give --ra and --dec (a square field) or "
                                        "--footprints POINTINGS.fits", ctx)
+    if star_params and star_density is not None:
+        raise click.UsageError("--star-param sets the Galactic star model and --star-density selects power-law "
+                               "stars: give one of them", ctx)
+    if star_params and gaia:
+        raise click.UsageError("--star-param is for model stars, not --gaia", ctx)
+    star_model = galactic_star_model(star_params) if star_density is None else None
     check_outputs(output, inputs=[*gaia, footprints], overwrite=overwrite)
     if footprints is not None:
         table = make_truth_catalog_file(output, footprints=footprints, sca=sca, bounds=bounds,
                                         margin_arcsec=DEFAULT_MARGIN_ARCSEC if margin is None else margin,
                                         overwrite=overwrite, galaxy_density=galaxy_density,
-                                        star_density=star_density, gaia=gaia or None, seed=seed,
-                                        columns=columns)
+                                        star_density=star_density, star_model=star_model, gaia=gaia or None,
+                                        seed=seed, columns=columns)
     else:
         table = make_truth_catalog_file(output, ra, dec, size, overwrite=overwrite, galaxy_density=galaxy_density,
-                                        star_density=star_density, gaia=gaia or None, seed=seed,
-                                        columns=columns)
+                                        star_density=star_density, star_model=star_model, gaia=gaia or None,
+                                        seed=seed, columns=columns)
     log.info("%s: %d galaxies and %d %s stars in %.6g arcmin^2",
              "stdout" if output == "-" else output, table.meta["NGAL"], table.meta["NSTAR"],
-             table.meta["STARSRC"], table.meta["FIELDAR"])
+             "gaia" if table.meta["STARSRC"] == "gaia" else table.meta["STARMOD"], table.meta["FIELDAR"])
     if gaia and table.meta["NSTAR"] == 0:
         log.warning("no Gaia star of %s lies inside the field; check %s", ", ".join(gaia),
                     "--footprints" if footprints else "--ra/--dec/--size")

@@ -47,6 +47,54 @@ def _subset(cols: dict, rows: np.ndarray) -> dict:
             for k, v in cols.items()}
 
 
+#: a star's stamp holds its flux, with ringing of a fraction of it either way: a group of stars whose
+#: fluxes sum to F cannot raise a pixel above F times this
+FLUX_BOUND = 1.1
+
+
+def persisting_stars(flux, boxes, floor: float) -> np.ndarray:
+    """Which stars' light can reach above ``floor`` electrons in some pixel (bool per star).
+
+    A pixel's star light is the sum of the stamps that cover it, all of
+    whose stars are linked by overlapping stamps: a group of overlapping
+    stars whose fluxes sum to at most ``floor`` / :data:`FLUX_BOUND` lights
+    no pixel above ``floor``, and leaves nothing; every star of any other
+    group is kept (its light adds to its neighbours').
+
+    Parameters
+    ----------
+    flux : ndarray
+        Electrons of each star.
+    boxes : ndarray, shape (k, 4)
+        Each star's stamp [x0, x1, y0, y1] (inclusive pixels).
+    floor : float
+    """
+    flux = np.asarray(flux, dtype=np.float64)
+    n = len(flux)
+    if floor <= 0 or n == 0:
+        return np.ones(n, dtype=bool)
+    parent = np.arange(n)
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    b = np.asarray(boxes)
+    order = np.argsort(b[:, 0], kind="stable")
+    # sweep along x: a star's stamp can only overlap those that start before it ends
+    for k, i in enumerate(order):
+        for j in order[k + 1:]:
+            if b[j, 0] > b[i, 1]:
+                break
+            if b[j, 2] <= b[i, 3] and b[i, 2] <= b[j, 3]:
+                parent[root(j)] = root(i)
+    roots = np.array([root(i) for i in range(n)])
+    total = np.bincount(roots, weights=np.abs(flux), minlength=n)
+    return total[roots] * FLUX_BOUND > floor
+
+
 def star_boxes(cols: dict, exposure: Exposure, *, optics: Optics | None = None, floor: float = 0.0) -> np.ndarray:
     """The detector pixels each star's stamp covers on an exposure's frame: (k, 4) [x0, x1, y0, y1], inclusive.
 
@@ -61,9 +109,8 @@ def star_boxes(cols: dict, exposure: Exposure, *, optics: Optics | None = None, 
         The earlier exposure (its pointing, SCA and frame bounds).
     optics : Optics, optional
     floor : float
-        Electrons: light at or below it does not persist.  A star whose
-        flux, with that of every star whose stamp overlaps its own, is at
-        most ``floor`` cannot raise any pixel above it and is left out.
+        Electrons: light at or below it does not persist: the stars of
+        :func:`persisting_stars` only.
 
     Returns
     -------
@@ -79,12 +126,7 @@ def star_boxes(cols: dict, exposure: Exposure, *, optics: Optics | None = None, 
     iy = np.floor(y[todo] + 0.5).astype(np.int64)
     n = sizes[todo]
     boxes = np.stack([ix - n // 2, ix - n // 2 + n - 1, iy - n // 2, iy - n // 2 + n - 1], axis=1)
-    if floor > 0 and len(boxes):
-        f = flux[todo]
-        overlap = ((boxes[:, None, 0] <= boxes[None, :, 1]) & (boxes[None, :, 0] <= boxes[:, None, 1])
-                   & (boxes[:, None, 2] <= boxes[None, :, 3]) & (boxes[None, :, 2] <= boxes[:, None, 3]))
-        boxes = boxes[(overlap * f[None, :]).sum(axis=1) > floor]
-    return _clip(boxes, exposure.full_bounds)
+    return _clip(boxes[persisting_stars(flux[todo], boxes, floor)], exposure.full_bounds)
 
 
 def _clip(boxes: np.ndarray, bounds) -> np.ndarray:
@@ -133,8 +175,9 @@ def touches(mask: np.ndarray, boxes, bounds) -> np.ndarray:
     """Per box (detector pixels, inclusive): whether any pixel of ``mask`` (the frame at ``bounds``) lies in it."""
     xmin, xmax, ymin, ymax = bounds
     boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
-    table = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=np.int64)
-    np.cumsum(np.cumsum(mask, axis=0, dtype=np.int64), axis=1, out=table[1:, 1:])
+    # int32 holds the count of any frame (4088^2 < 2^31), at half the memory traffic of int64
+    table = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=np.int32)
+    np.cumsum(np.cumsum(mask, axis=0, dtype=np.int32), axis=1, out=table[1:, 1:])
     x0 = np.clip(boxes[:, 0] - xmin, 0, mask.shape[1])
     x1 = np.clip(boxes[:, 1] - xmin + 1, 0, mask.shape[1])
     y0 = np.clip(boxes[:, 2] - ymin, 0, mask.shape[0])
@@ -244,7 +287,7 @@ def _truth_columns(truth: str, filter_name: str) -> dict:
     return _TRUTH[key]
 
 
-def star_light(truth: str, exposure: Exposure) -> np.ndarray:
+def star_light(truth: str, exposure: Exposure, floor: float = 0.0) -> np.ndarray:
     """The expected electrons of the catalogue's stars on an exposure's frame: its STARFLU, as render writes it.
 
     What an earlier exposure leaves when star light persists (the paper's
@@ -252,19 +295,32 @@ def star_light(truth: str, exposure: Exposure) -> np.ndarray:
     kept for the next final (a study's earlier exposures would be most of its
     bytes).  The same stamps added in the same order as ``perscli render``
     adds them, in float32 as it writes them: the same bits as its STARFLU.
+    With ``floor``, only the stars whose light can exceed it
+    (:func:`persisting_stars`) are drawn: the same bits wherever the light
+    exceeds ``floor``, what persists above it.
     """
     import os
 
     st = os.stat(truth)
     key = (os.path.realpath(truth), st.st_size, st.st_mtime_ns, exposure.sca, exposure.expid, exposure.mjd,
-           exposure.filter, exposure.full_bounds)
+           exposure.filter, exposure.full_bounds, float(floor))
     if key in _STAR_LIGHT:
         _STAR_LIGHT[key] = _STAR_LIGHT.pop(key)        # most recently used last
         return _STAR_LIGHT[key]
     cols = _truth_columns(truth, exposure.filter)
     optics = Optics(exposure)
     plan = plan_objects(cols, optics, exposure.full_bounds)
-    light = draw_sources(cols, exposure, stars=True, optics=optics, plan=plan, only=cols["kind"] == "star",
+    only = cols["kind"] == "star"
+    if floor > 0:
+        todo, x, y, flux, sizes = plan
+        stars = todo[only[todo]]
+        ix = np.floor(x[stars] + 0.5).astype(np.int64)
+        iy = np.floor(y[stars] + 0.5).astype(np.int64)
+        n = sizes[stars]
+        boxes = np.stack([ix - n // 2, ix - n // 2 + n - 1, iy - n // 2, iy - n // 2 + n - 1], axis=1)
+        only = np.zeros_like(only)
+        only[stars[persisting_stars(flux[stars], boxes, floor)]] = True
+    light = draw_sources(cols, exposure, stars=True, optics=optics, plan=plan, only=only,
                          image=False)[3].astype(np.float32)
     _STAR_LIGHT[key] = light
     while len(_STAR_LIGHT) > _STAR_LIGHT_SIZE:
@@ -307,10 +363,10 @@ def star_persistence(truth: str, final: Exposure, histories, laws: dict) -> dict
     for name, (pmodel, threshold, cap, floor) in laws.items():
         keep, _ = order_earlier(ends, 0.0, pmodel, names)
         for i in keep:
-            if i not in lights:
-                lights[i] = star_light(truth, histories[i])
+            if (i, floor) not in lights:
+                lights[(i, floor)] = star_light(truth, histories[i], floor)
         # exposures beyond the law's look-back or count are left out by persistence_charge: not drawn
-        fluences = [persisting_fluence(lights[i], 1.0, threshold=threshold, cap=cap, floor=floor)
+        fluences = [persisting_fluence(lights[(i, floor)], 1.0, threshold=threshold, cap=cap, floor=floor)
                     if i in keep else unused for i in range(len(histories))]
         charges[name] = persistence_charge(fluences, ends, 0.0, window, pmodel)[0] if histories else None
     return charges

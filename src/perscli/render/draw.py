@@ -55,6 +55,11 @@ class StampDrawer:
         self.alias = alias + (alias % 2)
         self._tables = {}
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the tables made so far."""
+        return sum(t.nbytes + k.nbytes for t, k in self._tables.values())
+
     def table(self, n: int):
         """(T, k) for stamp size n: PSF x pixel transfer (PSF only without ``pixel``) on the extended grid,
         and the frequencies."""

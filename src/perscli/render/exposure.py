@@ -150,9 +150,11 @@ def roman_psf(sca: int, filter_name: str):
 
 
 #: the stamp drawers kept by :func:`stamp_drawer`: their PSF tables of large stamps are the costly part
-#: of drawing a bright star (2.2 s for the 1024 and 2048 tables) and ~0.35 GB, so only a few are kept
+#: of drawing a bright star (2.2 s for the 1024 and 2048 tables, ~0.35 GB): drawers are kept, least
+#: recently used dropped first, while their tables hold less than this many bytes (a study's earlier
+#: exposures come in every filter)
 _DRAWERS: dict = {}
-_MAX_DRAWERS = 2
+_DRAWER_BYTES = 1.5e9
 
 
 def stamp_drawer(sca: int, filter_name: str) -> StampDrawer:
@@ -165,7 +167,7 @@ def stamp_drawer(sca: int, filter_name: str) -> StampDrawer:
     if drawer is None:
         drawer = StampDrawer(galsim.PixelScale(roman.pixel_scale).toImage(roman_psf(sca, filter_name)))
     _DRAWERS[key] = drawer          # most recently used last
-    while len(_DRAWERS) > _MAX_DRAWERS:
+    while len(_DRAWERS) > 1 and sum(d.nbytes for d in _DRAWERS.values()) > _DRAWER_BYTES:
         _DRAWERS.pop(next(iter(_DRAWERS)))
     return drawer
 

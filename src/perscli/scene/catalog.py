@@ -26,13 +26,33 @@ distribution has a per-component standard deviation of 0.2532.  e1, e2 are
 reduced-shear-style g (|g| = (a - b)/(a + b)), to be used as
 ``galsim.Shear(g1=e1, g2=e2)``.  No shear is applied.
 
-**Stars** (:class:`StarModel`): point sources.  J129 (AB) from
-dN/dm ∝ 10^(0.15 m) for 10 <= J <= 24, an approximation to 2MASS and
-Besançon-model counts at high Galactic latitude: with the paper's
-2.5 stars/arcmin^2 it gives 215 stars per deg^2 brighter than J = 14
-(close to the ~200 per deg^2 of 2MASS and Besançon counts at high
-latitude), 1070 per deg^2 brighter than J = 18 and 0.61 per arcmin^2
-brighter than J = 20.  J - H ~ N(0.45, 0.15) clipped to [0, 1].
+**Stars** (default: :class:`perscli.scene.starcounts.GalacticStarModel`):
+point sources from a Galactic structure model.  The thin disc, thick disc
+and halo of Chang, Ko & Peng (2011, ApJ 740, 34; a fit of the whole-sky
+2MASS counts), integrated along the line of sight at each position, times a
+luminosity function in M_J calibrated on the Gaia DR2 chunks of
+../shared/data/gaia (M_J < 8) and taken from Juric et al. (2008) and Covey
+et al. (2008) for M dwarfs: the counts per J129 magnitude, and their change
+with Galactic latitude and longitude, follow the real sky (module
+:mod:`perscli.scene.starcounts` for the sources, constants and checks).  At
+RA 10, Dec -44 (b = -73) it gives 24.7 stars per deg^2 brighter than J = 12
+and 122 brighter than 14 (Gaia DR2 there: 25 and 126), and 2.5 per arcmin^2
+for 4 <= J <= 24.  The density varies over the field: the model is evaluated
+on a grid (0.5 deg) and a Poisson process thinned
+(:func:`perscli.scene.starcounts.draw_galactic_stars`).  J - H per
+luminosity-function bin: of the Gaia stars for M_J < 4, of the mean dwarf
+sequence (Pecaut & Mamajek 2013) fainter.  Its parameters can be changed by
+name (:func:`perscli.scene.starcounts.galactic_star_model`).
+
+**Power-law stars** (:class:`StarModel`, with an explicit ``star_density``):
+J129 (AB) from dN/dm ∝ 10^(0.15 m) for 10 <= J <= 24 at a uniform density,
+an approximation to 2MASS and Besançon-model counts at high Galactic
+latitude: with the paper's 2.5 stars/arcmin^2 it gives 215 stars per deg^2
+brighter than J = 14, 1070 per deg^2 brighter than J = 18 and 0.61 per
+arcmin^2 brighter than J = 20 (1.7 times the Gaia counts brighter than 14 at
+RA 10, Dec -44, 2.9 times those brighter than 12).  J - H ~ N(0.45, 0.15)
+clipped to [0, 1].  Kept for tests and studies that need many stars in a
+small field.
 
 **Gaia stars** (:func:`read_gaia_stars`), instead of model stars: Gaia DR2
 reference-catalog chunks (LSST format: coord_ra/coord_dec in radians,
@@ -70,7 +90,8 @@ around them all).  Gaia stars are those inside the union.
 
 The random numbers: ``numpy.random.Generator(PCG64)`` streams spawned from
 ``SeedSequence(seed)``, one for galaxies and one for stars, so that changing
-the star model (or using Gaia) leaves the galaxies unchanged.
+the star model (or its parameters, or using Gaia) leaves the galaxies
+unchanged.
 """
 
 from __future__ import annotations
@@ -84,6 +105,8 @@ import numpy as np
 from .. import PerscliError
 from ..io.tables import read_table
 from . import EFFECTIVE_WAVELENGTH_UM, ROMAN_FILTERS, deproject, project
+from .starcounts import META_KEYWORDS as _STAR_META
+from .starcounts import GalacticStarModel
 
 #: arcmin^2 per steradian
 ARCMIN2_PER_SR = (180.0 * 60.0 / math.pi) ** 2
@@ -105,13 +128,17 @@ DEFAULT_BP_RP = 1.43
 #: AB magnitude of 1 nJy
 AB_NJY_ZP = 31.4
 
+#: [arcmin^-2] density of power-law stars when a StarModel is given without one: the paper's
+DEFAULT_STAR_DENSITY = 2.5
+
 MAG_COLUMNS = tuple(f"mag_{f}" for f in ROMAN_FILTERS)
 
 COLUMNS = ("id", "ra", "dec", "kind", *MAG_COLUMNS, "hlr", "e1", "e2", "gaia_id")
 
 #: default growth of each footprint, arcsec: the half-width of the stamp of a J = 14 star (28") and of
 #: the largest galaxy (14"), so that every object whose light render would draw on a detector at a level
-#: that matters is in the catalogue (stars of J < 14, ~215 per deg^2, spill only their faint outer halo)
+#: that matters is in the catalogue (stars of J < 14, ~120 per deg^2 at high latitude, spill only their
+#: faint outer halo)
 DEFAULT_MARGIN_ARCSEC = 30.0
 
 
@@ -135,7 +162,7 @@ class GalaxyModel:
 
 @dataclass(frozen=True)
 class StarModel:
-    """The model star population (see the module docstring)."""
+    """The power-law star population, used with an explicit star density (see the module docstring)."""
 
     mag_slope: float = 0.15
     mag_min: float = 10.0
@@ -278,7 +305,7 @@ def draw_galaxies(rng: np.random.Generator, fld, density: float, model: GalaxyMo
 
 
 def draw_stars(rng: np.random.Generator, fld, density: float, model: StarModel) -> dict:
-    """A Poisson process of model stars, ``density`` per arcmin^2, in ``fld`` (a Field or a FootprintUnion)."""
+    """A Poisson process of power-law stars, ``density`` per arcmin^2, in ``fld`` (Field or FootprintUnion)."""
     ra, dec = fld.poisson_positions(rng, density)
     n = len(ra)
     mag_j = power_law_magnitudes(rng, n, model.mag_slope, model.mag_min, model.mag_max)
@@ -432,7 +459,10 @@ KEYWORD_COMMENTS = {
     "GALDENS": "[arcmin-2] mean galaxy density (Poisson)",
     "NGAL": "galaxies in the catalog",
     "STARSRC": "stars: model or gaia",
-    "STARDENS": "[arcmin-2] mean model-star density (Poisson)",
+    "STARMOD": "star model: galactic or powerlaw",
+    "STARDENS": "[arcmin-2] power-law stars: density (Poisson)",
+    "STARLF": "star model: luminosity function (J band)",
+    "SDENSC": "[arcmin-2] star model: density at field centre",
     "NSTAR": "stars in the catalog",
     "GPROFILE": "galaxy light profile",
     "GMAGSLP": "galaxies: dN/dm ~ 10^(GMAGSLP m), J129 AB",
@@ -451,6 +481,7 @@ KEYWORD_COMMENTS = {
     "SMAGSLP": "stars: dN/dm ~ 10^(SMAGSLP m), J129 AB",
     "SMAGMIN": "stars: brightest J129 (AB)",
     "SMAGMAX": "stars: faintest J129 (AB)",
+    **{key: comment for key, comment in _STAR_META.values() if key not in ("SMAGMIN", "SMAGMAX")},
     "SJHMEAN": "stars: mean J-H",
     "SJHSIG": "stars: scatter of J-H",
     "SJHMIN": "stars: J-H clipped below",
@@ -479,8 +510,8 @@ _INPUT_STEM = re.compile(r"^GA\d{3}$")
 
 def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: float | None = None, *,
                        footprints=None, margin_arcsec: float = DEFAULT_MARGIN_ARCSEC,
-                       galaxy_density: float = 40.0, star_density: float = 2.5, gaia=None, seed: int = 1,
-                       galaxy_model: GalaxyModel = GalaxyModel(), star_model: StarModel = StarModel(),
+                       galaxy_density: float = 40.0, star_density: float | None = None, gaia=None,
+                       seed: int = 1, galaxy_model: GalaxyModel = GalaxyModel(), star_model=None,
                        stdin=None, columns=None):
     """A truth catalog of galaxies and stars for a square field or for detector footprints.
 
@@ -500,14 +531,22 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         Growth of each footprint in arcsec (default, or None: :data:`DEFAULT_MARGIN_ARCSEC`).
     galaxy_density : float
         Mean number of galaxies per arcmin^2 (the paper: 40).
-    star_density : float
-        Mean number of model stars per arcmin^2 (the paper: 2.5); unused with ``gaia``.
+    star_density : float, optional
+        Power-law stars (:class:`StarModel`) at this mean number per
+        arcmin^2 (the paper: 2.5), uniform over the field.  Default: the
+        Galactic model, whose density varies with position.  Unused with ``gaia``.
     gaia : sequence of str, optional
         Gaia DR2 reference-catalog chunks: their stars in the field replace the model stars.
     seed : int
         Random seed; the same seed (and inputs) gives the same catalog.
-    galaxy_model, star_model : GalaxyModel, StarModel
-        Population parameters (defaults: the module docstring).
+    galaxy_model : GalaxyModel
+        Galaxy population parameters (default: the module docstring).
+    star_model : GalacticStarModel or StarModel, optional
+        The star population: default the Galactic model
+        (:class:`perscli.scene.starcounts.GalacticStarModel`, its parameters
+        settable by name with :func:`perscli.scene.starcounts.galactic_star_model`);
+        a :class:`StarModel` draws power-law stars at ``star_density``
+        (2.5 per arcmin^2 if not given).
     stdin : binary file, optional
         Stream for a Gaia file given as '-'.
     columns : dict, optional
@@ -518,22 +557,34 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
     astropy.table.Table
         Columns :data:`COLUMNS` (galaxies first, then stars; ``id`` from 1),
         with units; ``meta`` holds the header keywords (field or footprints,
-        densities, models, counts, Gaia inputs as GA001/GA001DS..., SEED);
+        densities, models (STARMOD galactic or powerlaw, and their
+        parameters), counts, Gaia inputs as GA001/GA001DS..., SEED);
         with footprints ``meta['FOOTPRINTS']`` is the list of corners given
         (written as the FOOTPRNT table).
 
     Raises
     ------
     PerscliError
-        A negative density or seed, a bad field or footprint, or an unreadable Gaia file.
+        A negative density or seed, a bad field or footprint, an unreadable
+        Gaia file, or a star density with a Galactic star model.
     """
     from astropy.table import Table
 
     from .regions import FootprintUnion
 
     for label, value in (("galaxy density", galaxy_density), ("star density", star_density)):
-        if not (math.isfinite(value) and value >= 0):
+        if value is not None and not (math.isfinite(value) and value >= 0):
             raise PerscliError(f"{label} {value} per arcmin^2: must be a number >= 0")
+    if star_model is None:
+        star_model = StarModel() if star_density is not None else GalacticStarModel()
+    if isinstance(star_model, GalacticStarModel):
+        if star_density is not None:
+            raise PerscliError(f"star density {star_density} per arcmin^2 is for power-law stars: give it or a "
+                               "Galactic star model, not both")
+    elif isinstance(star_model, StarModel):
+        star_density = DEFAULT_STAR_DENSITY if star_density is None else star_density
+    else:
+        raise PerscliError(f"star model {star_model!r}: give a GalacticStarModel or a StarModel")
     if int(seed) < 0:
         raise PerscliError(f"seed {seed}: must be an integer >= 0")
     if footprints is not None:
@@ -567,10 +618,19 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         gaia_stars = read_gaia_stars(list(gaia), fld, stdin=stdin, columns=columns)
         stars = gaia_stars.columns
         meta.update({"STARSRC": "gaia", "NSTAR": len(stars["ra"])})
-    else:
+    elif isinstance(star_model, StarModel):
         gaia_stars = None
         stars = draw_stars(np.random.Generator(np.random.PCG64(star_seq)), fld, star_density, star_model)
-        meta.update({"STARSRC": "model", "STARDENS": float(star_density), "NSTAR": len(stars["ra"])})
+        meta.update({"STARSRC": "model", "STARMOD": "powerlaw", "STARDENS": float(star_density),
+                     "NSTAR": len(stars["ra"])})
+    else:
+        from .starcounts import draw_galactic_stars, star_density as model_density
+
+        gaia_stars = None
+        stars = draw_galactic_stars(np.random.Generator(np.random.PCG64(star_seq)), fld, star_model)
+        meta.update({"STARSRC": "model", **star_model.meta(),
+                     "SDENSC": round(float(model_density(fld.ra, meta["FIELDDEC"], star_model)), 6),
+                     "NSTAR": len(stars["ra"])})
     gm = asdict(galaxy_model)
     meta.update({
         "GPROFILE": "exponential", "GMAGSLP": gm["mag_slope"], "GMAGMIN": gm["mag_min"], "GMAGMAX": gm["mag_max"],
@@ -579,12 +639,12 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         "GHLRMAX": gm["hlr_max"], "GESIG": gm["e_sigma"], "GEMAX": gm["e_max"],
         "EDEFN": "reduced shear g",
     })
-    if gaia_stars is None:
+    if gaia_stars is None and isinstance(star_model, StarModel):
         sm = asdict(star_model)
         meta.update({"SMAGSLP": sm["mag_slope"], "SMAGMIN": sm["mag_min"], "SMAGMAX": sm["mag_max"],
                      "SJHMEAN": sm["jh_mean"], "SJHSIG": sm["jh_sigma"], "SJHMIN": sm["jh_min"],
                      "SJHMAX": sm["jh_max"]})
-    else:
+    elif gaia_stars is not None:
         meta.update({"GAIANIN": gaia_stars.n_read, "GAIANOG": gaia_stars.n_no_flux,
                      "GAIANMED": gaia_stars.n_median_colour, "GAIABPRP": round(gaia_stars.median_bp_rp, 6)})
         for i, (name, datasum) in enumerate(gaia_stars.inputs, 1):
@@ -623,8 +683,12 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
 def catalog_step(table) -> str:
     """One line for the HISTORY card of a catalog."""
     m = table.meta
-    stars = (f"gaia files={sum(1 for k in m if _INPUT_STEM.match(k))}" if m.get("STARSRC") == "gaia"
-             else f"star-density={m.get('STARDENS')}")
+    if m.get("STARSRC") == "gaia":
+        stars = f"gaia files={sum(1 for k in m if _INPUT_STEM.match(k))}"
+    elif m.get("STARMOD") == "galactic":
+        stars = "star-model=galactic"
+    else:
+        stars = f"star-density={m.get('STARDENS')}"
     where = (f"footprints={m['NFOOT']} margin={m['FOOTMARG']}" if m.get("REGION") == "footprints"
              else f"ra={m['FIELDRA']} dec={m['FIELDDEC']} size={m['FIELDSZ']}")
     return f"catalog {where} galaxy-density={m['GALDENS']} {stars} galaxies={m['NGAL']} stars={m['NSTAR']}"

@@ -174,6 +174,8 @@ class ShapeChanges:
     orientation: tuple | None = None
     #: Delta|e| = |g(A)| - |g(B)| per object, when the input gives it (a ``dabs`` column)
     dabs: np.ndarray | None = None
+    #: tables with De columns pooled: per table its name, DATASUM, rows and objects used
+    tables: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.de1)
@@ -353,14 +355,17 @@ def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=Fal
         inputs = [(f"SHAPE{'AB'[k]}" if len(tables) == 2 else "SHAPES", t.name, t.datasum)
                   for k, t in enumerate(tables)]
         if de_columns is not None:
-            if len(tables) > 2:
-                inputs = [(f"SHAPE{k + 1:03d}", t.name, t.datasum) for k, t in enumerate(tables)]
             parts = [_from_columns(t, de_columns, positions, pixel_scale, inputs) for t in tables]
-            return parts[0] if len(parts) == 1 else _pool_columns(parts, inputs)
+            if len(parts) == 1:
+                return parts[0]
+            # many tables (a study's finals): listed with their DATASUMs in an INPUTS table, not as keywords
+            records = [{"name": t.label, "datasum": int(t.datasum), "rows": p.counts["rows_a"],
+                        "used": p.counts["used"]} for t, p in zip(tables, parts)]
+            return _pool_columns(parts, [], records)
         return _from_frames(tables, frames, common_ids, positions, pixel_scale, inputs, orientation)
 
 
-def _pool_columns(parts, inputs) -> ShapeChanges:
+def _pool_columns(parts, inputs, records) -> ShapeChanges:
     """Shape changes read from several tables with De columns, as one catalogue."""
     coords = {p.coords for p in parts}
     axes = {p.g_axes for p in parts}
@@ -377,7 +382,7 @@ def _pool_columns(parts, inputs) -> ShapeChanges:
                         pos2=cat("pos2"), coords=parts[0].coords, pos_units=parts[0].pos_units, ids=cat("ids"),
                         counts=counts, inputs=inputs, params=parts[0].params,
                         source=f"De columns of {len(parts)} tables pooled", g_axes=parts[0].g_axes,
-                        dabs=cat("dabs"))
+                        dabs=cat("dabs"), tables=records)
 
 
 def _from_columns(table, de_columns, positions, pixel_scale, inputs) -> ShapeChanges:
@@ -1399,6 +1404,8 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
                             seed=seed)
     if sc.pairs and not sc.inputs:
         header.add_history(f"  inputs: {len(sc.pairs)} pairs, listed with their DATASUMs in the PAIRS table")
+    if sc.tables:
+        header.add_history(f"  inputs: {len(sc.tables)} tables, listed with their DATASUMs in the INPUTS table")
     _comment(primary, _AXES_COMMENTS.get(sc.g_axes, _AXES_COMMENTS["as given"]))
     if not jackknife:
         _comment(primary, "Errors of xi are shot noise (VARWHY): every object independent, so too small where "
@@ -1492,6 +1499,14 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     hdus = [primary, xi, cov, stats_hdu, hist_hdu, theta_hdu, patches]
     if sc.pairs:
         hdus.append(_pairs_hdu(sc.pairs, sc.g_axes))
+    if sc.tables:
+        from ..io.fitsfile import table_hdu
+
+        hdus.append(table_hdu({"name": np.array([os.path.basename(r["name"]) for r in sc.tables]),
+                               "datasum": np.array([r["datasum"] for r in sc.tables], dtype=np.int64),
+                               "rows": np.array([r["rows"] for r in sc.tables], dtype=np.int64),
+                               "used": np.array([r["used"] for r in sc.tables], dtype=np.int64)}, "INPUTS",
+                              descriptions={"name": "table pooled (file[EXT])", "used": "objects pooled from it"}))
     return hdus
 
 

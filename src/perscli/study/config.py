@@ -20,6 +20,15 @@ from .. import PerscliError
 #: where the public schedule lives beside a clone (tests and the presets use it when present)
 DEFAULT_SCHEDULE = os.path.join("..", "shared", "data", "roman", "Roman_WAS_obseq_11_1_23.fits")
 
+def _galactic_defaults() -> dict:
+    """The Galactic star model's parameters with their defaults (written once, in the model's dataclass)."""
+    import dataclasses
+
+    from ..scene.starcounts import GalacticStarModel
+
+    return {f.name: f.default for f in dataclasses.fields(GalacticStarModel)}
+
+
 #: the schema: every key with its default; the type of the default is the type required
 #: (None: any of str/number/list; a list default: a list)
 SCHEMA = {
@@ -52,7 +61,11 @@ SCHEMA = {
     "bounds": None,              # [xmin, xmax, ymin, ymax]: render a cutout of each SCA (CI-sized studies)
     "catalog": {
         "galaxy_density": 40.0,  # per arcmin^2 (the paper)
-        "star_density": 2.5,     # per arcmin^2 (the paper's Galaxia stars)
+        # None: stars of the Galactic model (counts per magnitude of the real sky at the field's position;
+        # perscli.scene.starcounts), with the parameters of star_model; a number: power-law stars at that
+        # density per arcmin^2 (the paper's 2.5 has 1.7 times the real sky's stars brighter than J = 14)
+        "star_density": None,
+        "star_model": _galactic_defaults(),
         "gaia": [],              # Gaia DR2 chunks: real stars in place of model stars
         "margin_arcsec": 10.0,   # objects just off an SCA still spill light onto it
     },
@@ -300,6 +313,16 @@ def check(s: dict) -> None:
             raise PerscliError(f"persistence.sources: {src!r} is not stars, all or a fluence threshold (electrons > 0)")
     if s["render"]["compress"] not in ("none", "gzip", "rice"):
         raise PerscliError(f"render.compress {s['render']['compress']!r}: use none, gzip or rice")
+    cat = s["catalog"]
+    if cat["star_density"] is not None:
+        if isinstance(cat["star_density"], bool) or not isinstance(cat["star_density"], (int, float)) \
+                or not cat["star_density"] >= 0:
+            raise PerscliError(f"catalog.star_density {cat['star_density']!r}: a number >= 0 per arcmin^2 (power-law "
+                               "stars), or leave it out for the Galactic model")
+    else:
+        from ..scene.starcounts import galactic_star_model
+
+        galactic_star_model(cat["star_model"])     # checked now, not when the catalogue is drawn
     c = s["correlate"]
     if not 0 < c["min_sep"] < c["max_sep"] or c["nbins"] < 1:
         raise PerscliError("correlate: need 0 < min_sep < max_sep and nbins >= 1")

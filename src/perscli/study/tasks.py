@@ -110,13 +110,16 @@ def _pointings(study_dir, p, out):
 def _catalog(study_dir, p, out):
     from ..scene.catalog import make_truth_catalog_file
 
+    from ..scene.starcounts import galactic_star_model
+
     c = p["catalog"]
+    stars = galactic_star_model(c["star_model"]) if c["star_density"] is None and not c["gaia"] else None
     # the footprints of every row of the study's pointings table, each on its own SCA: the same
     # call as `perscli catalog --footprints pointings.fits --bounds ... --margin ...`
     table = make_truth_catalog_file(out, footprints=os.path.join(study_dir, "pointings.fits"), sca=0,
                                     bounds=p["bounds"], margin_arcsec=c["margin_arcsec"], overwrite=True,
                                     galaxy_density=c["galaxy_density"], star_density=c["star_density"],
-                                    gaia=c["gaia"] or None, seed=p["seed"])
+                                    star_model=stars, gaia=c["gaia"] or None, seed=p["seed"])
     return {"n": len(table)}
 
 
