@@ -127,7 +127,7 @@ def _table(path, ext):
 
 def _changes(diff, variant, joint):
     if joint:
-        return _table(diff / "shapes" / f"{variant}.fits", variant.upper())
+        return np.concatenate([_table(f, variant.upper()) for f in sorted((diff / "shapes").glob("part*.fits"))])
     return np.concatenate([_table(f, variant.upper()) for f in sorted((diff / "shapes").glob("sca*/e*.fits"))])
 
 

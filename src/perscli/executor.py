@@ -68,6 +68,33 @@ def _built(context):
     return context.build() if isinstance(context, Lazy) else context
 
 
+_ALLOCATOR_TUNED = False
+
+
+def keep_freed_memory() -> None:
+    """Have this process's allocator keep freed frames for reuse instead of handing them back (glibc).
+
+    A study's worker makes and drops dozens of 4088^2 frames per task; glibc
+    maps each frame afresh and unmaps it when freed, so every new frame
+    costs a page fault per 4 kB (~0.1 s a frame, a third of a final's
+    render).  Raising the mmap and trim thresholds keeps the freed memory
+    in the heap.  Once per process; nothing happens elsewhere than glibc.
+    """
+    global _ALLOCATOR_TUNED
+    if _ALLOCATOR_TUNED:
+        return
+    _ALLOCATOR_TUNED = True
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        libc.mallopt(m_mmap_threshold, ctypes.c_int(1 << 30))
+        libc.mallopt(m_trim_threshold, ctypes.c_int((1 << 31) - 1))
+    except (OSError, AttributeError):  # pragma: no cover - not glibc
+        pass
+
+
 def threads(workers) -> int:
     """Threads for a library with its own thread pool (OpenMP): ``workers``, 1 when not given."""
     return max(1, int(workers or 1))

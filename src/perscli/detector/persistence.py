@@ -632,9 +632,11 @@ def persistence_charge(fluences, ends, start: float, plane_ends, model: Persiste
 
     Parameters
     ----------
-    fluences : sequence of ndarray
+    fluences : sequence of ndarray, or of functions returning one
         Fluence of each earlier exposure, all of one shape (electrons, or
-        times ``scales``).  Non-finite values count as zero.
+        times ``scales``).  Non-finite values count as zero.  A function is
+        called when its exposure is used and its array dropped right after
+        (so it may hand back the same scratch array each time).
     ends : sequence of float
         End of each earlier exposure, in seconds on the clock of ``start``.
     start : float
@@ -652,14 +654,15 @@ def persistence_charge(fluences, ends, start: float, plane_ends, model: Persiste
     ndarray of float64, shape ``(nplanes,) + fluence shape``
         Electrons.
     """
-    fluences = [np.asarray(f) for f in fluences]
+    fluences = [f if callable(f) else np.asarray(f) for f in fluences]
     if len(fluences) != len(ends):
         raise ValueError("one end time per fluence array")
     plane_ends = np.atleast_1d(np.asarray(plane_ends, dtype=np.float64))
     if not fluences:
         raise PerscliError("no earlier exposure: persistence needs at least one")
-    shape = fluences[0].shape
-    for f in fluences:
+    arrays = [f for f in fluences if not callable(f)]
+    shape = arrays[0].shape if arrays else fluences[0]().shape
+    for f in arrays:
         if f.shape != shape:
             raise PerscliError(f"earlier exposures differ in shape ({f.shape} and {shape}): they must cover the same "
                                "detector pixels")
@@ -671,5 +674,6 @@ def persistence_charge(fluences, ends, start: float, plane_ends, model: Persiste
                                         label=f"earlier exposure {i + 1}")
         if factors is None:
             continue
-        accumulate(np.ascontiguousarray(fluences[i]), acc, factors, model, scale=scales[i], combine=model.combine)
+        fluence = fluences[i]() if callable(fluences[i]) else fluences[i]
+        accumulate(np.ascontiguousarray(fluence), acc, factors, model, scale=scales[i], combine=model.combine)
     return acc

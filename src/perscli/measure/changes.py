@@ -74,17 +74,18 @@ def _variant_view(path: str, variant: str):
     return read
 
 
-def measure_changes(finals, variant: str, catalog: str, *, joint: bool = True, stamp: int = 48,
-                    min_snr=MIN_SNR_DEFAULT, expids=None, workers: int = 1) -> dict:
-    """De of every galaxy of the sample between a variant and the reference, fitting only those that changed.
+def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp: int = 48,
+                    min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1) -> dict:
+    """De of every galaxy of the sample between each variant and the reference, fitting only those that changed.
 
     Parameters
     ----------
     finals : sequence of str
         The finals' files (:func:`perscli.render.differential.render_final`):
         SCI (the reference), one HDU per variant, MODEL and CHANGED.
-    variant : str
-        Which variant (e.g. 'stars-typical').
+    variants : str or sequence of str
+        Which variants (e.g. 'stars-typical').  The reference is fitted once
+        for the galaxies any of them changed.
     catalog : str
         The truth catalogue.
     joint : bool
@@ -94,76 +95,88 @@ def measure_changes(finals, variant: str, catalog: str, *, joint: bool = True, s
         As for ``perscli measure``.
     expids : sequence of int, optional
         Per final, its exposure id (the ``expid`` column of per-final rows).
+    part : (int, int), optional
+        (k, n): only the galaxies whose catalogue id is k modulo n (a study
+        spreads its galaxies over n tasks).
     workers : int
 
     Returns
     -------
     dict
-        Column arrays (:data:`COLUMNS`), one row per galaxy of the sample
-        (per galaxy and final without ``joint``), and '_counts': the sample,
-        the galaxies fitted and those flagged.
+        Variant -> column arrays (:data:`COLUMNS`), one row per galaxy of the
+        sample (per galaxy and final without ``joint``), with '_counts': the
+        sample, the galaxies fitted and those flagged.
     """
     finals = list(finals)
+    variants = [variants] if isinstance(variants, str) else list(variants)
     cat = read_positions(catalog)
     e1_true, e2_true = _truth_shapes(catalog, len(cat["id"]))
     index = {int(i): k for k, i in enumerate(cat["id"])}
-    parts = []
-    changed_sets = []
+    subset = np.ones(len(cat["id"]), dtype=bool) if part is None else (np.asarray(cat["id"]) % part[1] == part[0])
+    changed = {v: [] for v in variants}
     for path in finals:
-        ids = read_changed(path, variant)
-        mask = np.zeros(len(cat["id"]), dtype=bool)
-        mask[[index[int(i)] for i in ids if int(i) in index]] = True
-        changed_sets.append(mask)
+        for v in variants:
+            mask = np.zeros(len(cat["id"]), dtype=bool)
+            mask[[index[int(i)] for i in read_changed(path, v) if int(i) in index]] = True
+            changed[v].append(mask & subset)
     kw = dict(stamp=stamp, min_snr=min_snr, workers=workers)
+    parts = {v: [] for v in variants}
     if joint:
-        only = np.logical_or.reduce(changed_sets) if changed_sets else np.zeros(len(cat["id"]), dtype=bool)
         refs = [f"{p}[SCI]" for p in finals]
-        ref = measure_joint(refs, cat, only=only, **kw)
-        var = measure_joint(refs, cat, only=only, data=[_variant_view(p, variant) for p in finals], **kw)
-        parts.append(_assemble(cat, ref, var, only, -1, e1_true, e2_true))
+        only = {v: np.logical_or.reduce(changed[v]) if finals else np.zeros(len(cat["id"]), dtype=bool)
+                for v in variants}
+        ref = measure_joint(refs, cat, only=np.logical_or.reduce(list(only.values())), **kw)
+        for v in variants:
+            var = measure_joint(refs, cat, only=only[v], data=[_variant_view(p, v) for p in finals], **kw)
+            parts[v].append(_assemble(cat, ref, var, subset, -1, e1_true, e2_true))
     else:
         from ..io.frames import open_frame
 
         for k, path in enumerate(finals):
-            with open_frame(f"{path}[SCI]") as frame:
-                ref = measure_frame(frame, cat, only=changed_sets[k], **kw)
-                var = measure_frame(frame, cat, only=changed_sets[k], data=_variant_view(path, variant)(), **kw)
             expid = int(expids[k]) if expids is not None else k
-            parts.append(_assemble(cat, ref, var, changed_sets[k], expid, e1_true, e2_true))
-    out = {c: np.concatenate([p[c] for p in parts]) for c in COLUMNS}
-    fitted = out["fitted"].astype(bool)
-    out["_counts"] = {"sample": len(out["id"]), "fitted": int(fitted.sum()),
-                      "flagged": int(np.count_nonzero(fitted & (out["fit_flags"] != 0)))}
+            with open_frame(f"{path}[SCI]") as frame:
+                ref = measure_frame(frame, cat, only=np.logical_or.reduce([changed[v][k] for v in variants]), **kw)
+                for v in variants:
+                    var = measure_frame(frame, cat, only=changed[v][k], data=_variant_view(path, v)(), **kw)
+                    parts[v].append(_assemble(cat, ref, var, subset, expid, e1_true, e2_true))
+    out = {}
+    for v in variants:
+        cols = {c: np.concatenate([p[c] for p in parts[v]]) for c in COLUMNS}
+        fitted = cols["fitted"].astype(bool)
+        cols["_counts"] = {"sample": len(cols["id"]), "fitted": int(fitted.sum()),
+                           "flagged": int(np.count_nonzero(fitted & (cols["fit_flags"] != 0)))}
+        out[v] = cols
     return out
 
 
-def _assemble(cat, ref: dict, var: dict, changed: np.ndarray, expid: int, e1_true, e2_true) -> dict:
-    """Rows for the sample of one measurement: the fitted rows' De, exactly 0 for the others."""
+def _assemble(cat, ref: dict, var: dict, subset: np.ndarray, expid: int, e1_true, e2_true) -> dict:
+    """Rows for the sample of one measurement: the De of the galaxies fitted in ``var``, exactly 0 for the others.
+
+    ``ref`` holds the reference's fits of at least the galaxies ``var`` fitted (and its ``_todo``,
+    the sample).
+    """
     rows = np.asarray(ref["_todo"])
+    rows = rows[subset[rows]]
     n = len(rows)
-    pos = {int(r): k for k, r in enumerate(rows)}
     out = {c: np.full(n, np.nan) for c in ("ra", "dec", "g1", "g2", "g1_ref", "g2_ref", "snr_pred")}
     out["id"] = np.asarray(cat["id"])[rows].astype(np.int64)
     out["expid"] = np.full(n, expid, dtype=np.int64)
-    out["de1"] = np.zeros(n)
-    out["de2"] = np.zeros(n)
-    out["dabs"] = np.zeros(n)
+    out["de1"], out["de2"], out["dabs"] = np.zeros(n), np.zeros(n), np.zeros(n)
     out["e1_true"], out["e2_true"] = e1_true[rows], e2_true[rows]
     out["fitted"] = np.zeros(n, dtype=np.int16)
     out["fit_flags"] = np.zeros(n, dtype=np.int32)
     if "ra" in cat:
         out["ra"], out["dec"] = cat["ra"][rows], cat["dec"][rows]
-    for side, tag in ((ref, "_ref"), (var, "")):
-        ids = np.asarray(side["id"])
-        if len(ids) and not np.array_equal(ids, out["id"][[pos[int(r)] for r in _rows_of(cat, ids)]]):
-            raise PerscliError("measure_changes: fitted rows out of step")  # pragma: no cover - internal check
-        k = np.array([pos[int(r)] for r in _rows_of(cat, ids)], dtype=np.int64)
-        out[f"g1{tag}"][k] = side["g1"]
-        out[f"g2{tag}"][k] = side["g2"]
-        out["fit_flags"][k] |= np.asarray(side["flags"], dtype=np.int32)
+    pos = {int(r): k for k, r in enumerate(rows)}
+    ref_at = {int(i): k for k, i in enumerate(ref["id"])}
+    k = np.array([pos[int(r)] for r in _rows_of(cat, var["id"])], dtype=np.int64)
+    j = np.array([ref_at[int(i)] for i in var["id"]], dtype=np.int64)
+    if len(k):
+        out["g1"][k], out["g2"][k] = var["g1"], var["g2"]
+        out["g1_ref"][k], out["g2_ref"][k] = np.asarray(ref["g1"])[j], np.asarray(ref["g2"])[j]
+        out["fit_flags"][k] = np.asarray(var["flags"], dtype=np.int32) | np.asarray(ref["flags"], dtype=np.int32)[j]
+        out["snr_pred"][k] = np.asarray(ref["snr_pred"])[j]
         out["fitted"][k] = 1
-        if tag == "_ref":
-            out["snr_pred"][k] = side["snr_pred"]
     fit = out["fitted"].astype(bool)
     out["de1"][fit] = out["g1"][fit] - out["g1_ref"][fit]
     out["de2"][fit] = out["g2"][fit] - out["g2_ref"][fit]
@@ -177,7 +190,7 @@ def _rows_of(cat, ids) -> np.ndarray:
 
 
 def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = True, stamp: int = 48,
-                  min_snr=MIN_SNR_DEFAULT, expids=None, workers: int = 1, overwrite: bool = True) -> dict:
+                  min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1, overwrite: bool = True) -> dict:
     """:func:`measure_changes` of each variant, written into ``dest``: one table per variant, named after it.
 
     Parameters
@@ -205,9 +218,10 @@ def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = Tr
         "fit_flags": "flags of the two fits (ORed): kept, as every galaxy of the sample counts"}
     primary = OutHDU([])
     hdus, counts = [primary], {}
+    measured = measure_changes(finals, variants, catalog, joint=joint, stamp=stamp, min_snr=min_snr, expids=expids,
+                               part=part, workers=workers)
     for variant in variants:
-        cols = measure_changes(finals, variant, catalog, joint=joint, stamp=stamp, min_snr=min_snr, expids=expids,
-                               workers=workers)
+        cols = measured[variant]
         c = counts[variant] = cols.pop("_counts")
         hdu = table_hdu({k: cols[k] for k in COLUMNS}, variant_extname(variant), units={"ra": "deg", "dec": "deg"},
                         descriptions=descriptions)
@@ -223,6 +237,7 @@ def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = Tr
                            "MINSNR": (float(min_snr) if min_snr is not None else MIN_SNR_DEFAULT,
                                       "cut on the predicted S/N"),
                            "NFINALS": (len(finals), "final exposures' files read"),
+                           "PART": (f"{part[0]}/{part[1]}" if part else "all", "galaxies with id % n == k"),
                            "CAT": (catalog.rsplit("/", 1)[-1][-68:], "truth catalogue")})
     write_hdus(hdus, dest, overwrite=overwrite)
     counts["sample"] = sum(c["sample"] for c in counts.values())

@@ -358,16 +358,21 @@ def star_persistence(truth: str, final: Exposure, histories, laws: dict) -> dict
     window = (final.end - final.mjd) * SECONDS_PER_DAY
     names = [f"earlier exposure {h.expid}" for h in histories]
     xmin, xmax, ymin, ymax = final.full_bounds
-    unused = np.zeros((ymax - ymin + 1, xmax - xmin + 1), dtype=np.float32)
+    scratch = np.empty((ymax - ymin + 1, xmax - xmin + 1), dtype=np.float32)
     lights, charges = {}, {}
+
+    def fluence(i, threshold, cap, floor):
+        # made when the law uses it, in one scratch frame: fresh frames cost more in page faults than the law
+        return lambda: persisting_fluence(lights[(i, floor)], 1.0, threshold=threshold, cap=cap, floor=floor,
+                                          out=scratch)
+
     for name, (pmodel, threshold, cap, floor) in laws.items():
         keep, _ = order_earlier(ends, 0.0, pmodel, names)
         for i in keep:
             if (i, floor) not in lights:
                 lights[(i, floor)] = star_light(truth, histories[i], floor)
-        # exposures beyond the law's look-back or count are left out by persistence_charge: not drawn
-        fluences = [persisting_fluence(lights[(i, floor)], 1.0, threshold=threshold, cap=cap, floor=floor)
-                    if i in keep else unused for i in range(len(histories))]
+        # exposures beyond the law's look-back or count are left out by persistence_charge: never called
+        fluences = [fluence(i, threshold, cap, floor) for i in range(len(histories))]
         charges[name] = persistence_charge(fluences, ends, 0.0, window, pmodel)[0] if histories else None
     return charges
 

@@ -220,7 +220,7 @@ def open_history(name: str, source: str):
 
 
 def persisting_fluence(fluence: np.ndarray, scale: float = 1.0, *, threshold: float | None = None,
-                       cap: float | None = None, floor: float = 0.0) -> np.ndarray:
+                       cap: float | None = None, floor: float = 0.0, out: np.ndarray | None = None) -> np.ndarray:
     """What of an earlier exposure's fluence enters the persistence law.
 
     Parameters
@@ -235,6 +235,9 @@ def persisting_fluence(fluence: np.ndarray, scale: float = 1.0, *, threshold: fl
     floor : float
         Electrons: pixels at or below it leave nothing (the persistence effect's
         ``floor``: how far faint light persists); 0 (the default) changes nothing.
+    out : ndarray, optional
+        Scratch of ``fluence``'s shape and type to write into when anything
+        changes (a whole frame freshly allocated costs as much as the rest).
 
     Returns
     -------
@@ -242,16 +245,22 @@ def persisting_fluence(fluence: np.ndarray, scale: float = 1.0, *, threshold: fl
         Same dtype and scale as ``fluence``; ``fluence`` itself when nothing changes
         (so that the default path is the bytes it always was).
     """
-    out = fluence
+    result = fluence
     zero = fluence.dtype.type(0)
     with np.errstate(invalid="ignore"):
         for level in (floor or None, threshold):
             if level is not None:
-                out = np.where(out * scale > level, out, zero)
-        if cap is not None and np.nanmax(out) * scale > cap:
+                keep = result * scale > level
+                if out is None:
+                    result = np.where(keep, result, zero)
+                else:
+                    np.copyto(out, result)
+                    np.putmask(out, ~keep, zero)
+                    result = out
+        if cap is not None and np.nanmax(result) * scale > cap:
             # in the image's own type: a float64 copy of a whole frame costs more than the rest together
-            out = np.minimum(out, fluence.dtype.type(cap / scale))
-    return out
+            result = np.minimum(result, fluence.dtype.type(cap / scale), out=out)
+    return result
 
 
 # -- where the frame lands ------------------------------------------------------------------------

@@ -258,14 +258,19 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
             params["measure"] = dict(min_snr=m["min_snr"], stamp=m["stamp"])
         tasks.append(Task(key, "final", out, deps=[f"{pre}regions"], params=params))
     c, b = s["correlate"], s["budget"]
+    if m["joint"]:
+        # the galaxies spread over tasks by id (each fits the reference once for every variant)
+        nparts = max(1, int(m["parts"]))
+        parts = [(f"{pre}measure/part{k + 1}of{nparts}", f"{pre}shapes/part{k + 1}of{nparts}.fits")
+                 for k in range(nparts)]
+        for k, (key, out) in enumerate(parts):
+            tasks.append(Task(key, "changes", out, deps=[f"{pre}catalog", *final_keys],
+                              params=dict(truth=f"{pre}truth.fits", finals=outputs,
+                                          expids=[p.expid for _, p in finals], variants=list(variants), joint=True,
+                                          min_snr=m["min_snr"], stamp=m["stamp"], part=[k, nparts])))
     for name in variants:
         if m["joint"]:
-            tasks.append(Task(f"{pre}measure/{name}", "changes", f"{pre}shapes/{name}.fits",
-                              deps=[f"{pre}catalog", *final_keys],
-                              params=dict(truth=f"{pre}truth.fits", finals=outputs,
-                                          expids=[p.expid for _, p in finals], variant=name, joint=True,
-                                          min_snr=m["min_snr"], stamp=m["stamp"])))
-            tables, deps = [f"{pre}shapes/{name}.fits[{variant_extname(name)}]"], [f"{pre}measure/{name}"]
+            tables, deps = [f"{out}[{variant_extname(name)}]" for _, out in parts], [key for key, _ in parts]
         else:
             tables, deps = [f"{out}[{variant_extname(name)}]" for out in outputs], final_keys
         tasks.append(Task(f"{pre}correlate/{name}", "correlate", f"{pre}xi/{name}.fits", deps=deps,

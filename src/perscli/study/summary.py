@@ -75,7 +75,7 @@ def variant_results(study_dir: str, name: str, prefix: str = "", differential: b
                 out[f"n_{stem}ge"] = {f"{t:.0e}": int(n) for t, n in zip(thr, nge)}
     ext = name.upper()
     joint = True
-    tables = (sorted(glob.glob(os.path.join(study_dir, prefix, "shapes", f"{name}.fits"))) or
+    tables = (sorted(glob.glob(os.path.join(study_dir, prefix, "shapes", "part*.fits"))) or
               sorted(glob.glob(os.path.join(study_dir, prefix, "shapes", "sca*", "e*.fits")))) if differential else []
     if tables:
         # the differential study: every galaxy of the sample is counted, only those whose stamps changed fitted

@@ -72,6 +72,9 @@ def run_task(task: dict, study_dir: str, *_deps) -> dict:
         rec = read_record(study_dir, task["key"])
         rec["skipped"] = True
         return rec
+    from ..executor import keep_freed_memory
+
+    keep_freed_memory()
     t0, c0 = time.perf_counter(), _cpu()
     out = os.path.join(study_dir, task["output"])
     os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
@@ -245,8 +248,8 @@ def _changes(study_dir, p, out):
     from ..measure.changes import write_changes
 
     finals = [os.path.join(study_dir, f) for f in p["finals"]]
-    summary = write_changes(finals, p["variant"], os.path.join(study_dir, p["truth"]), out, joint=p["joint"],
-                            stamp=p["stamp"], min_snr=p["min_snr"], expids=p["expids"])
+    summary = write_changes(finals, p["variants"], os.path.join(study_dir, p["truth"]), out, joint=p["joint"],
+                            stamp=p["stamp"], min_snr=p["min_snr"], expids=p["expids"], part=tuple(p["part"]))
     return {"galaxies": summary["sample"], "fitted": summary["fitted"], "frames": len(finals)}
 
 
