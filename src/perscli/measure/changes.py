@@ -95,9 +95,11 @@ def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp
         As for ``perscli measure``.
     expids : sequence of int, optional
         Per final, its exposure id (the ``expid`` column of per-final rows).
-    part : (int, int), optional
-        (k, n): only the galaxies whose catalogue id is k modulo n (a study
-        spreads its galaxies over n tasks).
+    part : dict, optional
+        Only the galaxies of a strip of the sky: ``ra0``, ``dec0`` (the
+        tangent point, degrees), ``xi_lo``, ``xi_hi`` (standard coordinates,
+        radians; None: open) of their catalogue positions (a study spreads
+        its galaxies over strips, :func:`perscli.study.plan.measure_strips`).
     workers : int
 
     Returns
@@ -112,7 +114,15 @@ def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp
     cat = read_positions(catalog)
     e1_true, e2_true = _truth_shapes(catalog, len(cat["id"]))
     index = {int(i): k for k, i in enumerate(cat["id"])}
-    subset = np.ones(len(cat["id"]), dtype=bool) if part is None else (np.asarray(cat["id"]) % part[1] == part[0])
+    subset = np.ones(len(cat["id"]), dtype=bool)
+    if part is not None:
+        from ..scene import project
+
+        xi, _ = project(part["ra0"], part["dec0"], cat["ra"], cat["dec"])
+        if part.get("xi_lo") is not None:
+            subset &= xi >= part["xi_lo"]
+        if part.get("xi_hi") is not None:
+            subset &= xi < part["xi_hi"]
     changed = {v: [] for v in variants}
     for path in finals:
         for v in variants:
@@ -237,7 +247,10 @@ def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = Tr
                            "MINSNR": (float(min_snr) if min_snr is not None else MIN_SNR_DEFAULT,
                                       "cut on the predicted S/N"),
                            "NFINALS": (len(finals), "final exposures' files read"),
-                           "PART": (f"{part[0]}/{part[1]}" if part else "all", "galaxies with id % n == k"),
+                           "XILO": (part.get("xi_lo") if part and part.get("xi_lo") is not None else "none",
+                                    "[rad] galaxies' standard coordinate from (strip)"),
+                           "XIHI": (part.get("xi_hi") if part and part.get("xi_hi") is not None else "none",
+                                    "[rad] to (strip)"),
                            "CAT": (catalog.rsplit("/", 1)[-1][-68:], "truth catalogue")})
     write_hdus(hdus, dest, overwrite=overwrite)
     counts["sample"] = sum(c["sample"] for c in counts.values())

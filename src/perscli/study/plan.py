@@ -259,15 +259,16 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
         tasks.append(Task(key, "final", out, deps=[f"{pre}regions"], params=params))
     c, b = s["correlate"], s["budget"]
     if m["joint"]:
-        # the galaxies spread over tasks by id (each fits the reference once for every variant)
-        nparts = max(1, int(m["parts"]))
-        parts = [(f"{pre}measure/part{k + 1}of{nparts}", f"{pre}shapes/part{k + 1}of{nparts}.fits")
-                 for k in range(nparts)]
-        for k, (key, out) in enumerate(parts):
-            tasks.append(Task(key, "changes", out, deps=[f"{pre}catalog", *final_keys],
-                              params=dict(truth=f"{pre}truth.fits", finals=outputs,
-                                          expids=[p.expid for _, p in finals], variants=list(variants), joint=True,
-                                          min_snr=m["min_snr"], stamp=m["stamp"], part=[k, nparts])))
+        # the galaxies spread over tasks by strips of the sky (each fits the reference once for every
+        # variant, and reads only the finals that reach its strip)
+        parts = []
+        for k, (strip, used) in enumerate(measure_strips(s, finals, int(m["parts"]))):
+            key, out = f"{pre}measure/part{k + 1}of{m['parts']}", f"{pre}shapes/part{k + 1}of{m['parts']}.fits"
+            parts.append((key, out))
+            tasks.append(Task(key, "changes", out, deps=[f"{pre}catalog", *(final_keys[i] for i in used)],
+                              params=dict(truth=f"{pre}truth.fits", finals=[outputs[i] for i in used],
+                                          expids=[finals[i][1].expid for i in used], variants=list(variants),
+                                          joint=True, min_snr=m["min_snr"], stamp=m["stamp"], part=strip)))
     for name in variants:
         if m["joint"]:
             tables, deps = [f"{out}[{variant_extname(name)}]" for _, out in parts], [key for key, _ in parts]
@@ -278,6 +279,54 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
         tasks.append(Task(f"{pre}budget/{name}", "budget", f"{pre}budget/{name}.fits", deps=[f"{pre}correlate/{name}"],
                           params=dict(xi=f"{pre}xi/{name}.fits", plot=f"{pre}figures/{name}/budget.png", **b)))
     return tasks
+
+
+#: arcsec: a final serves a strip of the sky when its footprint grown by this reaches it (stamps reach
+#: a few arcsec beyond a galaxy's position; positions are compared on the tangent plane)
+STRIP_MARGIN_ARCSEC = 10.0
+
+
+def measure_strips(s: dict, finals, n: int) -> list:
+    """The sky cut in ``n`` strips of right ascension for the joint fits, and the finals each one needs.
+
+    Parameters
+    ----------
+    s : dict
+        Study settings (the field centre and the frames' bounds).
+    finals : list of (int, Pointing)
+        (SCA, pointing) of every final.
+    n : int
+
+    Returns
+    -------
+    list of (dict, list of int)
+        Per strip: the strip (``ra0``, ``dec0``: the tangent point; ``xi_lo``,
+        ``xi_hi``: its edges in standard coordinates, radians, None at the
+        ends) and the indices of the finals whose footprints reach it.
+    """
+    import math
+
+    from ..scene import project
+    from ..scene.pointings import sca_footprint
+
+    f = s["field"]
+    spans = []
+    for sca, p in finals:
+        ra, dec = sca_footprint(p, sca, bounds=s["bounds"])
+        xi, _ = project(f["ra"], f["dec"], ra, dec)
+        spans.append((float(np.nanmin(xi)), float(np.nanmax(xi))))
+    if not spans:
+        return []
+    lo, hi = min(a for a, _ in spans), max(b for _, b in spans)
+    edges = np.linspace(lo, hi, n + 1)
+    margin = math.radians(STRIP_MARGIN_ARCSEC / 3600.0)
+    out = []
+    for k in range(n):
+        a, b = edges[k], edges[k + 1]
+        used = [i for i, (u, v) in enumerate(spans) if u - margin <= b and v + margin >= a]
+        out.append((dict(ra0=float(f["ra"]), dec0=float(f["dec"]), xi_lo=None if k == 0 else float(a),
+                         xi_hi=None if k == n - 1 else float(b)), used))
+    return out
 
 
 def _build_full(s: dict, ex: Exposures, seed: int, pre: str) -> list:

@@ -249,7 +249,7 @@ def _changes(study_dir, p, out):
 
     finals = [os.path.join(study_dir, f) for f in p["finals"]]
     summary = write_changes(finals, p["variants"], os.path.join(study_dir, p["truth"]), out, joint=p["joint"],
-                            stamp=p["stamp"], min_snr=p["min_snr"], expids=p["expids"], part=tuple(p["part"]))
+                            stamp=p["stamp"], min_snr=p["min_snr"], expids=p["expids"], part=p["part"])
     return {"galaxies": summary["sample"], "fitted": summary["fitted"], "frames": len(finals)}
 
 
