@@ -153,12 +153,17 @@ def reach_mask(boxes, bounds) -> np.ndarray:
     return mask
 
 
-def window_boxes(x, y, stamp: int, margin: int = WINDOW_MARGIN) -> np.ndarray:
+def window_boxes(x, y, stamp, margin: int = WINDOW_MARGIN) -> np.ndarray:
     """The detector pixels of the stamps ``perscli measure`` cuts around positions (x, y), grown by ``margin``.
 
     ``perscli measure`` cuts a stamp of side n around the pixel nearest the
-    galaxy (:func:`perscli.measure.shapes.cut_stamp`); every side it may
-    choose is at most ``stamp``, and a smaller stamp lies inside the larger.
+    galaxy (:func:`perscli.measure.shapes.cut_stamp`); a smaller stamp lies
+    inside a larger one.
+
+    Parameters
+    ----------
+    stamp : int or ndarray of int
+        The side of each stamp (:func:`stamp_sides`), or one for all.
 
     Returns
     -------
@@ -166,9 +171,31 @@ def window_boxes(x, y, stamp: int, margin: int = WINDOW_MARGIN) -> np.ndarray:
     """
     ix = np.floor(np.asarray(x, dtype=np.float64) + 0.5).astype(np.int64)
     iy = np.floor(np.asarray(y, dtype=np.float64) + 0.5).astype(np.int64)
-    h = stamp // 2
-    return np.stack([ix - h - margin, ix - h + stamp - 1 + margin, iy - h - margin, iy - h + stamp - 1 + margin],
-                    axis=1)
+    n = np.broadcast_to(np.asarray(stamp, dtype=np.int64), ix.shape)
+    h = n // 2
+    return np.stack([ix - h - margin, ix - h + n - 1 + margin, iy - h - margin, iy - h + n - 1 + margin], axis=1)
+
+
+#: the pixel scale :func:`stamp_sides` assumes, as a fraction of Roman's 0.11": ``perscli measure`` sizes
+#: stamps with the frame's own (0.105-0.111" over the focal plane; a joint fit takes their mean), and a
+#: smaller scale gives an equal or larger stamp
+SIDE_SCALE = 0.95
+
+
+def stamp_sides(cols: dict, rows, stamp: int) -> np.ndarray:
+    """The stamp side ``perscli measure`` can cut for each galaxy (``rows`` of the catalogue), or larger.
+
+    :func:`perscli.measure.shapes.stamp_side` with a pixel scale a little
+    below any the frames have (:data:`SIDE_SCALE`), on the ladder of
+    ``stamp``: a stamp sized for a galaxy's half-light radius, mostly 16 to
+    32 pixels, rather than ``stamp`` for all.
+    """
+    from ..instrument import ROMAN_PIXEL_SCALE
+    from ..measure.shapes import stamp_ladder, stamp_side
+
+    ladder = stamp_ladder(stamp)
+    hlr = {"hlr": np.asarray(cols["hlr"], dtype=np.float64)}
+    return np.array([stamp_side(hlr, int(i), ROMAN_PIXEL_SCALE * SIDE_SCALE, ladder) for i in rows], dtype=np.int64)
 
 
 def touches(mask: np.ndarray, boxes, bounds) -> np.ndarray:
@@ -216,7 +243,7 @@ def candidate_rows(cols: dict, final: Exposure, masks, *, stamp: int, optics: Op
         return out
     optics = optics if optics is not None else Optics(final)
     rows, x, y = galaxy_positions(cols, optics, final.full_bounds, stamp)
-    boxes = window_boxes(x, y, stamp, WINDOW_MARGIN + IPC_REACH)
+    boxes = window_boxes(x, y, stamp_sides(cols, rows, stamp), WINDOW_MARGIN + IPC_REACH)
     out[rows[touches(masks, boxes, final.full_bounds)]] = True
     return out
 
@@ -436,8 +463,9 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     gal, gx, gy = galaxy_positions(cols, optics, bounds, stamp)
     keep = rows[gal]
     gal, gx, gy = gal[keep], gx[keep], gy[keep]
-    windows = _clip_keep(window_boxes(gx, gy, stamp), bounds)
-    active = _active_blocks(window_boxes(gx, gy, stamp, WINDOW_MARGIN + IPC_REACH), area)
+    sides = stamp_sides(cols, gal, stamp)
+    windows = _clip_keep(window_boxes(gx, gy, sides), bounds)
+    active = _active_blocks(window_boxes(gx, gy, sides, WINDOW_MARGIN + IPC_REACH), area)
     plan = plan_objects(cols, optics, area)
     drawn = _objects_reaching(plan, active, area)
     sources = draw_sources(cols, exposure, optics=optics, plan=plan, bounds=area, only=drawn)[0] \

@@ -135,12 +135,19 @@ class StampDrawer:
 
 
 def star_stamp_size(flux: float) -> int:
-    """Stamp side for a point source, a power of two >= 64, growing as flux^(1/3): the halo
-    of the Roman PSF falls as r^-3, so this keeps the edge of the stamp near a fixed level
-    (~1 e-/pixel, far below where persistence matters) while the diffraction spikes of
-    bright stars, which cause their ghosts, stay inside."""
+    """Stamp side for a point source, a power of two from 16 to 2048, growing as flux^(1/3).
+
+    The halo of the Roman PSF falls as r^-3, so this keeps the edge of the
+    stamp near a fixed level (~1 e-/pixel, far below where persistence
+    matters) while the diffraction spikes of bright stars, which cause their
+    ghosts, stay inside: 64 pixels for 1e5 e-, 16 for 1.6e3 e- and fainter
+    (a J129 = 24 star leaves ~0.1 e-/pixel at the edge of its 16-pixel
+    stamp; the 4% of its light beyond wraps into the stamp's edges).  A
+    larger floor would only spread the faint stars' light, and with it their
+    persistence, over pixels where it is a thousandth of an electron.
+    """
     n = 64.0 * (max(flux, 1.0) / 1.0e5) ** (1.0 / 3.0)
-    return int(min(2048, max(64, 2 ** math.ceil(math.log2(n)))))
+    return int(min(2048, max(16, 2 ** math.ceil(math.log2(n)))))
 
 
 def galaxy_stamp_size(hlr_pixels: float) -> int:
