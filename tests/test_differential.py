@@ -175,6 +175,21 @@ def test_persisting_stars_are_whole_groups_of_overlapping_stamps():
     assert persisting_stars(flux, boxes, 1000).tolist() == [False] * 5
 
 
+@pytest.mark.parametrize("n", [16, 64, 256])
+def test_the_psf_envelope_bounds_a_star_wherever_it_falls_on_its_pixel(n):
+    from perscli.render.differential import psf_envelope
+    from perscli.render.exposure import stamp_drawer
+
+    env = psf_envelope(7, "J129", n)
+    drawer = stamp_drawer(7, "J129")
+    c = n // 2
+    j, i = np.indices((n, n))
+    dist = np.maximum(abs(i - c), abs(j - c))
+    assert np.all(np.diff(env) <= 0)                       # the most at distance d or more
+    for dx, dy in [(0.2, -0.3), (-0.45, 0.1), (0.33, 0.33), (-0.1, -0.49), (0.0, 0.25)]:
+        assert np.all(np.abs(drawer.stamp(n, dx, dy, 1.0)) <= env[dist])
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("joint,floor", [(True, 0), (False, 0), (True, 300)])
 def test_the_differential_study_gives_every_galaxy_the_full_computations_de(tmp_path, joint, floor):

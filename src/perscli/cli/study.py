@@ -39,13 +39,20 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     (stars: only star light persists, the paper's setting; all; or a fluence
     threshold in electrons), measure and correlate settings and the seed.
 
-    It becomes a task graph: each SCA-exposure rendered once without
-    persistence (its fluence is the history of later ones; for a final, its
-    reference), each final rendered with each model and source (same seed as
-    its reference: the two share their noise), shapes measured jointly over
-    the finals, De pooled and correlated, compared with the additive-shear
-    budget, and summarised beside the paper's numbers (DIR/summary.md,
-    summary.json, figures/, cost.json).  Every product is a FITS file with its
+    It becomes a task graph.  When only star light persists (the default,
+    differential: true), an earlier exposure needs its stars only: each final
+    is rendered once, for the reference and every persistence model
+    together, on the stamps of the galaxies that earlier star light can
+    reach (every pixel the same bits as a whole-frame render: noise is keyed
+    on detector blocks), the galaxies whose stamps changed are fitted with
+    and without (jointly over their finals), and every other galaxy gets
+    De = 0 exactly and is counted.  Otherwise (differential: false) every
+    SCA-exposure is rendered whole without persistence, each final again per
+    model and source with the same seed, and every galaxy measured in each.
+    De is correlated, compared with the additive-shear budget, and
+    summarised beside the paper's numbers (DIR/summary.md, summary.json,
+    figures/, cost.json); realisations: N repeats the study with N seeds and
+    gives the scatter across them.  Every product is a FITS file with its
     provenance; a rerun skips finished products, so a killed run resumes.
     The same seeds give the same bytes whatever the scheduler or worker
     count (cost.json, the run's own timings, excepted).  --overwrite makes
@@ -60,7 +67,10 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
       perscli study --preset paper -o /scratch/paper --scheduler tcp://HOST:8786
 
     Run again, a study skips what is made; with a setting changed (--set
-    measure.min_snr=10) it remakes the shapes and what follows.
+    measure.min_snr=10) it remakes the shapes and what follows.  Settings
+    for what the paper leaves open: --set 'render.set=[persistence.floor=1e4]'
+    (only star light above 1e4 e- per pixel persists), realisations=4,
+    measure.joint=false, catalog.star_model.thin_height=300.
     (examples/small.yaml needs the public Roman schedule it names; the last
     example needs a Dask scheduler running at HOST.)
     """

@@ -52,7 +52,7 @@ def _subset(cols: dict, rows: np.ndarray) -> dict:
 FLUX_BOUND = 1.1
 
 
-def persisting_stars(flux, boxes, floor: float) -> np.ndarray:
+def persisting_stars(flux, boxes, floor: float, *, totals: bool = False):
     """Which stars' light can reach above ``floor`` electrons in some pixel (bool per star).
 
     A pixel's star light is the sum of the stamps that cover it, all of
@@ -68,11 +68,13 @@ def persisting_stars(flux, boxes, floor: float) -> np.ndarray:
     boxes : ndarray, shape (k, 4)
         Each star's stamp [x0, x1, y0, y1] (inclusive pixels).
     floor : float
+    totals : bool
+        Also return each star's group's summed flux (electrons).
     """
     flux = np.asarray(flux, dtype=np.float64)
     n = len(flux)
     if floor <= 0 or n == 0:
-        return np.ones(n, dtype=bool)
+        return (np.ones(n, dtype=bool), np.abs(flux)) if totals else np.ones(n, dtype=bool)
     parent = np.arange(n)
 
     def root(i):
@@ -91,8 +93,41 @@ def persisting_stars(flux, boxes, floor: float) -> np.ndarray:
             if b[j, 2] <= b[i, 3] and b[i, 2] <= b[j, 3]:
                 parent[root(j)] = root(i)
     roots = np.array([root(i) for i in range(n)])
-    total = np.bincount(roots, weights=np.abs(flux), minlength=n)
-    return total[roots] * FLUX_BOUND > floor
+    total = np.bincount(roots, weights=np.abs(flux), minlength=n)[roots]
+    keep = total * FLUX_BOUND > floor
+    return (keep, total) if totals else keep
+
+
+#: how much brighter than the envelope of two drawn stamps any sub-pixel position of a star may be
+ENVELOPE_SAFETY = 2.0
+_ENVELOPES: dict = {}
+
+
+def psf_envelope(sca: int, filter_name: str, n: int) -> np.ndarray:
+    """How bright a star of unit flux can be at each distance from its pixel: E[d], d = 0 .. n // 2.
+
+    E[d] bounds ``|stamp|`` at every pixel whose distance (the larger of
+    |dx| and |dy|, in pixels) from the star's nearest pixel is at least d,
+    for a stamp of side ``n`` drawn as :func:`perscli.render.exposure.draw_sources`
+    draws it (its wrapped wings included): the most of two stamps (the star
+    on a pixel centre and on a pixel corner) times :data:`ENVELOPE_SAFETY`.
+    A star of flux F lights no pixel at distance d above floor when
+    F E[d] <= floor.
+    """
+    from .exposure import stamp_drawer
+
+    key = (int(sca), filter_name, int(n))
+    if key not in _ENVELOPES:
+        drawer = stamp_drawer(sca, filter_name)
+        peak = np.maximum(np.abs(drawer.stamp(n, 0.0, 0.0, 1.0)), np.abs(drawer.stamp(n, 0.49, 0.49, 1.0)))
+        c = n // 2
+        j, i = np.indices(peak.shape)
+        dist = np.maximum(np.abs(i - c), np.abs(j - c))
+        best = np.zeros(dist.max() + 1)
+        np.maximum.at(best, dist.ravel(), peak.ravel())
+        # at distance d or more: the running maximum from the outside in
+        _ENVELOPES[key] = np.maximum.accumulate(best[::-1])[::-1] * ENVELOPE_SAFETY
+    return _ENVELOPES[key]
 
 
 def star_boxes(cols: dict, exposure: Exposure, *, optics: Optics | None = None, floor: float = 0.0) -> np.ndarray:
@@ -126,7 +161,20 @@ def star_boxes(cols: dict, exposure: Exposure, *, optics: Optics | None = None, 
     iy = np.floor(y[todo] + 0.5).astype(np.int64)
     n = sizes[todo]
     boxes = np.stack([ix - n // 2, ix - n // 2 + n - 1, iy - n // 2, iy - n // 2 + n - 1], axis=1)
-    return _clip(boxes[persisting_stars(flux[todo], boxes, floor)], exposure.full_bounds)
+    keep, group_flux = persisting_stars(flux[todo], boxes, floor, totals=True)
+    if floor > 0:
+        # only where a star's light, with all its group's, can exceed the floor: a star's whole stamp
+        # (2048 pixels for J < 10) would make the region most of the frame
+        for k in np.flatnonzero(keep):
+            env = psf_envelope(exposure.sca, exposure.filter, int(n[k]))
+            above = np.flatnonzero(env * group_flux[k] * FLUX_BOUND > floor)
+            reach = int(above.max()) if above.size else -1
+            if reach < 0:
+                keep[k] = False
+                continue
+            boxes[k] = [max(boxes[k, 0], ix[k] - reach), min(boxes[k, 1], ix[k] + reach),
+                        max(boxes[k, 2], iy[k] - reach), min(boxes[k, 3], iy[k] + reach)]
+    return _clip(boxes[keep], exposure.full_bounds)
 
 
 def _clip(boxes: np.ndarray, bounds) -> np.ndarray:
