@@ -551,7 +551,7 @@ def _persistence_schema():
     from .persistence import COMBINES, FERMI_PARAMETERS, GALSIM_LINEAR_COEFFICIENTS, PRESETS, TIME_MODELS
 
     bounds = {"A": dict(lo=0.0), "x0": dict(lo=0.0, lo_open=True), "dx": dict(lo=0.0, lo_open=True),
-              "half_well": dict(lo=0.0, lo_open=True)}
+              "half_well": dict(lo=0.0)}
     law = tuple(Param(key, "float", None, unit, f"{text} (default: from base)", derived="base", **bounds.get(key, {}))
                 for key, (text, unit) in FERMI_PARAMETERS.items())
     return (
