@@ -56,6 +56,15 @@ def galaxy(optics, drawer, mag: float, hlr: float = 0.3, g1: float = 0.2, n: int
     return drawer.stamp(n, 0.0, 0.0, float(optics.electrons(mag)), prof)
 
 
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def _png(fig) -> bytes:
     buf = io.BytesIO()
     # no software version or date in the file: the same figure, the same bytes
@@ -115,3 +124,52 @@ def galaxy_beside_ghost() -> bytes:
     data = _png(fig)
     plt.close(fig)
     return data
+
+
+def xi_against_budget(combined: list, nreal: int) -> bytes:
+    """|xi+| of De per separation for every variant, with its error, against the additive budget (PNG bytes).
+
+    Parameters
+    ----------
+    combined : list of dict
+        :func:`perscli.study.summary.combine_realisations` of each variant
+        (its ``xi`` bins: theta, xip, error, budget, verdict).
+    nreal : int
+        Realisations behind each point (for the legend).
+
+    One panel: the budget as a line, each variant's |xi+| as points (filled
+    where xi+ > 0, open where negative) with 2-sigma bars, on log axes:
+    where a bar stays below the line the data tell xi+ is below the budget.
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    budget = None
+    for k, res in enumerate(combined):
+        bins = res.get("xi") or []
+        if not bins:
+            continue
+        theta = np.array([b["theta"] for b in bins], dtype=float) * (1.0 + 0.03 * (k - (len(combined) - 1) / 2))
+        xip = np.array([b["xip"] for b in bins], dtype=float)
+        err = np.array([b["error"] for b in bins], dtype=float)
+        budget = (np.array([b["theta"] for b in bins], dtype=float), np.array([b["budget"] for b in bins], dtype=float))
+        colour = f"C{k}"
+        low = np.maximum(np.abs(xip) - 2 * err, np.abs(xip) * 1e-3)
+        ax.errorbar(theta, np.abs(xip), yerr=[np.abs(xip) - low, 2 * err], fmt="none", ecolor=colour, alpha=0.6)
+        pos = xip > 0
+        ax.plot(theta[pos], xip[pos], "o", color=colour, label=f"{res['variant']} ($\\xi_+ > 0$)")
+        ax.plot(theta[~pos], -xip[~pos], "o", mfc="none", color=colour, label=f"{res['variant']} ($\\xi_+ < 0$)")
+    if budget is not None:
+        ax.plot(*budget, "k-", lw=1.5, label="Roman additive budget")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
+
+    ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_xlabel(r"$\theta$ (arcmin)")
+    ax.set_ylabel(r"$|\xi_+|$ of $\Delta e$")
+    ax.set_title(f"$\\xi_+$ of $\\Delta e$ against the budget ({nreal} realisation{'s' if nreal != 1 else ''}; "
+                 "2$\\sigma$ bars)", fontsize=10)
+    ax.legend(frameon=False, fontsize=8, loc="lower left")
+    return _png(fig)

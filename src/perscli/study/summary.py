@@ -217,12 +217,14 @@ def write_summary(study_dir: str, params: dict, out: str) -> None:
     _write_text(os.path.join(study_dir, "summary.md"), markdown(summary))
     figs = os.path.join(study_dir, "figures")
     os.makedirs(figs, exist_ok=True)
-    from .figures import galaxy_beside_ghost, ghost_stamps
+    from .figures import galaxy_beside_ghost, ghost_stamps, xi_against_budget
 
     for fname, make in (("ghosts_by_magnitude.png", ghost_stamps), ("galaxy_beside_ghost.png", galaxy_beside_ghost)):
         path = os.path.join(figs, fname)
         if not os.path.exists(path):
             _write_bytes(path, make())
+    if any(r.get("xi") for r in combined):
+        _write_bytes(os.path.join(figs, "xi_against_budget.png"), xi_against_budget(combined, len(reals)))
     _write_text(os.path.join(study_dir, "cost.json"), json.dumps(cost(study_dir), indent=1, sort_keys=True) + "\n")
 
 
