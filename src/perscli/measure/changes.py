@@ -145,9 +145,13 @@ def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp
         for k, path in enumerate(finals):
             expid = int(expids[k]) if expids is not None else k
             with open_frame(f"{path}[SCI]") as frame:
-                ref = measure_frame(frame, cat, only=np.logical_or.reduce([changed[v][k] for v in variants]), **kw)
+                # the reference and its variants are one frame: one PSF model for all of them
+                models = {}
+                ref = measure_frame(frame, cat, only=np.logical_or.reduce([changed[v][k] for v in variants]),
+                                    models=models, **kw)
                 for v in variants:
-                    var = measure_frame(frame, cat, only=changed[v][k], data=_variant_view(path, v)(), **kw)
+                    var = measure_frame(frame, cat, only=changed[v][k], data=_variant_view(path, v)(), models=models,
+                                        **kw)
                     parts[v].append(_assemble(cat, ref, var, subset, expid, e1_true, e2_true))
     out = {}
     for v in variants:
@@ -200,7 +204,8 @@ def _rows_of(cat, ids) -> np.ndarray:
 
 
 def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = True, stamp: int = 48,
-                  min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1, overwrite: bool = True) -> dict:
+                  min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1, overwrite: bool = True,
+                  header=None) -> dict:
     """:func:`measure_changes` of each variant, written into ``dest``: one table per variant, named after it.
 
     Parameters
@@ -208,6 +213,8 @@ def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = Tr
     variants : str or sequence of str
         The variants; each table's EXTNAME is :func:`variant_extname` of its
         variant (one row per galaxy of the sample, :data:`COLUMNS`).
+    header : dict, optional
+        More keywords for the primary header: KEY -> (value, comment).
     Others as for :func:`measure_changes`.
 
     Returns
@@ -251,7 +258,7 @@ def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = Tr
                                     "[rad] galaxies' standard coordinate from (strip)"),
                            "XIHI": (part.get("xi_hi") if part and part.get("xi_hi") is not None else "none",
                                     "[rad] to (strip)"),
-                           "CAT": (catalog.rsplit("/", 1)[-1][-68:], "truth catalogue")})
+                           "CAT": (catalog.rsplit("/", 1)[-1][-68:], "truth catalogue"), **(header or {})})
     write_hdus(hdus, dest, overwrite=overwrite)
     counts["sample"] = sum(c["sample"] for c in counts.values())
     counts["fitted"] = sum(c["fitted"] for k, c in counts.items() if k != "sample")

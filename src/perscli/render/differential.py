@@ -250,6 +250,14 @@ def touches(mask: np.ndarray, boxes, bounds) -> np.ndarray:
     """Per box (detector pixels, inclusive): whether any pixel of ``mask`` (the frame at ``bounds``) lies in it."""
     xmin, xmax, ymin, ymax = bounds
     boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+    if len(boxes) < 2000:
+        # few boxes: look at each one rather than sum the whole frame
+        out = np.zeros(len(boxes), dtype=bool)
+        for k, (x0, x1, y0, y1) in enumerate(boxes):
+            a, b = max(x0 - xmin, 0), min(x1 - xmin + 1, mask.shape[1])
+            c, d = max(y0 - ymin, 0), min(y1 - ymin + 1, mask.shape[0])
+            out[k] = a < b and c < d and bool(mask[c:d, a:b].any())
+        return out
     # int32 holds the count of any frame (4088^2 < 2^31), at half the memory traffic of int64
     table = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=np.int32)
     np.cumsum(np.cumsum(mask, axis=0, dtype=np.int32), axis=1, out=table[1:, 1:])
@@ -403,7 +411,7 @@ def star_light(truth: str, exposure: Exposure, floor: float = 0.0) -> np.ndarray
     return light
 
 
-def star_persistence(truth: str, final: Exposure, histories, laws: dict) -> dict:
+def star_persistence(truth: str, final: Exposure, histories, laws: dict, boxes=None) -> dict:
     """The persistence charge that the star light of ``histories`` leaves in ``final``, per law.
 
     The computation of ``perscli render --previous`` with the earlier
@@ -414,6 +422,10 @@ def star_persistence(truth: str, final: Exposure, histories, laws: dict) -> dict
     ----------
     laws : dict
         Name -> (PersistenceModel, threshold, cap, floor).
+    boxes : sequence of (x0, x1, y0, y1), optional
+        Detector pixels (inclusive) where the charge is wanted (the rest of
+        the frame is 0): the law is per pixel, so a box's values are the
+        whole frame's there.
 
     Returns
     -------
@@ -433,23 +445,107 @@ def star_persistence(truth: str, final: Exposure, histories, laws: dict) -> dict
     window = (final.end - final.mjd) * SECONDS_PER_DAY
     names = [f"earlier exposure {h.expid}" for h in histories]
     xmin, xmax, ymin, ymax = final.full_bounds
-    scratch = np.empty((ymax - ymin + 1, xmax - xmin + 1), dtype=np.float32)
+    shape = (ymax - ymin + 1, xmax - xmin + 1)
+    parts = [(slice(0, shape[0]), slice(0, shape[1]))] if boxes is None else \
+        [(slice(y0 - ymin, y1 - ymin + 1), slice(x0 - xmin, x1 - xmin + 1)) for x0, x1, y0, y1 in boxes]
     lights, charges = {}, {}
 
-    def fluence(i, threshold, cap, floor):
-        # made when the law uses it, in one scratch frame: fresh frames cost more in page faults than the law
-        return lambda: persisting_fluence(lights[(i, floor)], 1.0, threshold=threshold, cap=cap, floor=floor,
-                                          out=scratch)
+    def fluence(i, threshold, cap, floor, part, scratch):
+        # made when the law uses it, in one scratch array: fresh frames cost more in page faults than the law
+        return lambda: persisting_fluence(np.ascontiguousarray(lights[(i, floor)][part]), 1.0, threshold=threshold,
+                                          cap=cap, floor=floor, out=scratch)
 
     for name, (pmodel, threshold, cap, floor) in laws.items():
         keep, _ = order_earlier(ends, 0.0, pmodel, names)
         for i in keep:
             if (i, floor) not in lights:
                 lights[(i, floor)] = star_light(truth, histories[i], floor)
-        # exposures beyond the law's look-back or count are left out by persistence_charge: never called
-        fluences = [fluence(i, threshold, cap, floor) for i in range(len(histories))]
-        charges[name] = persistence_charge(fluences, ends, 0.0, window, pmodel)[0] if histories else None
+        if not histories:
+            charges[name] = None
+            continue
+        charge = np.zeros(shape) if boxes is not None else None
+        for part in parts:
+            scratch = np.empty((part[0].stop - part[0].start, part[1].stop - part[1].start), dtype=np.float32)
+            # exposures beyond the law's look-back or count are left out by persistence_charge: never called
+            fluences = [fluence(i, threshold, cap, floor, part, scratch) for i in range(len(histories))]
+            value = persistence_charge(fluences, ends, 0.0, window, pmodel)[0]
+            if charge is None:
+                charge = value
+            else:
+                charge[part] = value
+        charges[name] = charge
     return charges
+
+
+#: noise blocks per side of the tiles :func:`render_final` simulates separately when persistence reaches
+#: little of the frame (each with one block of neighbours for interpixel capacitance)
+TILE_BLOCKS = 8
+#: above this fraction of active blocks the whole frame is simulated at once
+TILE_FRACTION = 0.25
+
+
+def _tiles(active, area) -> list:
+    """Block-aligned tiles of ``area`` covering its active blocks, each grown by one block: (x0, x1, y0, y1)."""
+    ax0, ax1, ay0, ay1 = area
+    by0, bx0, nby, nbx = block_grid((ax0, ay0), (ay1 - ay0 + 1, ax1 - ax0 + 1))
+    out = []
+    for ty in range(0, nby, TILE_BLOCKS):
+        for tx in range(0, nbx, TILE_BLOCKS):
+            if not active[ty:ty + TILE_BLOCKS, tx:tx + TILE_BLOCKS].any():
+                continue
+            y0 = max(ay0, (by0 + ty - 1) * NOISE_BLOCK + 1)
+            y1 = min(ay1, (by0 + ty + TILE_BLOCKS + 1) * NOISE_BLOCK)
+            x0 = max(ax0, (bx0 + tx - 1) * NOISE_BLOCK + 1)
+            x1 = min(ax1, (bx0 + tx + TILE_BLOCKS + 1) * NOISE_BLOCK)
+            out.append((x0, x1, y0, y1))
+    return out
+
+
+def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, area) -> dict:
+    """Every model's SCI over ``area`` (NaN outside the active blocks), tile by tile when they are few.
+
+    A tile is simulated with its neighbours' blocks (interpixel capacitance
+    reaches one pixel into them) and only its interior kept; noise is keyed
+    on blocks, so each pixel is the bits the whole area gives.
+    """
+    from .run import crop
+
+    shape = sources.shape
+    if active.mean() > TILE_FRACTION:
+        results = run_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=sky_rate,
+                             persistence=charges, origin=(area[0], area[2]), active=active)
+        return {name: (r.sci, r.unit, r.sky_rate) for name, r in results.items()}
+    out = {name: np.full(shape, np.nan) for name in models}
+    unit = rate = None
+    ax0, _, ay0, _ = area
+    by0, bx0, _, _ = block_grid((ax0, ay0), shape)
+    sky = [None]
+
+    def sky_once():
+        if sky[0] is None:
+            sky[0] = float(sky_rate() if callable(sky_rate) else sky_rate)
+        return sky[0]
+
+    for tile in _tiles(active, area):
+        x0, x1, y0, y1 = tile
+        sub = (slice(y0 - ay0, y1 - ay0 + 1), slice(x0 - ax0, x1 - ax0 + 1))
+        tb = block_grid((x0, y0), (y1 - y0 + 1, x1 - x0 + 1))
+        sub_active = active[tb[0] - by0:tb[0] - by0 + tb[2], tb[1] - bx0:tb[1] - bx0 + tb[3]]
+        results = run_chains(sources[sub], models, exptime=exposure.exptime, seed=seed, sky_rate=sky_once,
+                             persistence={n: (c[sub] if c is not None else None) for n, c in charges.items()},
+                             origin=(x0, y0), active=sub_active)
+        # the tile's interior: all but the neighbours' blocks around it (its own edge pixels are complete)
+        inner = (slice(NOISE_BLOCK if y0 > ay0 else 0, (y1 - y0 + 1) - (NOISE_BLOCK if y1 < area[3] else 0)),
+                 slice(NOISE_BLOCK if x0 > ax0 else 0, (x1 - x0 + 1) - (NOISE_BLOCK if x1 < area[1] else 0)))
+        for name, r in results.items():
+            dest = out[name][sub][inner]
+            src = r.sci[inner]
+            dest[...] = src
+            unit, rate = r.unit, r.sky_rate
+    if unit is None:
+        unit = "DN" if models[""].enabled("gain") else "electron"
+        rate = sky_once()
+    return {name: (sci, unit, rate) for name, sci in out.items()}
 
 
 def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, variants: dict, seed: int,
@@ -522,12 +618,14 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     if active.any() and histories:
         laws = {name: (vm.persistence_model(), *Persistence.fluence_input(vm)[1:], Persistence.floor(vm))
                 for name, vm in variants.items()}
+        boxes = None if active.mean() > TILE_FRACTION else \
+            _clip(np.array(_tiles(active, area), dtype=np.int64).reshape(-1, 4), bounds)
         charges = {name: pad_to(charge, bounds, area)
-                   for name, charge in star_persistence(truth, exposure, histories, laws).items()}
+                   for name, charge in star_persistence(truth, exposure, histories, laws, boxes).items()}
     models = {"": model, **variants}
-    results = run_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=optics.sky_rate,
-                         persistence=charges, origin=(area[0], area[2]), active=active)
-    ref = crop(results[""].sci, area, bounds)
+    results = _simulate(sources, models, charges, exposure=exposure, seed=seed, sky_rate=optics.sky_rate,
+                        active=active, area=area)
+    ref = crop(results[""][0], area, bounds)
     inside = np.zeros(ref.shape, dtype=bool)
     for x0, x1, y0, y1 in windows[1]:
         inside[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
@@ -536,7 +634,7 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     ref_out = np.where(inside, ref, np.nan).astype(np.float32)
     changed, var_out = {}, {}
     for name in variants:
-        sci = crop(results[name].sci, area, bounds).astype(np.float32)
+        sci = crop(results[name][0], area, bounds).astype(np.float32)
         # a stamp changed when any of its pixels (as written: float32) differs from the reference's
         flags = touches(inside & (sci != ref_out), windows[1], bounds)
         keep = np.zeros(ref.shape, dtype=bool)
@@ -544,8 +642,7 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
             keep[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
         changed[name], var_out[name] = flags, np.where(keep, sci, np.float32(np.nan))
     gain = model.value("gain", "gain", off=1.0)
-    unit = results[""].unit
-    sky_rate = results[""].sky_rate
+    unit, sky_rate = results[""][1], results[""][2]
     common = _wcs_cards(optics, bounds)
     frame_cards = common + _exposure_cards(exposure, optics, seed, unit, gain) + [
         format_card("SKYRATE", sky_rate, "[e-/pixel/s] sky background used"),
@@ -597,6 +694,43 @@ def _clip_keep(boxes: np.ndarray, bounds):
     return np.flatnonzero(ok), c[ok]
 
 
+def final_candidates(cols: dict, final: Exposure, history, *, stamp: int = 48, floor: float = 0.0, cache=None):
+    """Which galaxies' stamps on ``final`` the star light of its earlier exposures can reach.
+
+    Parameters
+    ----------
+    cols : dict
+        The truth catalogue.
+    final : Exposure
+    history : sequence of Exposure
+        Its earlier exposures (same detector and frame).
+    stamp : int
+        The largest stamp ``perscli measure`` cuts.
+    floor : float
+        Electrons: star light at or below it does not persist.
+    cache : dict, optional
+        Earlier exposures' :func:`star_boxes`, kept between finals.
+
+    Returns
+    -------
+    (ndarray of bool, ndarray of bool, float)
+        Per catalogue row: reached; on the frame (the galaxy's stamp reaches
+        it); and the fraction of the frame's pixels persistence can reach.
+    """
+    cache = {} if cache is None else cache
+    parts = []
+    for h in history:
+        key = (h.sca, h.expid, h.full_bounds, float(floor))
+        if key not in cache:
+            cache[key] = star_boxes(cols, h, floor=floor)
+        parts.append(cache[key])
+    mask = reach_mask(np.concatenate(parts) if parts else np.zeros((0, 4), dtype=np.int64), final.full_bounds)
+    optics = Optics(final)
+    cand = candidate_rows(cols, final, mask, stamp=stamp, optics=optics)
+    on = on_final_rows(cols, final, stamp=stamp, optics=optics)
+    return cand, on, float(mask.mean())
+
+
 def plan_regions(cols: dict, finals, *, stamp: int = 48, joint: bool = True, floor: float = 0.0):
     """Which galaxies of which finals a differential study simulates.
 
@@ -625,23 +759,14 @@ def plan_regions(cols: dict, finals, *, stamp: int = 48, joint: bool = True, flo
         finals' pixels persistence can reach, mean), floor.
     """
     boxes = {}
-    per_final, on_any, reached_any = [], None, None
+    per_final = []
     reached, on_frames, fractions = 0, 0, []
     n = len(cols["ra"]) if cols is not None else 0
     on_any = np.zeros(n, dtype=bool)
     reached_any = np.zeros(n, dtype=bool)
     for final, history in finals:
-        parts = []
-        for h in history:
-            key = (h.sca, h.expid, h.full_bounds)
-            if key not in boxes:
-                boxes[key] = star_boxes(cols, h, floor=floor)
-            parts.append(boxes[key])
-        mask = reach_mask(np.concatenate(parts) if parts else np.zeros((0, 4), dtype=np.int64), final.full_bounds)
-        fractions.append(float(mask.mean()))
-        optics = Optics(final)
-        cand = candidate_rows(cols, final, mask, stamp=stamp, optics=optics)
-        on = on_final_rows(cols, final, stamp=stamp, optics=optics)
+        cand, on, fraction = final_candidates(cols, final, history, stamp=stamp, floor=floor, cache=boxes)
+        fractions.append(fraction)
         per_final.append((final, cand, on))
         on_any |= on
         reached_any |= cand

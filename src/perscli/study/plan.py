@@ -235,12 +235,14 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
     finals = [(sca, p) for sca, ps in sorted(ex.finals.items()) for p in ps]
     variants = _variant_models(s)
     m = s["measure"]
-    tasks.append(Task(f"{pre}regions", "regions", f"{pre}regions.fits", deps=[f"{pre}catalog"],
-                      params=dict(truth=f"{pre}truth.fits", finals=[dict(pointing=_pointing_dict(p),
-                                               history=[_pointing_dict(q) for q in ex.history[(sca, p.expid)]])
-                                          for sca, p in finals],
-                                  bounds=s["bounds"], stamp=m["stamp"], joint=m["joint"],
-                                  models=[list(v[1]) for v in variants.values()], set=s["render"]["set"])))
+    if m["joint"]:
+        # a galaxy that persistence reaches on any final is simulated on all its finals: found for all at once
+        tasks.append(Task(f"{pre}regions", "regions", f"{pre}regions.fits", deps=[f"{pre}catalog"],
+                          params=dict(truth=f"{pre}truth.fits", finals=[dict(pointing=_pointing_dict(p),
+                                                   history=[_pointing_dict(q) for q in ex.history[(sca, p.expid)]])
+                                              for sca, p in finals],
+                                      bounds=s["bounds"], stamp=m["stamp"], joint=True,
+                                      models=[list(v[1]) for v in variants.values()], set=s["render"]["set"])))
     final_keys, outputs = [], []
     for sca, p in finals:
         key = f"{pre}final/sca{sca:02d}/e{p.expid:06d}"
@@ -248,7 +250,8 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
             f"{pre}shapes/sca{sca:02d}/e{p.expid:06d}.fits"
         final_keys.append(key)
         outputs.append(out)
-        params = dict(truth=f"{pre}truth.fits", regions=f"{pre}regions.fits", pointing=_pointing_dict(p), sca=sca,
+        params = dict(truth=f"{pre}truth.fits", regions=f"{pre}regions.fits" if m["joint"] else None,
+                      pointing=_pointing_dict(p), sca=sca,
                       bounds=s["bounds"], seed=frame_seed(seed, sca, p.expid),
                       history=[_pointing_dict(q) for q in ex.history[(sca, p.expid)]],
                       model=model_settings("typical"), set=s["render"]["set"],
@@ -256,7 +259,8 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
                       stamp=m["stamp"], compress=s["render"]["compress"])
         if not m["joint"]:
             params["measure"] = dict(min_snr=m["min_snr"], stamp=m["stamp"])
-        tasks.append(Task(key, "final", out, deps=[f"{pre}regions"], params=params))
+        tasks.append(Task(key, "final", out, deps=[f"{pre}regions" if m["joint"] else f"{pre}catalog"],
+                          params=params))
     c, b = s["correlate"], s["budget"]
     if m["joint"]:
         # the galaxies spread over tasks by strips of the sky (each fits the reference once for every

@@ -74,7 +74,6 @@ def variant_results(study_dir: str, name: str, prefix: str = "", differential: b
                 out[f"frac_{stem}ge"] = {f"{t:.0e}": _num(f) for t, f in zip(thr, frac)}
                 out[f"n_{stem}ge"] = {f"{t:.0e}": int(n) for t, n in zip(thr, nge)}
     ext = name.upper()
-    joint = True
     tables = (sorted(glob.glob(os.path.join(study_dir, prefix, "shapes", "part*.fits"))) or
               sorted(glob.glob(os.path.join(study_dir, prefix, "shapes", "sca*", "e*.fits")))) if differential else []
     if tables:
@@ -84,12 +83,18 @@ def variant_results(study_dir: str, name: str, prefix: str = "", differential: b
         out["fitted"] = sum(int(h.get("NFITTED", 0)) for h in heads)
         out["fitted_flagged"] = sum(int(h.get("NFLAGGED", 0)) for h in heads)
         out["measured_fraction"] = out["fitted"] / out["sample"] if out["sample"] else None
-        joint = str(heads[0].get("GAXES", "sky")) == "sky"
+        if str(heads[0].get("GAXES", "sky")) != "sky":
+            # fitted per final: each final's own count of the galaxies on it
+            prim = [_header(t, 0) for t in tables]
+            out["catalogue"] = sum(int(h.get("NONFRAME", 0)) for h in prim)
+            out["reach_pixel_fraction"] = _num(np.mean([float(h.get("FPIXRCH", math.nan)) for h in prim]))
+            if "n_ge" in out and out["catalogue"]:
+                out["frac_ge_catalogue"] = {k: v / out["catalogue"] for k, v in out["n_ge"].items()}
     regions = os.path.join(study_dir, prefix, "regions.fits")
     if os.path.exists(regions):
         h = _header(regions, "REGIONS")
-        # the whole catalogue as denominator: every galaxy on a final (per final without a joint fit)
-        out["catalogue"] = int(h["NGALON"] if joint else h["NONFRAME"])
+        # the whole catalogue as denominator: every galaxy on a final
+        out["catalogue"] = int(h["NGALON"])
         out["reach_pixel_fraction"] = _num(h.get("FPIXRCH", math.nan))
         if "n_ge" in out and out["catalogue"]:
             out["frac_ge_catalogue"] = {k: v / out["catalogue"] for k, v in out["n_ge"].items()}

@@ -217,13 +217,24 @@ def _final(study_dir, p, out):
     model = _variant_model(p["model"], p["set"])
     variants = {name: _variant_model(settings, p["set"]) for name, settings in p["variants"].items()}
     truth = os.path.join(study_dir, p["truth"])
-    regions = read_table(os.path.join(study_dir, p["regions"]), what="study regions")
-    here = (regions.column("sca", kind="integer") == exposure.sca) & \
-        (regions.column("expid", kind="integer") == exposure.expid)
     cols = _truth_columns(truth, exposure.filter)
-    rows = np.isin(cols["id"], regions.column("id", kind="integer")[here])
     history = [_exposure(dict(q, bounds=p["bounds"])) for q in p["history"]]
     measure = p.get("measure")
+    reach = {}
+    if p.get("regions"):
+        regions = read_table(os.path.join(study_dir, p["regions"]), what="study regions")
+        here = (regions.column("sca", kind="integer") == exposure.sca) & \
+            (regions.column("expid", kind="integer") == exposure.expid)
+        rows = np.isin(cols["id"], regions.column("id", kind="integer")[here])
+    else:
+        # fitted on this final alone: the galaxies its own earlier exposures' star light reaches
+        from ..render.differential import final_candidates
+
+        rows, on, fraction = final_candidates(cols, exposure, history, stamp=p["stamp"],
+                                              floor=min(_floor(v) for v in variants.values()))
+        reach = {"NONFRAME": (int(on.sum()), "galaxies whose stamp reaches this final"),
+                 "NREACH": (int(rows.sum()), "of them reached by earlier star light"),
+                 "FPIXRCH": (round(fraction, 6), "fraction of the final's pixels persistence can reach")}
     # without a joint fit the final's stamps are measured here and not kept
     frame = out if measure is None else f"{out}.{os.getpid()}.frame.fits"
     try:
@@ -236,7 +247,7 @@ def _final(study_dir, p, out):
             from ..measure.changes import write_changes
 
             counts = write_changes([frame], list(variants), truth, out, joint=False, stamp=measure["stamp"],
-                                   min_snr=measure["min_snr"], expids=[exposure.expid])
+                                   min_snr=measure["min_snr"], expids=[exposure.expid], header=reach)
             rec.update(sample=counts["sample"], fitted=counts["fitted"])
         return rec
     finally:
