@@ -766,3 +766,37 @@ def test_footprint_catalog_with_gaia_keeps_the_stars_inside(shared_data, tmp_pat
     got = stars(table)
     assert len(got) > 10 and set(got["gaia_id"]) == set(s_in["gaia_id"])
     assert table.meta["STARSRC"] == "gaia" and table.meta["NSTAR"] == len(got)
+
+
+def test_galaxy_rows_hold_the_galaxies_and_every_row_the_stars(tmp_path):
+    """--galaxy-rows: a study's earlier exposures need their stars only."""
+    from click.testing import CliRunner
+
+    from perscli.cli.main import cli
+    from perscli.scene.pointings import pointings_footprints
+    from perscli.scene.regions import FootprintUnion
+
+    plan = tmp_path / "plan.fits"
+    r = CliRunner().invoke(cli, ["pointings", "--plan", "--ra", "10", "--dec", "-44", "--n", "3", "--dither", "400",
+                                 "--sca", "7", "--seed", "3", "-o", str(plan)])
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "cat.fits"
+    r = CliRunner().invoke(cli, ["catalog", "--footprints", str(plan), "--bounds", "1", "256", "1", "256",
+                                 "--galaxy-rows", "2", "--star-density", "20", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    from astropy.table import Table
+
+    t = Table.read(out, hdu="TRUTH")
+    corners, _ = pointings_footprints(str(plan), bounds=(1, 256, 1, 256))
+    gal = t[t["kind"] == "galaxy"]
+    stars = t[t["kind"] == "star"]
+    assert len(gal) > 0 and np.all(FootprintUnion([corners[2]], 30.0).contains(gal["ra"], gal["dec"]))
+    others = FootprintUnion(corners[:2], 30.0).contains(stars["ra"], stars["dec"]) \
+        & ~FootprintUnion([corners[2]], 30.0).contains(stars["ra"], stars["dec"])
+    assert others.any()                                           # stars on the rows without galaxies too
+    bad = CliRunner().invoke(cli, ["catalog", "--footprints", str(plan), "--galaxy-rows", "5", "-o",
+                                   str(tmp_path / "bad.fits")])
+    assert bad.exit_code == 1 and "rows 0 to 2" in bad.output
+    bad = CliRunner().invoke(cli, ["catalog", "--ra", "10", "--dec", "-44", "--galaxy-rows", "1", "-o",
+                                   str(tmp_path / "bad2.fits")])
+    assert bad.exit_code == 2 and "--galaxy-rows is for --footprints" in bad.output

@@ -29,6 +29,9 @@ log = logging.getLogger("perscli")
 @click.option("--bounds", type=int, nargs=4, default=None, metavar="XMIN XMAX YMIN YMAX",
               help=f"--footprints: the footprint of this cutout (1-indexed inclusive SCA pixels, as render "
                    f"--bounds) [default: the full {ROMAN_SCA_SIZE} x {ROMAN_SCA_SIZE}].")
+@click.option("--galaxy-rows", "galaxy_rows", default=None, metavar="ROWS",
+              help="--footprints: galaxies only in the footprints of these rows of the table (0-based, e.g. "
+                   "3,4 or 3-9), stars in every row's: earlier exposures whose stars' light alone persists.")
 @click.option("--galaxy-density", type=click.FloatRange(min=0), default=40.0, show_default=True,
               metavar="PER_ARCMIN2", help="Mean number of galaxies per arcmin^2 (Poisson).")
 @click.option("--star-density", type=click.FloatRange(min=0), default=None, metavar="PER_ARCMIN2",
@@ -48,8 +51,8 @@ log = logging.getLogger("perscli")
 @verbosity_opts
 @click.pass_context
 @report_errors
-def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density, star_density, star_params, gaia,
-            columns, seed, output, overwrite):
+def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_rows, galaxy_density, star_density,
+            star_params, gaia, columns, seed, output, overwrite):
     """Draw a truth catalog of galaxies and stars for a square field or detector footprints.
 
     The field is a square of --size arcmin on the tangent plane at (--ra,
@@ -128,9 +131,9 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density,
         if wrong:
             raise click.UsageError(f"--{wrong[0]} is for a square field, not --footprints", ctx)
     else:
-        wrong = [name for name in ("sca", "margin", "bounds") if name in given]
+        wrong = [name for name in ("sca", "margin", "bounds", "galaxy_rows") if name in given]
         if wrong:
-            raise click.UsageError(f"--{wrong[0]} is for --footprints", ctx)
+            raise click.UsageError(f"--{wrong[0].replace('_', '-')} is for --footprints", ctx)
         for name, value in (("ra", ra), ("dec", dec)):
             if value is None:
                 raise click.UsageError(f"Missing option '--{name}': give --ra and --dec (a square field) or "
@@ -147,7 +150,7 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density,
                                         margin_arcsec=DEFAULT_MARGIN_ARCSEC if margin is None else margin,
                                         overwrite=overwrite, galaxy_density=galaxy_density,
                                         star_density=star_density, star_model=star_model, gaia=gaia or None,
-                                        seed=seed, columns=columns)
+                                        seed=seed, columns=columns, galaxy_rows=_rows(galaxy_rows, ctx))
     else:
         table = make_truth_catalog_file(output, ra, dec, size, overwrite=overwrite, galaxy_density=galaxy_density,
                                         star_density=star_density, star_model=star_model, gaia=gaia or None,
@@ -158,3 +161,25 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_density,
     if gaia and table.meta["NSTAR"] == 0:
         log.warning("no Gaia star of %s lies inside the field; check %s", ", ".join(gaia),
                     "--footprints" if footprints else "--ra/--dec/--size")
+
+
+def _rows(text, ctx):
+    """'3,4' or '3-9' (0-based rows) as a list of ints; None for None."""
+    if text is None:
+        return None
+    rows = []
+    try:
+        for part in str(text).split(","):
+            part = part.strip()
+            if "-" in part[1:]:
+                a, b = part.split("-", 1)
+                rows.extend(range(int(a), int(b) + 1))
+            elif part:
+                rows.append(int(part))
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: row numbers (0-based) such as 3,4 or 3-9", ctx,
+                                 param_hint="--galaxy-rows") from None
+    if not rows or min(rows) < 0:
+        raise click.BadParameter(f"{text!r}: row numbers (0-based) such as 3,4 or 3-9", ctx,
+                                 param_hint="--galaxy-rows")
+    return sorted(set(rows))

@@ -60,6 +60,22 @@ def _truth_shapes(catalog: str, n: int):
     return np.full(n, np.nan), np.full(n, np.nan)
 
 
+_CATALOGUES: dict = {}
+
+
+def _catalogue(path: str):
+    """The catalogue's positions and true shapes, read once per process and file (a study's finals share it)."""
+    import os
+
+    st = os.stat(path)
+    key = (os.path.realpath(path), st.st_size, st.st_mtime_ns)
+    if key not in _CATALOGUES:
+        _CATALOGUES.clear()
+        cat = read_positions(path)
+        _CATALOGUES[key] = (cat, *_truth_shapes(path, len(cat["id"])))
+    return _CATALOGUES[key]
+
+
 def _variant_view(path: str, variant: str):
     """A function giving the variant's pixels of a final: its own where it has them, else the reference's."""
 
@@ -111,8 +127,7 @@ def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp
     """
     finals = list(finals)
     variants = [variants] if isinstance(variants, str) else list(variants)
-    cat = read_positions(catalog)
-    e1_true, e2_true = _truth_shapes(catalog, len(cat["id"]))
+    cat, e1_true, e2_true = _catalogue(catalog)
     index = {int(i): k for k, i in enumerate(cat["id"])}
     subset = np.ones(len(cat["id"]), dtype=bool)
     if part is not None:

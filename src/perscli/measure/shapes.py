@@ -407,12 +407,23 @@ def predicted_snr(cat, rows, frame, pixel_scale, table: SnrTable, ivar) -> np.nd
     return np.where(np.isfinite(out), np.maximum(out, 0.0), np.nan)
 
 
-def blended(x, y, radius: float) -> np.ndarray:
-    """True for catalogue objects with another object within ``radius`` pixels."""
+def blended(x, y, radius: float, shape=None) -> np.ndarray:
+    """True for catalogue objects with another object within ``radius`` pixels.
+
+    ``shape`` (ny, nx): only objects on a frame of that shape or within
+    ``radius`` of it are looked at (the others are False): a catalogue of a
+    million objects around a frame costs seconds otherwise, and only the
+    objects on the frame are fitted.
+    """
     from scipy.spatial import cKDTree
 
     pts = np.column_stack([x, y])
     ok = np.all(np.isfinite(pts), axis=1)
+    if shape is not None:
+        reach = radius + 1.0
+        with np.errstate(invalid="ignore"):
+            ok &= (pts[:, 0] >= 0.5 - reach) & (pts[:, 0] <= shape[1] + 0.5 + reach) \
+                & (pts[:, 1] >= 0.5 - reach) & (pts[:, 1] <= shape[0] + 0.5 + reach)
     out = np.zeros(len(x), dtype=bool)
     if ok.sum() > 1 and radius > 0:
         tree = cKDTree(pts[ok])
@@ -587,13 +598,40 @@ def measure_object(ctx: FrameContext, i: int) -> dict:
     return cols
 
 
+#: degrees beyond a frame's half-diagonal: catalogue rows farther from its centre are not placed on it (NaN),
+#: as none of them can fall on it, and a catalogue of a study holds a million rows around it
+NEAR_FRAME_DEG = 0.5
+
+
+def frame_xy(wcs, shape, ra, dec):
+    """FITS pixel positions (first pixel centre at 1) on a frame of ``shape`` of sky positions (degrees).
+
+    NaN for positions more than :data:`NEAR_FRAME_DEG` beyond the frame's
+    half-diagonal from its centre.
+    """
+    from ..scene import separation
+
+    ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
+    x, y = np.full(ra.shape, np.nan), np.full(ra.shape, np.nan)
+    ny, nx = shape
+    corners = np.array([[(nx + 1) / 2.0, (ny + 1) / 2.0], [0.5, 0.5], [nx + 0.5, ny + 0.5], [0.5, ny + 0.5],
+                        [nx + 0.5, 0.5]])
+    (ra0, dec0), *edges = wcs.all_pix2world(corners, 1)
+    half = max(float(separation(ra0, dec0, e[0], e[1])) for e in edges)
+    with np.errstate(invalid="ignore"):
+        near = separation(ra0, dec0, ra, dec) <= half + NEAR_FRAME_DEG
+    if near.any():
+        x[near], y[near] = wcs.all_world2pix(ra[near], dec[near], 1)
+    return x, y
+
+
 def _frame_positions(frame, cat, wcs):
-    """x, y (FITS pixels) and ra, dec of every catalogue row on a frame."""
+    """x, y (FITS pixels) and ra, dec of every catalogue row on a frame (x, y NaN far from it)."""
     if "ra" in cat:
         if wcs is None:
             raise PerscliError(f"{frame.label}: no WCS in the header to place ra/dec; give a catalogue with x/y")
-        x, y = wcs.all_world2pix(cat["ra"], cat["dec"], 1)  # FITS: first pixel centre at 1
-        return np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), cat["ra"], cat["dec"]
+        x, y = frame_xy(wcs, frame.shape, cat["ra"], cat["dec"])
+        return x, y, cat["ra"], cat["dec"]
     x, y = cat["x"], cat["y"]
     if wcs is not None:
         ra, dec = wcs.all_pix2world(x, y, 1)
@@ -753,7 +791,7 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
         with_pixel = galsim.Convolve(drawer.psf, galsim.Pixel(1.0)) if drawer.pixel else drawer.psf
         psf_image = with_pixel.drawImage(nx=stamp, ny=stamp, scale=1.0, method="no_pixel")
     # neighbours of any kind count: a star beside a galaxy spoils its shape as much as a galaxy does
-    blends = blended(x, y, blend_radius)
+    blends = blended(x, y, blend_radius, data.shape)
     sizes = None
     if method == "exp":
         ladder = stamp_ladder(stamp)
@@ -1032,8 +1070,7 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
                 model_keys[key] = len(models)
                 models.append({stamp: _psf_exp_model(psf, frame, pixel_scale, stamp, psf_options, psf_used)})
             m = model_keys[key]
-            x, y = wcs.all_world2pix(cat["ra"][rows], cat["dec"][rows], 1)
-            x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+            x, y = frame_xy(wcs, shape, cat["ra"][rows], cat["dec"][rows])
             on = on_frame(x, y, shape)
             ainv = np.zeros((len(rows), 2, 2))
             snr = np.full(len(rows), np.nan)

@@ -509,7 +509,7 @@ _INPUT_STEM = re.compile(r"^GA\d{3}$")
 
 
 def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: float | None = None, *,
-                       footprints=None, margin_arcsec: float = DEFAULT_MARGIN_ARCSEC,
+                       footprints=None, margin_arcsec: float = DEFAULT_MARGIN_ARCSEC, galaxy_footprints=None,
                        galaxy_density: float = 40.0, star_density: float | None = None, gaia=None,
                        seed: int = 1, galaxy_model: GalaxyModel = GalaxyModel(), star_model=None,
                        stdin=None, columns=None):
@@ -529,6 +529,10 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         objects are drawn only in their union, each grown by ``margin_arcsec``.
     margin_arcsec : float
         Growth of each footprint in arcsec (default, or None: :data:`DEFAULT_MARGIN_ARCSEC`).
+    galaxy_footprints : sequence of (ra, dec), optional
+        With ``footprints``: galaxies only in these (each grown by the
+        margin), stars in all of ``footprints`` (a study's earlier exposures
+        need their stars only).
     galaxy_density : float
         Mean number of galaxies per arcmin^2 (the paper: 40).
     star_density : float, optional
@@ -609,7 +613,14 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         fld = Field(ra, dec, size)
         meta = {"FIELDRA": fld.ra, "FIELDDEC": float(dec), "FIELDSZ": float(size), "FIELDAR": round(fld.area, 6)}
     gal_seq, star_seq = np.random.SeedSequence(int(seed)).spawn(2)
-    galaxies = draw_galaxies(np.random.Generator(np.random.PCG64(gal_seq)), fld, galaxy_density, galaxy_model)
+    gal_fld = fld
+    if galaxy_footprints is not None:
+        if footprints is None:
+            raise PerscliError("galaxy footprints go with footprints")
+        gal_fld = FootprintUnion(galaxy_footprints, margin_arcsec, centre=(fld.ra, fld.dec))
+        meta.update({"NGALFOOT": (len(gal_fld), "footprints holding galaxies (stars: all NFOOT)"),
+                     "GALAREA": (round(gal_fld.area, 6), "[arcmin2] their union")})
+    galaxies = draw_galaxies(np.random.Generator(np.random.PCG64(gal_seq)), gal_fld, galaxy_density, galaxy_model)
     meta.update({
         "POSMODEL": "uniform in solid angle",
         "GALDENS": float(galaxy_density), "NGAL": len(galaxies["ra"]),
@@ -774,6 +785,7 @@ def make_truth_catalog_file(dest: str, ra: float | None = None, dec: float | Non
     """
     from ..io.output import check_output
 
+    galaxy_rows = kw.pop("galaxy_rows", None)
     table_path = footprints if isinstance(footprints, (str, bytes)) else None
     check_output(dest, overwrite=overwrite, inputs=list(kw.get("gaia") or ()) + ([table_path] if table_path else []))
     inputs = []
@@ -784,6 +796,14 @@ def make_truth_catalog_file(dest: str, ra: float | None = None, dec: float | Non
         inputs.append(("PTGS", table_path, datasum))
     elif sca or bounds is not None:
         raise PerscliError("sca and bounds choose the footprints of a pointings table: give its path as footprints")
+    if galaxy_rows is not None:
+        # galaxies only in some rows' footprints (a study's finals), stars in every row's
+        if footprints is None:
+            raise PerscliError("galaxy rows are rows of a footprints table: give footprints")
+        bad = [i for i in galaxy_rows if not 0 <= int(i) < len(footprints)]
+        if bad:
+            raise PerscliError(f"galaxy rows {bad}: the footprints table has rows 0 to {len(footprints) - 1}")
+        kw["galaxy_footprints"] = [footprints[int(i)] for i in galaxy_rows]
     table = make_truth_catalog(ra, dec, size, footprints=footprints, margin_arcsec=margin_arcsec, stdin=stdin, **kw)
     if inputs:
         table.meta["INPUTS"] = inputs

@@ -214,6 +214,19 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
     return tasks
 
 
+def _catalog_task(s: dict, ex: Exposures, seed: int, pre: str) -> Task:
+    """The truth catalogue of every footprint rendered: stars everywhere, galaxies where they matter.
+
+    When only star light persists, an earlier exposure leaves its stars' light alone: galaxies are drawn
+    on the finals' footprints only (the same catalogue however the finals are rendered).
+    """
+    params = dict(catalog=s["catalog"], bounds=s["bounds"], seed=seed, field=s["field"])
+    if all(src == "stars" for src in s["persistence"]["sources"]):
+        finals = {(sca, p.expid) for sca, ps in ex.finals.items() for p in ps}
+        params["galaxy_rows"] = [i for i, key in enumerate(sorted(ex.all)) if key in finals]
+    return Task(f"{pre}catalog", "catalog", f"{pre}truth.fits", deps=["pointings"], params=params)
+
+
 def _variant_models(s: dict) -> dict:
     """Variant name -> (source, model settings) of every persistence variant."""
     return {variant_name(src, m): (src, model_settings(str(m))) for src in s["persistence"]["sources"]
@@ -230,8 +243,7 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
     """
     from ..measure.changes import variant_extname
 
-    tasks = [Task(f"{pre}catalog", "catalog", f"{pre}truth.fits", deps=["pointings"],
-                  params=dict(catalog=s["catalog"], bounds=s["bounds"], seed=seed, field=s["field"]))]
+    tasks = [_catalog_task(s, ex, seed, pre)]
     finals = [(sca, p) for sca, ps in sorted(ex.finals.items()) for p in ps]
     variants = _variant_models(s)
     m = s["measure"]
@@ -337,8 +349,7 @@ def _build_full(s: dict, ex: Exposures, seed: int, pre: str) -> list:
     """Every SCA-exposure rendered whole, every final again per variant, every galaxy measured in each."""
     tasks = []
     final_keys = {(sca, p.expid) for sca, ps in ex.finals.items() for p in ps}
-    tasks.append(Task(f"{pre}catalog", "catalog", f"{pre}truth.fits", deps=["pointings"],
-                      params=dict(catalog=s["catalog"], bounds=s["bounds"], seed=seed, field=s["field"])))
+    tasks.append(_catalog_task(s, ex, seed, pre))
     sources = s["persistence"]["sources"]
     need_stars = any(src == "stars" for src in sources)
     need_all = any(src != "stars" for src in sources)

@@ -122,7 +122,8 @@ def _catalog(study_dir, p, out):
     table = make_truth_catalog_file(out, footprints=os.path.join(study_dir, "pointings.fits"), sca=0,
                                     bounds=p["bounds"], margin_arcsec=c["margin_arcsec"], overwrite=True,
                                     galaxy_density=c["galaxy_density"], star_density=c["star_density"],
-                                    star_model=stars, gaia=c["gaia"] or None, seed=p["seed"])
+                                    star_model=stars, gaia=c["gaia"] or None, seed=p["seed"],
+                                    galaxy_rows=p.get("galaxy_rows"))
     return {"n": len(table)}
 
 
