@@ -140,7 +140,9 @@ def select_exposures(s: dict) -> Exposures:
                 raise PerscliError(f"no {s['filter']} exposure of the schedule puts SCA {sca} within "
                                    f"{f['radius']} deg of ra={f['ra']} dec={f['dec']}: widen field.radius or "
                                    "choose other scas")
-            finals[sca] = chosen
+            # in time order: the next final shares all but one of its earlier exposures with the one before
+            # (a worker keeps their stars' light), and the study's products are listed as they were taken
+            finals[sca] = sorted(chosen, key=lambda p: (p.mjd, p.expid))
             for p in chosen:
                 history[(sca, p.expid)] = [_with_sca(q, sca) for q in
                                            P.previous_exposures(schedule, p.expid, e["history"])] \
