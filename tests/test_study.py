@@ -75,17 +75,24 @@ def test_differential_plan_renders_each_final_once_for_every_variant(joint):
     keys = [t.key for t in tasks]
     assert len(keys) == len(set(keys))
     finals = [t for t in tasks if t.kind == "final"]
-    assert len(finals) == 3
+    # fitted per exposure, consecutive finals of an SCA go together (measure.chunk, 8 by default)
+    assert len(finals) == (3 if joint else 1)
+    each = [t.params for t in finals] if joint else finals[0].params["finals"]
+    assert len(each) == 3 and all(len(f["history"]) == 2 for f in each)
     # earlier exposures are drawn inside each final (their stars alone): no frame of theirs is rendered or kept
     assert not any(t.kind == "render" for t in tasks)
     for t in finals:
         assert set(t.params["variants"]) == {"stars-typical", "stars-pessimistic"}   # one render for all
-        assert len(t.params["history"]) == 2 and ("regions" if joint else "catalog") in t.deps
+        assert ("regions" if joint else "catalog") in t.deps
         assert all(dep in keys[:keys.index(t.key)] for dep in t.deps)
         assert t.output.startswith("frames/" if joint else "shapes/")
     assert [t.kind for t in tasks].count("changes") == (2 if joint else 0)          # measure.parts
     corr = [t for t in tasks if t.kind == "correlate"]
-    assert all(len(t.params["tables"]) == (2 if joint else 3) for t in corr)   # parts or finals pooled
+    assert all(len(t.params["tables"]) == (2 if joint else 1) for t in corr)   # parts or chunks pooled
+    if not joint:
+        chunked = build(load_study(None, preset="ci", overrides=CI + ["exposures.count=3", "exposures.history=2",
+                                                                      "measure.joint=false", "measure.chunk=2"]))
+        assert [len(t.params["finals"]) for t in chunked if t.kind == "final"] == [2, 1]
 
 
 def test_realisations_repeat_the_study_with_their_own_seeds():

@@ -84,9 +84,12 @@ SCHEMA = {
         "joint": True,           # one shape per galaxy from all its final exposures (the paper's pipeline)
         "min_snr": None,         # predicted-S/N cut (None: measure's default)
         "stamp": 48,
-        # differential joint fits: the galaxies spread over this many tasks (by id), each fitting the
-        # reference once for every variant
+        # differential joint fits: the galaxies spread over this many strips of the sky (one task each),
+        # each fitting the reference once for every variant
         "parts": 2,
+        # differential fits per exposure: this many consecutive finals of an SCA in one task (they share
+        # their earlier exposures, whose stars are drawn once)
+        "chunk": 8,
     },
     "correlate": {
         "min_sep": 1.0,          # arcmin
@@ -326,8 +329,10 @@ def check(s: dict) -> None:
         from ..scene.starcounts import galactic_star_model
 
         galactic_star_model(cat["star_model"])     # checked now, not when the catalogue is drawn
-    if not (isinstance(s["measure"]["parts"], int) and s["measure"]["parts"] >= 1):
-        raise PerscliError(f"measure.parts {s['measure']['parts']!r}: an integer >= 1")
+    for key in ("parts", "chunk"):
+        value = s["measure"][key]
+        if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+            raise PerscliError(f"measure.{key} {value!r}: an integer >= 1")
     c = s["correlate"]
     if not 0 < c["min_sep"] < c["max_sep"] or c["nbins"] < 1:
         raise PerscliError("correlate: need 0 < min_sep < max_sep and nbins >= 1")

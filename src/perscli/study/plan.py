@@ -258,23 +258,36 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
                                       bounds=s["bounds"], stamp=m["stamp"], joint=True,
                                       models=[list(v[1]) for v in variants.values()], set=s["render"]["set"])))
     final_keys, outputs = [], []
-    for sca, p in finals:
-        key = f"{pre}final/sca{sca:02d}/e{p.expid:06d}"
-        out = f"{pre}{frame_path(sca, p.expid, 'final')}" if m["joint"] else \
-            f"{pre}shapes/sca{sca:02d}/e{p.expid:06d}.fits"
-        final_keys.append(key)
-        outputs.append(out)
-        params = dict(truth=f"{pre}truth.fits", regions=f"{pre}regions.fits" if m["joint"] else None,
-                      pointing=_pointing_dict(p), sca=sca,
-                      bounds=s["bounds"], seed=frame_seed(seed, sca, p.expid),
-                      history=[_pointing_dict(q) for q in ex.history[(sca, p.expid)]],
-                      model=model_settings("typical"), set=s["render"]["set"],
-                      variants={name: list(v[1]) for name, v in variants.items()},
-                      stamp=m["stamp"], compress=s["render"]["compress"])
-        if not m["joint"]:
-            params["measure"] = dict(min_snr=m["min_snr"], stamp=m["stamp"])
-        tasks.append(Task(key, "final", out, deps=[f"{pre}regions" if m["joint"] else f"{pre}catalog"],
-                          params=params))
+    common = dict(truth=f"{pre}truth.fits", bounds=s["bounds"], model=model_settings("typical"),
+                  set=s["render"]["set"], variants={name: list(v[1]) for name, v in variants.items()},
+                  stamp=m["stamp"], compress=s["render"]["compress"])
+
+    def one(sca, p):
+        return dict(pointing=_pointing_dict(p), sca=sca, seed=frame_seed(seed, sca, p.expid),
+                    history=[_pointing_dict(q) for q in ex.history[(sca, p.expid)]])
+
+    if m["joint"]:
+        for sca, p in finals:
+            key, out = f"{pre}final/sca{sca:02d}/e{p.expid:06d}", f"{pre}{frame_path(sca, p.expid, 'final')}"
+            final_keys.append(key)
+            outputs.append(out)
+            tasks.append(Task(key, "final", out, deps=[f"{pre}regions"],
+                              params=dict(common, regions=f"{pre}regions.fits", **one(sca, p))))
+    else:
+        # fitted per exposure: consecutive finals of one SCA share all but one earlier exposure, so a few
+        # of them make one task (their earlier stars drawn once), which keeps only their shape changes
+        size = max(1, int(m["chunk"]))
+        for sca in sorted(ex.finals):
+            ps = ex.finals[sca]
+            for k in range(0, len(ps), size):
+                group = ps[k:k + size]
+                key = f"{pre}final/sca{sca:02d}/e{group[0].expid:06d}"
+                out = f"{pre}shapes/sca{sca:02d}/e{group[0].expid:06d}.fits"
+                final_keys.append(key)
+                outputs.append(out)
+                tasks.append(Task(key, "final", out, deps=[f"{pre}catalog"],
+                                  params=dict(common, regions=None, finals=[one(sca, p) for p in group],
+                                              measure=dict(min_snr=m["min_snr"], stamp=m["stamp"]))))
     c, b = s["correlate"], s["budget"]
     if m["joint"]:
         # the galaxies spread over tasks by strips of the sky (each fits the reference once for every

@@ -211,49 +211,66 @@ def write_regions_table(out: str, table: dict, counts: dict) -> None:
 
 
 def _final(study_dir, p, out):
-    from ..io.tables import read_table
+    """One final (joint fits: its stamps kept for the fit over all finals), or a few fitted per exposure."""
     from ..render.differential import _truth_columns, render_final
 
-    exposure = _exposure(p)
     model = _variant_model(p["model"], p["set"])
     variants = {name: _variant_model(settings, p["set"]) for name, settings in p["variants"].items()}
     truth = os.path.join(study_dir, p["truth"])
-    cols = _truth_columns(truth, exposure.filter)
-    history = [_exposure(dict(q, bounds=p["bounds"])) for q in p["history"]]
+    finals = p.get("finals") or [p]
+    rows_of, reach = {}, {"on": 0, "reached": 0, "fractions": []}
+    for f in finals:
+        exposure = _exposure(dict(f, bounds=p["bounds"]))
+        cols = _truth_columns(truth, exposure.filter)
+        history = [_exposure(dict(q, bounds=p["bounds"])) for q in f["history"]]
+        if p.get("regions"):
+            from ..io.tables import read_table
+
+            regions = read_table(os.path.join(study_dir, p["regions"]), what="study regions")
+            here = (regions.column("sca", kind="integer") == exposure.sca) & \
+                (regions.column("expid", kind="integer") == exposure.expid)
+            rows = np.isin(cols["id"], regions.column("id", kind="integer")[here])
+        else:
+            # fitted on this final alone: the galaxies its own earlier exposures' star light reaches
+            from ..render.differential import final_candidates
+
+            rows, on, fraction = final_candidates(cols, exposure, history, stamp=p["stamp"],
+                                                  floor=min(_floor(v) for v in variants.values()))
+            reach["on"] += int(on.sum())
+            reach["reached"] += int(rows.sum())
+            reach["fractions"].append(fraction)
+        rows_of[exposure.expid] = (exposure, history, rows, f["seed"])
     measure = p.get("measure")
-    reach = {}
-    if p.get("regions"):
-        regions = read_table(os.path.join(study_dir, p["regions"]), what="study regions")
-        here = (regions.column("sca", kind="integer") == exposure.sca) & \
-            (regions.column("expid", kind="integer") == exposure.expid)
-        rows = np.isin(cols["id"], regions.column("id", kind="integer")[here])
-    else:
-        # fitted on this final alone: the galaxies its own earlier exposures' star light reaches
-        from ..render.differential import final_candidates
+    if measure is None:
+        exposure, history, rows, seed = next(iter(rows_of.values()))
+        summary = render_final(truth, exposure, out, model=model, variants=variants, seed=seed, histories=history,
+                               rows=rows, stamp=p["stamp"], compress=p["compress"], overwrite=True)
+        return {"galaxies": summary["rows"], "objects": summary["objects"], "blocks": summary["blocks"],
+                "block_fraction": round(summary["block_fraction"], 6), "changed": summary["changed"]}
+    # fitted per exposure: each final rendered to a scratch file beside the output, measured, and dropped
+    from ..measure.changes import write_changes
 
-        rows, on, fraction = final_candidates(cols, exposure, history, stamp=p["stamp"],
-                                              floor=min(_floor(v) for v in variants.values()))
-        reach = {"NONFRAME": (int(on.sum()), "galaxies whose stamp reaches this final"),
-                 "NREACH": (int(rows.sum()), "of them reached by earlier star light"),
-                 "FPIXRCH": (round(fraction, 6), "fraction of the final's pixels persistence can reach")}
-    # without a joint fit the final's stamps are measured here and not kept
-    frame = out if measure is None else f"{out}.{os.getpid()}.frame.fits"
+    frames, rec = [], {"galaxies": 0, "objects": 0, "blocks": 0, "frames": len(rows_of)}
     try:
-        summary = render_final(truth, exposure, frame, model=model, variants=variants, seed=p["seed"],
-                               histories=history, rows=rows, stamp=p["stamp"],
-                               compress=p["compress"] if measure is None else "none", overwrite=True)
-        rec = {"galaxies": summary["rows"], "objects": summary["objects"], "blocks": summary["blocks"],
-               "block_fraction": round(summary["block_fraction"], 6), "changed": summary["changed"]}
-        if measure is not None:
-            from ..measure.changes import write_changes
-
-            counts = write_changes([frame], list(variants), truth, out, joint=False, stamp=measure["stamp"],
-                                   min_snr=measure["min_snr"], expids=[exposure.expid], header=reach)
-            rec.update(sample=counts["sample"], fitted=counts["fitted"])
+        for expid, (exposure, history, rows, seed) in rows_of.items():
+            frame = f"{out}.{os.getpid()}.e{expid:06d}.fits"
+            frames.append(frame)
+            summary = render_final(truth, exposure, frame, model=model, variants=variants, seed=seed,
+                                   histories=history, rows=rows, stamp=p["stamp"], compress="none", overwrite=True)
+            for key in ("galaxies", "objects", "blocks"):
+                rec[key] += summary["rows" if key == "galaxies" else key]
+        header = {"NONFRAME": (reach["on"], "galaxy-final pairs with the stamp on the final"),
+                  "NREACH": (reach["reached"], "of them reached by earlier star light"),
+                  "FPIXRCH": (round(float(np.mean(reach["fractions"])), 6),
+                              "mean fraction of the finals' pixels persistence can reach")}
+        counts = write_changes(frames, list(variants), truth, out, joint=False, stamp=measure["stamp"],
+                               min_snr=measure["min_snr"], expids=list(rows_of), header=header)
+        rec.update(sample=counts["sample"], fitted=counts["fitted"])
         return rec
     finally:
-        if measure is not None and os.path.exists(frame):
-            os.unlink(frame)
+        for frame in frames:
+            if os.path.exists(frame):
+                os.unlink(frame)
 
 
 def _changes(study_dir, p, out):
