@@ -57,6 +57,28 @@ def test_only_the_active_blocks_are_simulated_and_they_are_the_whole_frames_pixe
     assert np.isfinite(part.sci[core]).all()
 
 
+def test_a_stack_of_blocks_gives_the_pixels_of_the_whole_area():
+    """The chain on a stack of scattered noise blocks, interpixel capacitance through their neighbours."""
+    from perscli.detector.effects import BlockStack
+
+    model = default_model()
+    # the detector's far corner: its last row and column of blocks are partial (4088 = 127 x 32 + 24)
+    origin = (32 * 122 + 1, 32 * 124 + 1)
+    img = _sources((4088 - origin[1] + 1, 4088 - origin[0] + 1))
+    pers = np.linspace(0, 40, img.size).reshape(img.shape)
+    _, _, nby, nbx = block_grid(origin, img.shape)
+    rng = np.random.default_rng(4)
+    active = rng.random((nby, nbx)) < 0.5
+    active[-1, -1] = active[0, 0] = True
+    whole = run_chain(img, model, exptime=139.8, seed=9, sky_rate=0.5, persistence=pers, origin=origin,
+                      active=active)
+    blocks = BlockStack.of(active, origin, img.shape)
+    stack = run_chains(blocks.gather(img), {"": model}, exptime=139.8, seed=9, sky_rate=0.5,
+                       persistence={"": blocks.gather(pers, fill=0.0)}, origin=origin, blocks=blocks)[""]
+    np.testing.assert_array_equal(blocks.scatter(stack.sci), whole.sci)
+    np.testing.assert_array_equal(blocks.scatter(stack.fluence), whole.fluence)
+
+
 def test_chains_sharing_their_first_steps_give_each_models_own_frame():
     from perscli.detector.effects import load_detector_model
 

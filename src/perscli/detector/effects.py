@@ -241,6 +241,8 @@ class ChainContext:
     #: which noise blocks to simulate (bool, :func:`block_grid` shape); None: all.  Pixels of the other
     #: blocks come out NaN
     active: np.ndarray | None = None
+    #: the image is a stack of noise blocks (:class:`BlockStack`) rather than a piece of the detector
+    blocks: "BlockStack | None" = None
     #: what the chain used: the sky rate (e-/pixel/s) and the persistence charge (electrons)
     used_sky_rate: float = field(default=0.0, init=False)
     used_persistence: np.ndarray | None = field(default=None, init=False)
@@ -332,6 +334,131 @@ def block_streams(seed: int, name: str, origin, shape, active=None):
             yield (gen, (slice(ya - y0, yb - y0), slice(xa - x0, xb - x0)),
                    (slice(ya - by * NOISE_BLOCK, yb - by * NOISE_BLOCK),
                     slice(xa - bx * NOISE_BLOCK, xb - bx * NOISE_BLOCK)))
+
+
+@dataclass
+class BlockStack:
+    """Noise blocks of a detector area gathered into one array, shape (n, NOISE_BLOCK, NOISE_BLOCK).
+
+    When persistence reaches a few scattered blocks of a frame, the chain
+    need not touch the rest: the blocks are stacked and every effect works on
+    the stack (each block's streams as in the frame, interpixel capacitance
+    through each block's neighbours), at a cost that follows the blocks
+    simulated.  The pixels of a block beyond the area (its last row and
+    column of blocks may be partial) are NaN.
+
+    Attributes
+    ----------
+    by, bx : ndarray of int
+        Each block's place on the detector (block row and column).
+    h, w : ndarray of int
+        Its rows and columns inside the area.
+    neighbours : ndarray of int, shape (n, 3, 3)
+        For each block, its 3 x 3 neighbourhood as indices into the stack,
+        ``n`` for a block of the area that is not simulated (NaN) and
+        ``n + 1`` for one outside the area (zeros, as a frame's edge).
+    origin, shape
+        The area (detector pixel of its first element, and its shape).
+    """
+
+    by: np.ndarray
+    bx: np.ndarray
+    h: np.ndarray
+    w: np.ndarray
+    neighbours: np.ndarray
+    origin: tuple
+    shape: tuple
+
+    def __len__(self) -> int:
+        return len(self.by)
+
+    @classmethod
+    def of(cls, active, origin, shape) -> "BlockStack":
+        """The stack of the blocks ``active`` marks in an area (:func:`block_grid` of ``origin``, ``shape``)."""
+        if (int(origin[0]) - 1) % NOISE_BLOCK or (int(origin[1]) - 1) % NOISE_BLOCK:
+            raise ValueError(f"a block stack's area starts on a block: {origin} does not")
+        by0, bx0, nby, nbx = block_grid(origin, shape)
+        jj, ii = np.nonzero(np.asarray(active, dtype=bool))
+        n = len(jj)
+        x0, y0 = int(origin[0]) - 1, int(origin[1]) - 1
+        by, bx = by0 + jj, bx0 + ii
+        h = np.minimum((by + 1) * NOISE_BLOCK, y0 + shape[0]) - by * NOISE_BLOCK
+        w = np.minimum((bx + 1) * NOISE_BLOCK, x0 + shape[1]) - bx * NOISE_BLOCK
+        index = np.full((nby + 2, nbx + 2), n + 1, dtype=np.int64)      # outside the area
+        index[1:-1, 1:-1] = n                                               # in the area, not simulated
+        index[jj + 1, ii + 1] = np.arange(n)
+        neighbours = np.stack([index[jj + dj, ii + di] for dj in range(3) for di in range(3)],
+                              axis=1).reshape(n, 3, 3)
+        return cls(by, bx, h, w, neighbours, tuple(origin), tuple(shape))
+
+    def _place(self, k):
+        """Area-relative slices of block k."""
+        x0, y0 = int(self.origin[0]) - 1, int(self.origin[1]) - 1
+        ya, xa = self.by[k] * NOISE_BLOCK - y0, self.bx[k] * NOISE_BLOCK - x0
+        return slice(ya, ya + self.h[k]), slice(xa, xa + self.w[k])
+
+    def gather(self, image: np.ndarray, fill=np.nan, dtype=np.float64) -> np.ndarray:
+        """The blocks of ``image`` (the area) as a stack; ``fill`` beyond the area."""
+        out = np.full((len(self), NOISE_BLOCK, NOISE_BLOCK), fill, dtype=dtype)
+        for k in range(len(self)):
+            rows, cols = self._place(k)
+            out[k, :self.h[k], :self.w[k]] = image[rows, cols]
+        return out
+
+    def scatter(self, stack: np.ndarray, fill=np.nan, dtype=np.float64) -> np.ndarray:
+        """The stack back in the area, ``fill`` where no block was simulated."""
+        out = np.full(self.shape, fill, dtype=dtype)
+        for k in range(len(self)):
+            rows, cols = self._place(k)
+            out[rows, cols] = stack[k, :self.h[k], :self.w[k]]
+        return out
+
+    def streams(self, seed: int, name: str):
+        """:func:`block_streams` for the stack: (generator, the block's part of the stack, its cut of a block)."""
+        bits = np.random.Philox(key=[int(seed) & 0xFFFFFFFFFFFFFFFF, zlib.crc32(name.encode())])
+        gen = np.random.Generator(bits)
+        state = bits.state
+        for k in range(len(self)):
+            state["state"]["counter"][:] = (0, 0, int(self.by[k]), int(self.bx[k]))
+            state["buffer_pos"] = 4
+            state["has_uint32"] = 0
+            bits.state = state
+            h, w = int(self.h[k]), int(self.w[k])
+            yield gen, (k, slice(0, h), slice(0, w)), (slice(0, h), slice(0, w))
+
+    def edges(self, stack: np.ndarray) -> np.ndarray:
+        """Each block with a one-pixel frame of its neighbours' pixels: shape (n, B + 2, B + 2).
+
+        Neighbours not simulated give NaN, neighbours beyond the area zeros
+        (a frame's edge), as the whole area would give them.
+        """
+        b = NOISE_BLOCK
+        n = len(self)
+        clean = stack.copy()
+        for k in np.flatnonzero((self.h < b) | (self.w < b)):
+            # beyond the area: zeros, as past the edge of a frame
+            clean[k, self.h[k]:, :] = 0.0
+            clean[k, :, self.w[k]:] = 0.0
+        ext = np.concatenate([clean, np.full((1, b, b), np.nan), np.zeros((1, b, b))])
+        out = np.empty((n, b + 2, b + 2))
+        nb = self.neighbours
+        out[:, 1:-1, 1:-1] = clean
+        out[:, 0, 1:-1] = ext[nb[:, 0, 1], -1, :]
+        out[:, -1, 1:-1] = ext[nb[:, 2, 1], 0, :]
+        out[:, 1:-1, 0] = ext[nb[:, 1, 0], :, -1]
+        out[:, 1:-1, -1] = ext[nb[:, 1, 2], :, 0]
+        out[:, 0, 0] = ext[nb[:, 0, 0], -1, -1]
+        out[:, 0, -1] = ext[nb[:, 0, 2], -1, 0]
+        out[:, -1, 0] = ext[nb[:, 2, 0], 0, -1]
+        out[:, -1, -1] = ext[nb[:, 2, 2], 0, 0]
+        return out
+
+    def blank(self, stack: np.ndarray) -> np.ndarray:
+        """``stack`` with the pixels beyond the area NaN."""
+        for k in np.flatnonzero((self.h < NOISE_BLOCK) | (self.w < NOISE_BLOCK)):
+            stack[k, self.h[k]:, :] = np.nan
+            stack[k, :, self.w[k]:] = np.nan
+        return stack
 
 
 def active_pixels(active, origin, shape) -> np.ndarray:
@@ -438,10 +565,14 @@ class DetectorEffect:
 
     def streams(self, ctx: ChainContext, shape):
         """This effect's random streams over an image of ``shape``: :func:`block_streams`."""
+        if ctx.blocks is not None:
+            return ctx.blocks.streams(ctx.seed, self.name)
         return block_streams(ctx.seed, self.name, ctx.origin, shape, ctx.active)
 
     def fresh(self, ctx: ChainContext, image: np.ndarray) -> np.ndarray:
         """``image`` with the pixels of inactive blocks set to NaN (they are not simulated)."""
+        if ctx.blocks is not None:
+            return ctx.blocks.blank(image)
         if ctx.active is not None:
             image[~active_pixels(ctx.active, ctx.origin, image.shape)] = np.nan
         return image
@@ -723,6 +854,13 @@ class IPC(DetectorEffect):
         return roman_ipc_kernel() if k == "roman" else np.asarray(k, dtype=float)
 
     def sample(self, image, ctx):
+        if ctx.blocks is not None:
+            # each block with its neighbours' edge pixels, correlated as the whole area would be
+            from scipy import ndimage
+
+            framed = ctx.blocks.edges(image)
+            out = ndimage.correlate(framed, self.kernel()[None, :, :], mode="constant", cval=0.0)
+            return ctx.blocks.blank(np.ascontiguousarray(out[:, 1:-1, 1:-1]))
         return apply_ipc(image, self.kernel())
 
     def expectation(self, mean, ctx):
@@ -1089,7 +1227,7 @@ def _same_step(a: Effect, b: Effect) -> bool:
 
 def run_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
                sky_rate: Callable[[], float] | float = 0.0, persistence: dict | None = None,
-               origin=(1, 1), active=None) -> dict:
+               origin=(1, 1), active=None, blocks: BlockStack | None = None) -> dict:
     """:func:`run_chain` for several models of one exposure, sharing the steps they have in common.
 
     The same frame with and without persistence, or with two persistence
@@ -1105,6 +1243,9 @@ def run_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
     persistence : dict, optional
         Name -> the persistence charge (or a function giving it, or None) of
         that model; missing names: None.
+    blocks : BlockStack, optional
+        ``sources`` and the charges are stacks of these noise blocks, and so
+        are the results (:class:`BlockStack`).
     Others as for :func:`run_chain`.
 
     Returns
@@ -1121,7 +1262,8 @@ def run_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
             and all(_same_step(c[shared], chains[0][shared]) for c in chains) \
             and not (chains[0][shared].name == "persistence" and chains[0][shared].enabled):
         shared += 1
-    ctx0 = ChainContext(exptime=exptime, seed=seed, sky_rate=sky_rate, origin=tuple(origin), active=active)
+    ctx0 = ChainContext(exptime=exptime, seed=seed, sky_rate=sky_rate, origin=tuple(origin), active=active,
+                        blocks=blocks)
     img = np.array(sources, dtype=np.float64)
     state = _Steps()
     for eff in chains[0][:shared]:
@@ -1129,7 +1271,7 @@ def run_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
     out = {}
     for n, chain in zip(names, chains):
         ctx = ChainContext(exptime=exptime, seed=seed, sky_rate=ctx0.sky, persistence=persistence.get(n),
-                           origin=tuple(origin), active=active)
+                           origin=tuple(origin), active=active, blocks=blocks)
         ctx.used_sky_rate = ctx0.used_sky_rate
         branch = state.copy()
         mine = img.copy() if len(names) > 1 else img

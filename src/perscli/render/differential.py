@@ -30,7 +30,8 @@ import math
 import numpy as np
 
 from .. import PerscliError
-from ..detector.effects import NOISE_BLOCK, DetectorModel, Persistence, active_pixels, block_grid, run_chains
+from ..detector.effects import (NOISE_BLOCK, BlockStack, DetectorModel, Persistence, active_pixels, block_grid,
+                                run_chains)
 from .exposure import Exposure, Optics, draw_sources, plan_objects, read_truth
 
 log = logging.getLogger(__name__)
@@ -411,7 +412,7 @@ def star_light(truth: str, exposure: Exposure, floor: float = 0.0) -> np.ndarray
     return light
 
 
-def star_persistence(truth: str, final: Exposure, histories, laws: dict, boxes=None) -> dict:
+def star_persistence(truth: str, final: Exposure, histories, laws: dict, blocks=None, area=None) -> dict:
     """The persistence charge that the star light of ``histories`` leaves in ``final``, per law.
 
     The computation of ``perscli render --previous`` with the earlier
@@ -422,15 +423,17 @@ def star_persistence(truth: str, final: Exposure, histories, laws: dict, boxes=N
     ----------
     laws : dict
         Name -> (PersistenceModel, threshold, cap, floor).
-    boxes : sequence of (x0, x1, y0, y1), optional
-        Detector pixels (inclusive) where the charge is wanted (the rest of
-        the frame is 0): the law is per pixel, so a box's values are the
-        whole frame's there.
+    blocks : perscli.detector.effects.BlockStack, optional
+        Only these noise blocks of ``area`` (the simulation area around the
+        final's frame): the charge as a stack of them.  The law is per pixel,
+        so a block's values are the whole frame's there.
+    area : (x0, x1, y0, y1)
+        With ``blocks``.
 
     Returns
     -------
     dict
-        Name -> electrons per pixel of the final's frame.
+        Name -> electrons per pixel of the final's frame (or the stack of ``blocks``).
     """
     from ..detector.persistence import order_earlier, persistence_charge
     from ..io.frames import SECONDS_PER_DAY
@@ -444,108 +447,58 @@ def star_persistence(truth: str, final: Exposure, histories, laws: dict, boxes=N
     ends = [(h.end - final.mjd) * SECONDS_PER_DAY for h in histories]
     window = (final.end - final.mjd) * SECONDS_PER_DAY
     names = [f"earlier exposure {h.expid}" for h in histories]
-    xmin, xmax, ymin, ymax = final.full_bounds
-    shape = (ymax - ymin + 1, xmax - xmin + 1)
-    parts = [(slice(0, shape[0]), slice(0, shape[1]))] if boxes is None else \
-        [(slice(y0 - ymin, y1 - ymin + 1), slice(x0 - xmin, x1 - xmin + 1)) for x0, x1, y0, y1 in boxes]
+    from .run import pad_to
+
+    bounds = final.full_bounds
     lights, charges = {}, {}
 
-    def fluence(i, threshold, cap, floor, part, scratch):
+    def light(i, floor):
+        if (i, floor) not in lights:
+            value = star_light(truth, histories[i], floor)
+            # only the blocks simulated: the law on a few per cent of the frame
+            lights[(i, floor)] = value if blocks is None else \
+                blocks.gather(pad_to(value, bounds, area), fill=0.0, dtype=np.float32)
+        return lights[(i, floor)]
+
+    def fluence(i, threshold, cap, floor, scratch):
         # made when the law uses it, in one scratch array: fresh frames cost more in page faults than the law
-        return lambda: persisting_fluence(np.ascontiguousarray(lights[(i, floor)][part]), 1.0, threshold=threshold,
-                                          cap=cap, floor=floor, out=scratch)
+        return lambda: persisting_fluence(lights[(i, floor)], 1.0, threshold=threshold, cap=cap, floor=floor,
+                                          out=scratch)
 
     for name, (pmodel, threshold, cap, floor) in laws.items():
         keep, _ = order_earlier(ends, 0.0, pmodel, names)
-        for i in keep:
-            if (i, floor) not in lights:
-                lights[(i, floor)] = star_light(truth, histories[i], floor)
         if not histories:
             charges[name] = None
             continue
-        charge = np.zeros(shape) if boxes is not None else None
-        for part in parts:
-            scratch = np.empty((part[0].stop - part[0].start, part[1].stop - part[1].start), dtype=np.float32)
-            # exposures beyond the law's look-back or count are left out by persistence_charge: never called
-            fluences = [fluence(i, threshold, cap, floor, part, scratch) for i in range(len(histories))]
-            value = persistence_charge(fluences, ends, 0.0, window, pmodel)[0]
-            if charge is None:
-                charge = value
-            else:
-                charge[part] = value
-        charges[name] = charge
+        for i in keep:
+            light(i, floor)
+        shape = next(iter(lights.values())).shape if lights else (1,)
+        scratch = np.empty(shape, dtype=np.float32)
+        # exposures beyond the law's look-back or count are left out by persistence_charge: never called
+        fluences = [fluence(i, threshold, cap, floor, scratch) for i in range(len(histories))]
+        charges[name] = persistence_charge(fluences, ends, 0.0, window, pmodel)[0] if keep else None
     return charges
 
 
-#: noise blocks per side of the tiles :func:`render_final` simulates separately when persistence reaches
-#: little of the frame (each with one block of neighbours for interpixel capacitance)
-TILE_BLOCKS = 8
-#: above this fraction of active blocks the whole frame is simulated at once
-TILE_FRACTION = 0.25
+#: below this fraction of active blocks the chain runs on the stack of them rather than on the whole area
+STACK_FRACTION = 0.25
 
 
-def _tiles(active, area) -> list:
-    """Block-aligned tiles of ``area`` covering its active blocks, each grown by one block: (x0, x1, y0, y1)."""
-    ax0, ax1, ay0, ay1 = area
-    by0, bx0, nby, nbx = block_grid((ax0, ay0), (ay1 - ay0 + 1, ax1 - ax0 + 1))
-    out = []
-    for ty in range(0, nby, TILE_BLOCKS):
-        for tx in range(0, nbx, TILE_BLOCKS):
-            if not active[ty:ty + TILE_BLOCKS, tx:tx + TILE_BLOCKS].any():
-                continue
-            y0 = max(ay0, (by0 + ty - 1) * NOISE_BLOCK + 1)
-            y1 = min(ay1, (by0 + ty + TILE_BLOCKS + 1) * NOISE_BLOCK)
-            x0 = max(ax0, (bx0 + tx - 1) * NOISE_BLOCK + 1)
-            x1 = min(ax1, (bx0 + tx + TILE_BLOCKS + 1) * NOISE_BLOCK)
-            out.append((x0, x1, y0, y1))
-    return out
+def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, area, blocks=None) -> dict:
+    """Every model's SCI over ``area`` (NaN outside the active blocks).
 
-
-def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, area) -> dict:
-    """Every model's SCI over ``area`` (NaN outside the active blocks), tile by tile when they are few.
-
-    A tile is simulated with its neighbours' blocks (interpixel capacitance
-    reaches one pixel into them) and only its interior kept; noise is keyed
-    on blocks, so each pixel is the bits the whole area gives.
+    With ``blocks`` (few active blocks), the chain runs on the stack of them
+    (:class:`perscli.detector.effects.BlockStack`; ``charges`` are stacks
+    too) and the result is put back in the area; noise is keyed on blocks,
+    so each pixel is the bits the whole area gives.
     """
-    from .run import crop
-
-    shape = sources.shape
-    if active.mean() > TILE_FRACTION:
+    if blocks is None:
         results = run_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=sky_rate,
                              persistence=charges, origin=(area[0], area[2]), active=active)
         return {name: (r.sci, r.unit, r.sky_rate) for name, r in results.items()}
-    out = {name: np.full(shape, np.nan) for name in models}
-    unit = rate = None
-    ax0, _, ay0, _ = area
-    by0, bx0, _, _ = block_grid((ax0, ay0), shape)
-    sky = [None]
-
-    def sky_once():
-        if sky[0] is None:
-            sky[0] = float(sky_rate() if callable(sky_rate) else sky_rate)
-        return sky[0]
-
-    for tile in _tiles(active, area):
-        x0, x1, y0, y1 = tile
-        sub = (slice(y0 - ay0, y1 - ay0 + 1), slice(x0 - ax0, x1 - ax0 + 1))
-        tb = block_grid((x0, y0), (y1 - y0 + 1, x1 - x0 + 1))
-        sub_active = active[tb[0] - by0:tb[0] - by0 + tb[2], tb[1] - bx0:tb[1] - bx0 + tb[3]]
-        results = run_chains(sources[sub], models, exptime=exposure.exptime, seed=seed, sky_rate=sky_once,
-                             persistence={n: (c[sub] if c is not None else None) for n, c in charges.items()},
-                             origin=(x0, y0), active=sub_active)
-        # the tile's interior: all but the neighbours' blocks around it (its own edge pixels are complete)
-        inner = (slice(NOISE_BLOCK if y0 > ay0 else 0, (y1 - y0 + 1) - (NOISE_BLOCK if y1 < area[3] else 0)),
-                 slice(NOISE_BLOCK if x0 > ax0 else 0, (x1 - x0 + 1) - (NOISE_BLOCK if x1 < area[1] else 0)))
-        for name, r in results.items():
-            dest = out[name][sub][inner]
-            src = r.sci[inner]
-            dest[...] = src
-            unit, rate = r.unit, r.sky_rate
-    if unit is None:
-        unit = "DN" if models[""].enabled("gain") else "electron"
-        rate = sky_once()
-    return {name: (sci, unit, rate) for name, sci in out.items()}
+    results = run_chains(blocks.gather(sources), models, exptime=exposure.exptime, seed=seed, sky_rate=sky_rate,
+                         persistence=charges, origin=(area[0], area[2]), blocks=blocks)
+    return {name: (blocks.scatter(r.sci, dtype=np.float32), r.unit, r.sky_rate) for name, r in results.items()}
 
 
 def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, variants: dict, seed: int,
@@ -615,16 +568,17 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     sources = draw_sources(cols, exposure, optics=optics, plan=plan, bounds=area, only=drawn)[0] \
         if active.any() else np.zeros((area[3] - area[2] + 1, area[1] - area[0] + 1))
     charges = {}
+    blocks = BlockStack.of(active, (area[0], area[2]), sources.shape) \
+        if active.any() and active.mean() <= STACK_FRACTION else None
     if active.any() and histories:
         laws = {name: (vm.persistence_model(), *Persistence.fluence_input(vm)[1:], Persistence.floor(vm))
                 for name, vm in variants.items()}
-        boxes = None if active.mean() > TILE_FRACTION else \
-            _clip(np.array(_tiles(active, area), dtype=np.int64).reshape(-1, 4), bounds)
-        charges = {name: pad_to(charge, bounds, area)
-                   for name, charge in star_persistence(truth, exposure, histories, laws, boxes).items()}
+        charges = star_persistence(truth, exposure, histories, laws, blocks, area)
+        if blocks is None:
+            charges = {name: pad_to(charge, bounds, area) for name, charge in charges.items()}
     models = {"": model, **variants}
     results = _simulate(sources, models, charges, exposure=exposure, seed=seed, sky_rate=optics.sky_rate,
-                        active=active, area=area)
+                        active=active, area=area, blocks=blocks)
     ref = crop(results[""][0], area, bounds)
     inside = np.zeros(ref.shape, dtype=bool)
     for x0, x1, y0, y1 in windows[1]:
