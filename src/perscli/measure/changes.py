@@ -91,7 +91,7 @@ def _variant_view(path: str, variant: str):
 
 
 def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp: int = 48,
-                    min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1) -> dict:
+                    min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1, pixels=None) -> dict:
     """De of every galaxy of the sample between each variant and the reference, fitting only those that changed.
 
     Parameters
@@ -111,6 +111,10 @@ def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp
         As for ``perscli measure``.
     expids : sequence of int, optional
         Per final, its exposure id (the ``expid`` column of per-final rows).
+    pixels : sequence of dict, optional
+        Per final, its images and CHANGED table already in memory
+        (:func:`perscli.render.differential.render_final`'s ``pixels``): the
+        files then give only their headers.
     part : dict, optional
         Only the galaxies of a strip of the sky: ``ra0``, ``dec0`` (the
         tangent point, degrees), ``xi_lo``, ``xi_hi`` (standard coordinates,
@@ -139,10 +143,15 @@ def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp
         if part.get("xi_hi") is not None:
             subset &= xi < part["xi_hi"]
     changed = {v: [] for v in variants}
-    for path in finals:
+    for k, path in enumerate(finals):
         for v in variants:
             mask = np.zeros(len(cat["id"]), dtype=bool)
-            mask[[index[int(i)] for i in read_changed(path, v) if int(i) in index]] = True
+            if pixels is not None:
+                table = pixels[k]["CHANGED"]
+                ids = np.asarray(table["id"])[np.asarray(table[variant_extname(v)], dtype=bool)]
+            else:
+                ids = read_changed(path, v)
+            mask[[index[int(i)] for i in ids if int(i) in index]] = True
             changed[v].append(mask & subset)
     kw = dict(stamp=stamp, min_snr=min_snr, workers=workers)
     parts = {v: [] for v in variants}
@@ -159,14 +168,17 @@ def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp
 
         for k, path in enumerate(finals):
             expid = int(expids[k]) if expids is not None else k
+            mine = pixels[k] if pixels is not None else None
             with open_frame(f"{path}[SCI]") as frame:
                 # the reference and its variants are one frame: one PSF model for all of them
                 models = {}
+                base = mine["SCI"] if mine is not None else None
                 ref = measure_frame(frame, cat, only=np.logical_or.reduce([changed[v][k] for v in variants]),
-                                    models=models, **kw)
+                                    models=models, data=base, **kw)
                 for v in variants:
-                    var = measure_frame(frame, cat, only=changed[v][k], data=_variant_view(path, v)(), models=models,
-                                        **kw)
+                    view = np.where(np.isfinite(mine[variant_extname(v)]), mine[variant_extname(v)], base) \
+                        if mine is not None else _variant_view(path, v)()
+                    var = measure_frame(frame, cat, only=changed[v][k], data=view, models=models, **kw)
                     parts[v].append(_assemble(cat, ref, var, subset, expid, e1_true, e2_true))
     out = {}
     for v in variants:
@@ -220,7 +232,7 @@ def _rows_of(cat, ids) -> np.ndarray:
 
 def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = True, stamp: int = 48,
                   min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1, overwrite: bool = True,
-                  header=None) -> dict:
+                  header=None, pixels=None) -> dict:
     """:func:`measure_changes` of each variant, written into ``dest``: one table per variant, named after it.
 
     Parameters
@@ -251,7 +263,7 @@ def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = Tr
     primary = OutHDU([])
     hdus, counts = [primary], {}
     measured = measure_changes(finals, variants, catalog, joint=joint, stamp=stamp, min_snr=min_snr, expids=expids,
-                               part=part, workers=workers)
+                               part=part, workers=workers, pixels=pixels)
     for variant in variants:
         cols = measured[variant]
         c = counts[variant] = cols.pop("_counts")

@@ -502,7 +502,8 @@ def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, are
 
 
 def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, variants: dict, seed: int,
-                 histories=(), rows=None, stamp: int = 48, compress: str = "gzip", overwrite: bool = False) -> dict:
+                 histories=(), rows=None, stamp: int = 48, compress: str = "gzip", overwrite: bool = False,
+                 pixels: dict | None = None) -> dict:
     """The reference and every variant of a final exposure, on the stamps of ``rows`` only; write ``dest``.
 
     Parameters
@@ -534,6 +535,10 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         The largest stamp ``perscli measure`` cuts.
     compress, overwrite
         As for :func:`perscli.render.run.render_file`.
+    pixels : dict, optional
+        Filled with the images and the CHANGED table as arrays (``SCI``, each
+        variant's EXTNAME, ``CHANGED``) for a caller that measures them right
+        away; ``dest`` then holds the reference, MODEL and CHANGED only.
 
     Returns
     -------
@@ -612,7 +617,7 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         ref_out, extname="SCI"))
     from ..measure.changes import CHANGED_EXTNAME, variant_extname
 
-    for name, vm in variants.items():
+    for name, vm in variants.items() if pixels is None else ():
         pm = vm.persistence_model()
         out.append(OutHDU(frame_cards + region + [
             format_card("CONTENT", f"variant {name}", "NaN where it equals SCI: only changed stamps"),
@@ -631,6 +636,9 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         if k <= 99:
             out[0][f"PRV{k:02d}ID"] = (int(h.expid), f"earlier exposure, ended MJD {h.end:.6f}")
     write_hdus(out, dest, overwrite=overwrite, compress=compress)
+    if pixels is not None:
+        pixels.update({"SCI": ref_out, "CHANGED": table,
+                       **{variant_extname(n): var_out[n] for n in variants}})
     return {"rows": int(len(windows[0])), "objects": int(np.count_nonzero(drawn)), "blocks": int(active.sum()),
             "block_fraction": float(active.mean()) if active.size else 0.0,
             "changed": {n: int(c.sum()) for n, c in changed.items()}}

@@ -250,13 +250,16 @@ def _final(study_dir, p, out):
     # fitted per exposure: each final rendered to a scratch file beside the output, measured, and dropped
     from ..measure.changes import write_changes
 
-    frames, rec = [], {"galaxies": 0, "objects": 0, "blocks": 0, "frames": len(rows_of)}
+    frames, arrays, rec = [], [], {"galaxies": 0, "objects": 0, "blocks": 0, "frames": len(rows_of)}
     try:
         for expid, (exposure, history, rows, seed) in rows_of.items():
             frame = f"{out}.{os.getpid()}.e{expid:06d}.fits"
             frames.append(frame)
+            arrays.append({})
+            # the scratch file gives the headers; the pixels stay in memory
             summary = render_final(truth, exposure, frame, model=model, variants=variants, seed=seed,
-                                   histories=history, rows=rows, stamp=p["stamp"], compress="none", overwrite=True)
+                                   histories=history, rows=rows, stamp=p["stamp"], compress="none", overwrite=True,
+                                   pixels=arrays[-1])
             for key in ("galaxies", "objects", "blocks"):
                 rec[key] += summary["rows" if key == "galaxies" else key]
         header = {"NONFRAME": (reach["on"], "galaxy-final pairs with the stamp on the final"),
@@ -264,7 +267,7 @@ def _final(study_dir, p, out):
                   "FPIXRCH": (round(float(np.mean(reach["fractions"])), 6),
                               "mean fraction of the finals' pixels persistence can reach")}
         counts = write_changes(frames, list(variants), truth, out, joint=False, stamp=measure["stamp"],
-                               min_snr=measure["min_snr"], expids=list(rows_of), header=header)
+                               min_snr=measure["min_snr"], expids=list(rows_of), header=header, pixels=arrays)
         rec.update(sample=counts["sample"], fitted=counts["fitted"])
         return rec
     finally:
