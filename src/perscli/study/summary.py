@@ -360,9 +360,10 @@ def _write_bytes(path: str, data: bytes) -> None:
 def project(tasks, measured: dict) -> dict:
     """The cost of a task graph from the per-product costs another run measured (its cost.json).
 
-    Renders cost what they cost per task (one SCA-exposure each); measure
-    tasks are scaled by the number of frames they read, since their cost is
-    per galaxy and galaxies per frame do not depend on the study's size.
+    Renders and finals cost what they cost per task (one SCA-exposure, or a
+    chunk of finals, each); measure, regions and correlate tasks are scaled
+    by the number of frames or tables they read, since their cost is per
+    galaxy and galaxies per frame do not depend on the study's size.
 
     Returns
     -------
@@ -372,7 +373,9 @@ def project(tasks, measured: dict) -> dict:
     need = {}
     for t in tasks:
         kind = _cost_kind(t["kind"], t["key"], t["params"].get("hdus", []))
-        units = len(t["params"].get("frames", t["params"].get("finals", []))) if kind in ("measure", "changes", "regions") else 1
+        scaled = kind in ("measure", "changes", "regions", "correlate")
+        units = len(t["params"].get("frames", t["params"].get("finals", t["params"].get("tables", [])))) \
+            if scaled else 1
         need[kind] = need.get(kind, 0) + max(1, units)
     cpu = bytes_ = 0.0
     per = {}
@@ -380,7 +383,8 @@ def project(tasks, measured: dict) -> dict:
         m = measured.get(kind)
         if not m:
             continue
-        units = m["tasks"] if kind not in ("measure", "changes", "regions") else max(1, m.get("frames", m["tasks"]))
+        units = m["tasks"] if kind not in ("measure", "changes", "regions", "correlate") else \
+            max(1, m.get("frames", m["tasks"]))
         c, b = m["cpu_s"] / units, m["bytes"] / units
         per[kind] = {"units": n, "cpu_s_each": c, "bytes_each": b}
         cpu += n * c

@@ -294,9 +294,9 @@ def _correlate(study_dir, p, out):
                   thresholds=tuple(p["thresholds"]), seed=p["seed"], plots_dir=figures, overwrite=True)
     if "tables" in p:
         # the differential study's shape changes: one row per galaxy of the sample, De in columns
-        correlate_files([os.path.join(study_dir, t) for t in p["tables"]], out, de_columns=("de1", "de2"),
-                        **common)
-        return
+        summary = correlate_files([os.path.join(study_dir, t) for t in p["tables"]], out, de_columns=("de1", "de2"),
+                                  **common)
+        return {"frames": len(p["tables"]), "galaxies": int(summary["n"])}
     pairs = [(os.path.join(study_dir, a), os.path.join(study_dir, b)) for a, b in p["pairs"]]
     correlate_files([], out, pairs=pairs, **common)
 
