@@ -48,6 +48,10 @@ class Exposure:
         The simulated file paired with it.
     offsets : tuple
         (LTV1, LTV2) of the measured frame, when present.
+    valid : ndarray of bool, optional
+        Pixels that see the sky: False for a WFC3-IR raw or ima frame's
+        5-pixel border of reference pixels and for pixels with a DQ flag in
+        any read (they are left out of every fit, gap and estimate).
     """
 
     label: str
@@ -64,6 +68,7 @@ class Exposure:
     offsets: tuple = (None, None)
     datasum: int = 0
     extra: dict = field(default_factory=dict)
+    valid: np.ndarray | None = None
 
     @property
     def is_ramp(self) -> bool:
@@ -85,6 +90,22 @@ def _counts(frame) -> tuple:
                 raise PerscliError(f"{frame.label}: a rate image without EXPTIME; give --exptime")
             planes = [p * frame.exptime for p in planes]
     return np.stack(planes), ("DN" if is_dn else "electron")
+
+
+def _valid_pixels(frame, shape) -> tuple:
+    """(pixels that see the sky, number of reference pixels, number DQ-flagged) of a measured frame."""
+    valid = np.ones(shape, dtype=bool)
+    border = frame.reference_border if frame.section is None else 0
+    if border:
+        valid[:border] = valid[-border:] = False
+        valid[:, :border] = valid[:, -border:] = False
+    nref = int((~valid).sum())
+    dq = [h for h in frame.hdus if h.name == "DQ" and h.is_image and h.shape and tuple(h.shape[-2:]) == tuple(shape)]
+    flagged = np.zeros(shape, dtype=bool)
+    for h in dq:
+        flagged |= np.asarray(h.read()).reshape((-1,) + tuple(shape)).any(axis=0) != 0
+    valid &= ~flagged
+    return valid, nref, int((flagged & (valid | ~valid)).sum())
 
 
 def read_measured(names, *, gain=None, exptime=None) -> list:
@@ -111,11 +132,15 @@ def read_measured(names, *, gain=None, exptime=None) -> list:
             bad = ~np.isfinite(data)
             if bad.all():
                 raise PerscliError(f"{frame.label}: no finite pixel")
+            valid, nref, ndq = _valid_pixels(frame, data.shape[-2:])
+            if not valid.any():
+                raise PerscliError(f"{frame.label}: every pixel is a reference pixel or flagged in DQ")
             exposure = Exposure(label=frame.label, start=frame.start, end=frame.end,
                                 exptime=float(frame.exptime or (frame.end - frame.start) * SECONDS_PER_DAY),
                                 data=data, counts=counts, gain=frame.gain, read_times=read_times,
                                 offsets=(frame.keyword("LTV1"), frame.keyword("LTV2")),
-                                datasum=frame.datasum(frame.sci[-1]))
+                                datasum=frame.datasum(frame.sci[-1]), valid=valid)
+            exposure.extra.update(reference_pixels=nref, dq_flagged=ndq)
             out.append(exposure)
     out.sort(key=lambda e: e.start)
     shapes = {e.data.shape[-2:] for e in out}

@@ -168,6 +168,8 @@ class Problem:
             mean, var = fw.mean[sl], fw.variance[sl]
             data = exp.data[-1][rows][sl]
             mask = np.isfinite(data) & (var > 0) & np.isfinite(mean)
+            if exp.valid is not None:
+                mask &= exp.valid[rows][sl]
             start = (rows.start or 0) + keep0
             yield slice(start, start + (keep1 - keep0)), mean, np.where(mask, var, 1.0), data, mask
 

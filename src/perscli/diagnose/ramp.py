@@ -38,8 +38,12 @@ def ramp_model(exposures) -> DetectorModel:
     gain = float(exp.gain) if exp.counts == "DN" and exp.gain else 1.0
     first, last = exp.data[0], exp.data[-1]
     # pixels faint over the whole ramp (chosen by their last read, so that the first difference's own
-    # scatter is not truncated by the choice): read 1 minus read 0 is then the read noise of two reads
-    faint = np.isfinite(first) & np.isfinite(last) & (last <= np.nanquantile(last, 0.2))
+    # scatter is not truncated by the choice): read 1 minus read 0 is then the read noise of two reads.
+    # Only pixels that see the sky: a WFC3-IR frame's reference pixels are quieter (7.9 e- against 13 e-
+    # per read in ibh7a7lsq) and would be most of the faintest fifth
+    valid = exp.valid if exp.valid is not None else np.ones(last.shape, dtype=bool)
+    usable = valid & np.isfinite(first) & np.isfinite(last)
+    faint = usable & (last <= np.nanquantile(np.where(usable, last, np.nan), 0.2))
     spread = 1.4826 * np.nanmedian(np.abs(first[faint] - np.nanmedian(first[faint]))) if faint.any() else 1.0
     sigma = max(float(spread) * gain / np.sqrt(2.0), 0.1)
     effects = [Effect("poisson", {}), Effect("nonlinearity", {"beta": 0.0}), Effect("read_noise", {"sigma": sigma}),
@@ -62,15 +66,16 @@ class RampProblem:
                                    "least 4 (a reference read and later ones)")
         self.shape = self.exposures[0].data.shape[-2:]
         self.fit_pixels = fit_pixels
-        self.masks = [np.ones(self.shape, dtype=bool) for _ in self.exposures]
+        self.masks = [e.valid.copy() if e.valid is not None else np.ones(self.shape, dtype=bool)
+                      for e in self.exposures]
         start = ramp_model(self.exposures)
         ev = self.evaluate(start, full=True)
         self.jumps = 0
         for i, exp in enumerate(self.exposures):
             r = [np.abs(ev.data[k] - ev.mean[k]) / np.sqrt(ev.variance[k]) for k in self._pieces(i)]
             worst = np.max(np.stack(r), axis=0)
-            jump = ~(worst < JUMP_SIGMA)
-            self.masks[i] = ~jump & np.all(np.isfinite(exp.data), axis=0)
+            jump = ~(worst < JUMP_SIGMA) & self.masks[i]
+            self.masks[i] &= ~jump & np.all(np.isfinite(exp.data), axis=0)
             self.jumps += int(jump.sum())
 
     def _pieces(self, i):
