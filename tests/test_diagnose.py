@@ -222,19 +222,3 @@ def test_errors(scene, simulated, tmp_path):
     result = run("diagnose", *measured, "-o", os.path.dirname(measured[0]), "--overwrite", code=1)
     assert "holds the input" in result.stderr
     assert not [p for p in os.listdir(scene["dir"]) if p.startswith(".perscli-")]
-
-
-def test_wfc3_ramps_self_predicted(shared_data, tmp_path):
-    """The real grism ramps: changing illumination (jumps) is masked and counted, and whatever is named
-    closes the gap it is credited with; the report says what each candidate closes."""
-    raw = shared_data / "wfc3" / "ibh7a7lsq_raw.fits"
-    run("diagnose", raw, "-o", tmp_path / "w")
-    with open(tmp_path / "w" / "report.json") as fh:
-        report = json.load(fh)
-    assert report["mode"] == "self-predicted" and report["jumps_masked"] > 0
-    assert report["gap_before"] > 1.5
-    for e in report["found"]:
-        assert e["fraction_of_gap_closed"] >= 0.01
-        assert e["note"] == ""
-    assert {c["effect"] for c in report["candidates"]} == {"nonlinearity", "read_noise", "gain"}
-    assert abs(report["gap_after"] - 1.0) < abs(report["gap_before"] - 1.0)

@@ -57,11 +57,14 @@ def test_only_the_active_blocks_are_simulated_and_they_are_the_whole_frames_pixe
     assert np.isfinite(part.sci[core]).all()
 
 
-def test_a_stack_of_blocks_gives_the_pixels_of_the_whole_area():
-    """The chain on a stack of scattered noise blocks, interpixel capacitance through their neighbours."""
-    from perscli.detector.effects import BlockStack
+@pytest.mark.parametrize("extra", [(), ("brighter_fatter.coefficient=3e-8", "correlated_read_noise.row=2",
+                                    "correlated_read_noise.column=1.5")], ids=["roman", "bf_and_correlated"])
+def test_a_stack_of_blocks_gives_the_pixels_of_the_whole_area(extra):
+    """The chain on a stack of scattered noise blocks, interpixel capacitance and brighter-fatter through their
+    neighbours, row and column noise by their place on the detector."""
+    from perscli.detector.effects import BlockStack, load_detector_model
 
-    model = default_model()
+    model = load_detector_model("roman", list(extra))
     # the detector's far corner: its last row and column of blocks are partial (4088 = 127 x 32 + 24)
     origin = (32 * 122 + 1, 32 * 124 + 1)
     img = _sources((4088 - origin[1] + 1, 4088 - origin[0] + 1))
@@ -235,3 +238,30 @@ def test_the_differential_study_gives_every_galaxy_the_full_computations_de(tmp_
         assert 0 < ch["fitted"].sum() < len(ch)                          # some fitted, most not
         assert nonzero > 0
     assert res["measured_fraction"] < 0.5
+
+
+def test_brighter_fatter_conserves_charge_and_widens_bright_sources_only():
+    from perscli.detector.effects import ChainContext, REGISTRY
+
+    img = np.zeros((21, 21))
+    img[10, 10], img[10, 9], img[10, 11], img[9, 10], img[11, 10] = 9e4, 3e4, 3e4, 3e4, 3e4
+    bf = REGISTRY["brighter_fatter"]({"coefficient": 4e-8})
+    bright = bf.expectation(img, ChainContext(exptime=1.0))
+    faint = bf.expectation(img * 1e-2, ChainContext(exptime=1.0))
+    assert bright.sum() == pytest.approx(img.sum(), rel=1e-12)
+    assert bright[10, 10] < img[10, 10] and bright[9, 9] > 0           # charge pushed outwards
+    # the flow goes as the charge squared: a source 100 times fainter moves 1e4 times less charge
+    assert abs(faint[10, 10] - img[10, 10] * 1e-2) == pytest.approx(abs(bright[10, 10] - img[10, 10]) * 1e-4,
+                                                                   rel=1e-9)
+
+
+def test_correlated_read_noise_is_shared_by_rows_and_columns():
+    from perscli.detector.effects import ChainContext, REGISTRY
+
+    eff = REGISTRY["correlated_read_noise"]({"row": 3.0, "column": 0.0})
+    img = eff.sample(np.zeros((400, 300)), ChainContext(exptime=1.0, seed=4))
+    assert np.all(img == img[:, :1])                       # one offset per row
+    assert img[:, 0].std() == pytest.approx(3.0, rel=0.15)
+    # a cutout gets its rows' offsets whatever the area simulated
+    part = eff.sample(np.zeros((50, 20)), ChainContext(exptime=1.0, seed=4, origin=(11, 101)))
+    np.testing.assert_array_equal(part, img[100:150, 10:30])

@@ -308,3 +308,22 @@ def test_persistence_models_by_name_or_file_are_checked_before_anything_runs(tmp
         load_study(None, preset="ci", overrides=["persistence.models=[nomodel]"])
     with pytest.raises(PerscliError, match="read_noise"):
         load_study(None, preset="ci", overrides=["render.set=[read_noise.sigma=-3]"])
+
+
+def test_half_written_files_of_a_killed_run_are_removed_before_the_next(tmp_path):
+    from perscli.study.runner import remove_stale_parts
+
+    d = tmp_path / "s"
+    (d / "records").mkdir(parents=True)
+    (d / "shapes").mkdir()
+    dead = d / "records" / "a.json.999999999.part"          # no such process
+    alive = d / "records" / f"b.json.{os.getppid()}.part"   # a running process's
+    writer = d / "shapes" / ".perscli-abc123.part.fits"
+    folder = d / ".perscli-diagnose-xyz"
+    for p in (dead, alive, writer):
+        p.write_text("half")
+    folder.mkdir()
+    (d / "shapes" / "done.fits").write_text("whole")
+    assert remove_stale_parts(str(d)) == 3
+    assert not dead.exists() and not writer.exists() and not folder.exists()
+    assert alive.exists() and (d / "shapes" / "done.fits").exists()

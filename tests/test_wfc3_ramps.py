@@ -106,3 +106,46 @@ def test_a_subarray_of_another_size_is_placed_by_ltv_not_refused(shared_data, tm
     inside = np.zeros(last.shape, dtype=bool)
     inside[64 + 5:64 + 133, 64 + 5:64 + 133] = True
     assert np.all(last[~inside] == 0) and np.count_nonzero(last[inside]) > 0.9 * inside.sum()
+
+
+def _photon_transfer_read_noise(shared_data):
+    """The read noise of one read, e-, from the two XO-1 ramps' first reads (independently of perscli): the
+    difference of their (read 1 - read 0) images holds four reads' noise and almost no signal."""
+    cds = []
+    for name in (EARLIER, LATER):
+        reads, _ = reads_in_time_order(shared_data / "wfc3" / name)
+        cds.append((reads[1] - reads[0])[5:-5, 5:-5])
+    d = (cds[0] - cds[1]).ravel()
+    for _ in range(5):
+        d = d[np.abs(d - d.mean()) < 4 * d.std()]
+    return float(np.sqrt(d.var() / 4.0)) * 2.5
+
+
+@pytest.mark.parametrize("files", [[OTHER], [LATER], [EARLIER, LATER]], ids=["ibh7a7lsq", "ibxy04s4q", "pair"])
+def test_diagnose_keeps_the_header_gain_and_measures_the_read_noise(shared_data, tmp_path, files):
+    """The real grism ramps: no effect is named with a gain far from the header's 2.5 e-/DN, the read noise
+    agrees with a photon-transfer estimate, and what the ramps hold that no candidate describes (light
+    that changes during a grism time series, hot pixels, 1/f noise) is said, not absorbed."""
+    import json
+
+    from perscli.detector.effects import load_detector_model
+
+    out = tmp_path / "w"
+    result = CliRunner().invoke(cli, ["diagnose", *[str(shared_data / "wfc3" / f) for f in files], "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "report.json").read_text())
+    assert report["mode"] == "self-predicted" and report["jumps_masked"] > 0
+    model = load_detector_model(str(out / "model.yaml"))
+    gain = model.value("gain", "gain")
+    assert abs(gain / 2.5 - 1.0) <= 0.05, (gain, report["verdict"])
+    for e in report["found"]:
+        assert e["effect"] != "gain" or abs(e["params"]["gain"] / 2.5 - 1.0) <= 0.05
+    # the reads hold no photon-transfer case: the report says the header gain is kept
+    assert "header gain is kept" in report["photon_transfer"]["verdict"]
+    reference = _photon_transfer_read_noise(shared_data)
+    assert 13.0 < reference < 18.0          # WFC3-IR: ~21-23 e- CDS, 15-16 e- a read
+    assert abs(model.value("read_noise", "sigma") / reference - 1.0) <= 0.15, \
+        (model.value("read_noise", "sigma"), reference)
+    assert report["unexplained"] and "unexplained" in report["verdict"]
+    if len(files) > 1:
+        assert "persistence" in {c["effect"] for c in report["candidates"]}

@@ -797,6 +797,63 @@ class Persistence(DetectorEffect):
         return source, threshold, None if cap is None else float(cap)
 
 
+def _framed(image: np.ndarray, ctx: "ChainContext") -> np.ndarray:
+    """The image (or each block of a stack) with a one-pixel frame of its neighbours (zeros past the area)."""
+    if ctx.blocks is not None:
+        return ctx.blocks.edges(image)
+    return np.pad(np.asarray(image, dtype=np.float64), 1)
+
+
+def brighter_fatter_flow(framed: np.ndarray, coefficient: float) -> np.ndarray:
+    """The charge each pixel gains from its four neighbours under the brighter-fatter effect.
+
+    Charge already collected repels what follows, so the boundary between
+    two pixels moves towards the fainter one by an amount proportional to
+    their difference, and the charge crossing it is proportional to that
+    shift times their mean: ``coefficient / 2 * (q_j^2 - q_i^2)`` flows
+    from pixel j into pixel i (first order in the charge; conserves charge
+    inside the area).
+
+    Parameters
+    ----------
+    framed : ndarray, shape (..., ny + 2, nx + 2)
+        Collected electrons with a one-pixel frame of neighbours.
+    coefficient : float
+        Per electron.
+
+    Returns
+    -------
+    ndarray, shape (..., ny, nx)
+    """
+    sq = np.square(np.nan_to_num(framed, nan=0.0))
+    centre = sq[..., 1:-1, 1:-1]
+    flow = (sq[..., :-2, 1:-1] + sq[..., 2:, 1:-1] + sq[..., 1:-1, :-2] + sq[..., 1:-1, 2:]) - 4.0 * centre
+    return 0.5 * coefficient * flow
+
+
+@register
+class BrighterFatter(DetectorEffect):
+    name = "brighter_fatter"
+    default_enabled = False
+    description = ("the brighter-fatter effect: collected charge pushes later charge to the neighbours, "
+                   "coefficient/2 (q_j^2 - q_i^2) between nearest neighbours; off in the Roman model")
+    schema = (Param("coefficient", "float", 0.0, "1/e-", "boundary shift per electron of difference (H2RG/H4RG: "
+                    "a few 1e-8 gives ~1% of a 1e5 e- peak)", lo=0.0),)
+
+    def _apply(self, image, ctx):
+        flow = brighter_fatter_flow(_framed(image, ctx), self.p["coefficient"])
+        out = image + flow
+        return ctx.blocks.blank(out) if ctx.blocks is not None else out
+
+    def sample(self, image, ctx):
+        return self._apply(image, ctx)
+
+    def expectation(self, mean, ctx):
+        return self._apply(np.asarray(mean, dtype=np.float64), ctx)
+
+    # the variance: the flow moves a few per cent of the charge, its noise with it; first order unchanged
+
+
 #: the full well of Roman's H4RG-10 pixels, electrons (see README: detector model)
 FULL_WELL = ROMAN_FULL_WELL
 
@@ -847,11 +904,26 @@ class IPC(DetectorEffect):
     stage = "readout"
     description = "interpixel capacitance: each pixel receives fractions of its neighbours' signal"
     schema = (Param("kernel", "kernel", "roman", "", "3x3 kernel: 'roman' (galsim.roman.ipc_kernel) or a list; "
-                    "kernel[j][i] is what a pixel receives from its neighbour at (i-1, j-1)"),)
+                    "kernel[j][i] is what a pixel receives from its neighbour at (i-1, j-1)"),
+              Param("alpha", "float", None, "", "mean coupling to the 4 nearest neighbours (what diagnose reports): "
+                    "the kernel's couplings scaled to it, charge conserved", lo=0.0, hi=0.2,
+                    derived="the kernel's own"))
 
     def kernel(self) -> np.ndarray:
         k = self.p["kernel"]
-        return roman_ipc_kernel() if k == "roman" else np.asarray(k, dtype=float)
+        k = roman_ipc_kernel() if k == "roman" else np.asarray(k, dtype=float)
+        alpha = self.p.get("alpha")
+        if alpha is not None:
+            off = k.copy()
+            off[1, 1] = 0.0
+            nn = (off[0, 1] + off[1, 0] + off[1, 2] + off[2, 1]) / 4.0
+            if nn <= 0:
+                raise PerscliError("ipc.alpha: the kernel has no nearest-neighbour coupling to scale; give "
+                                   "ipc.kernel as a list instead")
+            off *= alpha / nn
+            k = off
+            k[1, 1] = 1.0 - off.sum()
+        return k
 
     def sample(self, image, ctx):
         if ctx.blocks is not None:
@@ -885,6 +957,51 @@ class ReadNoise(DetectorEffect):
 
     def variance(self, mean, var, ctx):
         return var + self.p["sigma"] ** 2
+
+
+@register
+class CorrelatedReadNoise(DetectorEffect):
+    name = "correlated_read_noise"
+    stage = "readout"
+    default_enabled = False
+    description = ("read noise shared by whole rows and by whole columns (the white row and column components "
+                   "of correlated noise, bias drifts); off in the Roman model")
+    schema = (Param("row", "float", 0.0, "e-", "rms of the offset common to a detector row", lo=0.0),
+              Param("column", "float", 0.0, "e-", "rms of the offset common to a detector column", lo=0.0))
+
+    #: offsets are drawn for this many rows and columns from the detector's first, whatever the area:
+    #: a pixel gets its row's and column's offsets whether a frame, a cutout or blocks are simulated
+    LINES = 4096
+
+    def _offsets(self, ctx, which: int, sigma: float, needed: int) -> np.ndarray:
+        bits = np.random.Philox(key=[int(ctx.seed) & 0xFFFFFFFFFFFFFFFF, zlib.crc32(self.name.encode())])
+        bits.state = {**bits.state, "state": {**bits.state["state"],
+                                              "counter": np.array([0, 0, which, 0], dtype=np.uint64)}}
+        # draws of one stream: the first n of a longer draw are the draw of n
+        return np.random.Generator(bits).normal(0.0, sigma, size=max(self.LINES, needed))
+
+    def sample(self, image, ctx):
+        if self.p["row"] <= 0 and self.p["column"] <= 0:
+            return image
+        if ctx.blocks is not None:
+            st = ctx.blocks
+            rows = st.by[:, None] * NOISE_BLOCK + np.arange(NOISE_BLOCK)[None, :]
+            cols = st.bx[:, None] * NOISE_BLOCK + np.arange(NOISE_BLOCK)[None, :]
+            r = self._offsets(ctx, 1, self.p["row"], int(rows.max()) + 1)[rows]
+            c = self._offsets(ctx, 2, self.p["column"], int(cols.max()) + 1)[cols]
+            image += r[:, :, None] + c[:, None, :]
+            return image
+        x0, y0 = int(ctx.origin[0]) - 1, int(ctx.origin[1]) - 1
+        ny, nx = image.shape
+        r = self._offsets(ctx, 1, self.p["row"], y0 + ny)[y0:y0 + ny]
+        c = self._offsets(ctx, 2, self.p["column"], x0 + nx)[x0:x0 + nx]
+        image += r[:, None] + c[None, :]
+        return image
+
+    def variance(self, mean, var, ctx):
+        # the marginal variance of one pixel; the covariance along rows and columns is what
+        # diagnose's row and column statistics test
+        return var + self.p["row"] ** 2 + self.p["column"] ** 2
 
 
 @register

@@ -9,12 +9,13 @@ registered in :mod:`perscli.detector.effects` with ``@register``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
-from ..detector.effects import DetectorModel, roman_ipc_kernel
+from ..detector.effects import DetectorModel
 from .likelihood import with_effect
 
 
@@ -43,8 +44,11 @@ class Candidate:
     applies : callable
         ``applies(exposures) -> bool``: whether the data can constrain it.
     fit : callable, optional
-        ``fit(problem, model) -> (value, error, model, nparams)`` for a
-        candidate fitted its own way (instead of a one-parameter search).
+        ``fit(problem, model) -> (value, error, model, nparams[, more])`` for
+        a candidate fitted its own way (instead of a one-parameter search);
+        ``more`` may give ``delta_chi2`` (when the improvement is not that of
+        the pixels' likelihood) and ``extra``/``extra_errors`` (its other
+        parameters).
     """
 
     name: str
@@ -96,8 +100,7 @@ _CROSS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
 def _kernel(model) -> np.ndarray | None:
     if not model.enabled("ipc"):
         return None
-    k = model.value("ipc", "kernel")
-    return roman_ipc_kernel() if k == "roman" else np.asarray(k, dtype=float)
+    return model.get("ipc").instance().kernel()
 
 
 def _get_ipc(model, exposures):
@@ -114,7 +117,7 @@ def _put_ipc(model, value):
     off = shape * (float(value) / nn)
     kernel = off.copy()
     kernel[1, 1] = 1.0 - off.sum()      # charge is conserved, as in the Roman kernel
-    return with_effect(model, "ipc", {"kernel": kernel.tolist()})
+    return with_effect(model, "ipc", {"kernel": kernel.tolist(), "alpha": None})
 
 
 _OFFSETS = [(j, i) for j in range(3) for i in range(3) if (j, i) != (1, 1)]
@@ -140,7 +143,8 @@ def _fit_ipc(problem, model):
         kernel[1, 1] = 0.0
         kernel[j, i] = 1.0
         # the kernel e_j - e_centre + delta = e_j: what one unit of coupling to neighbour j adds
-        columns.append([m - m0 for m, m0 in zip(problem.evaluate(with_effect(model, "ipc", {"kernel": kernel.tolist()})).mean,
+        columns.append([m - m0 for m, m0 in zip(problem.evaluate(with_effect(model, "ipc", {"kernel": kernel.tolist(),
+                                                                                             "alpha": None})).mean,
                                                  ev0.mean)])
     ata = np.zeros((8, 8))
     atb = np.zeros(8)
@@ -159,7 +163,11 @@ def _fit_ipc(problem, model):
     kernel[1, 1] = 1.0 - k.sum()
     alpha = float(np.mean(k[_NN]))
     error = float(np.sqrt(max(np.sum(cov[np.ix_(_NN, _NN)]) / 16.0, 0.0)))
-    return alpha, error, with_effect(model, "ipc", {"kernel": kernel.tolist()}), 8
+    # the decision is on alpha, the parameter reported (one degree of freedom: a change of the coupling's
+    # strength, the shape fitted with it); a test of all 8 couplings would need 8 times the evidence
+    wald = ((alpha - _get_ipc(model, None)) / error) ** 2 if error > 0 else 0.0
+    return alpha, error, with_effect(model, "ipc", {"kernel": kernel.tolist(), "alpha": None}), 1, \
+        {"delta_chi2": wald}
 
 
 # -- gain: only when the measured frames are in DN ---------------------------------------------------
@@ -173,6 +181,25 @@ def _get_gain(model, exposures):
 
 def _dn(exposures):
     return any(e.counts == "DN" for e in exposures)
+
+
+# -- correlated read noise: its row and column variances from the residual rows' and columns' means ------
+
+def _fit_correlated(problem, model):
+    """The row and column components of the read noise, each the variance the lines' mean residuals have
+    beyond white noise (maximum likelihood; the diagonal likelihood cannot see them, so the improvement is
+    that of the lines' likelihood, two parameters)."""
+    from .checks import line_means, line_variance_fit
+
+    base = with_effect(model, "correlated_read_noise", {"row": 0.0, "column": 0.0})
+    lines = line_means(problem, problem.evaluate(base), base)
+    g = float(np.mean(lines["gain"])) if lines["gain"] else 1.0
+    rv, drow, erow = line_variance_fit(lines["row"])
+    cv, dcol, ecol = line_variance_fit(lines["column"])
+    row, column = math.sqrt(rv) * g, math.sqrt(cv) * g
+    fitted = with_effect(model, "correlated_read_noise", {"row": row, "column": column})
+    return row, erow * g, fitted, 2, {"delta_chi2": drow + dcol, "extra": {"column": column},
+                                      "extra_errors": {"column": ecol * g}}
 
 
 CANDIDATES = (
@@ -194,6 +221,12 @@ CANDIDATES = (
               _value("offset", "level"), _set("offset", "level")),
     Candidate("read_noise", "sigma", "e-", (0.0, 200.0), 1.0, "excess_variance",
               "Gaussian read noise per pixel", _value("read_noise", "sigma"), _set("read_noise", "sigma")),
+    Candidate("brighter_fatter", "coefficient", "1/e-", (0.0, 1e-6), 1e-8, "neighbours",
+              "charge-dependent spreading: coefficient/2 (q_j^2 - q_i^2) flows between nearest neighbours",
+              _value("brighter_fatter", "coefficient"), _set("brighter_fatter", "coefficient")),
+    Candidate("correlated_read_noise", "row", "e-", (0.0, 200.0), 0.5, "rows_columns",
+              "read noise common to whole rows (row) and whole columns (column)",
+              _value("correlated_read_noise", "row"), _set("correlated_read_noise", "row"), fit=_fit_correlated),
     Candidate("gain", "gain", "e-/DN", (0.05, 50.0), 0.05, "signal",
               "the true e-/DN, when the header's GAIN is wrong", _get_gain, _set("gain", "gain"), _dn),
 )

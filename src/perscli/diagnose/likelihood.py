@@ -79,6 +79,10 @@ class Evaluation:
         return out
 
 
+#: pixels whose expected charge is within this many sigma (Poisson) of the full well are not fitted
+NEAR_WELL_SIGMA = 5.0
+
+
 class Problem:
     """Measured exposures, their simulations and history: evaluates any detector model on them.
 
@@ -102,24 +106,35 @@ class Problem:
         ny, nx = exposures[0].data.shape[-2:]
         self.shape = (ny, nx)
         self.stripes = _stripes(ny, nx, max(fit_pixels // len(exposures), 16 * nx))
+        #: the rows the fit stripes compute, in order: each stripe's rows are contiguous in it
+        self.fit_rows = np.concatenate([np.arange(r.start or 0, r.stop) for r, _, _ in self.stripes])
+        self._stripe_start = {}
+        pos = 0
+        for r, _, _ in self.stripes:
+            self._stripe_start[(r.start, r.stop)] = pos
+            pos += r.stop - (r.start or 0)
         self._charges = {}
 
     # -- persistence history ----------------------------------------------------------------------
-    def charge(self, index: int, pmodel):
+    def charge(self, index: int, pmodel, region: str = "full"):
         """The persistence that the earlier exposures leave in exposure ``index``: ``(unit, A)``, electrons
-        ``unit * A`` (the law is proportional to A, so ``unit`` is computed once); None for the first."""
+        ``unit * A`` (the law is proportional to A, so ``unit`` is computed once); None for the first.
+
+        ``region`` 'fit': only the rows of the fit stripes, stacked (:attr:`fit_rows`), so that a fit that
+        frees the law's shape recomputes a few per cent of each frame; 'full': every row.
+        """
         from ..detector.persistence import persistence_charge
 
         if index == 0:
             return None
-        key = (index, pmodel.kind, pmodel.x0, pmodel.dx, pmodel.alpha, pmodel.gamma, pmodel.half_well,
+        key = (region, index, pmodel.kind, pmodel.x0, pmodel.dx, pmodel.alpha, pmodel.gamma, pmodel.half_well,
                pmodel.coefficients, pmodel.time_model, pmodel.combine, pmodel.max_previous)
         if key not in self._charges:
             import dataclasses
 
-            # one set of Fermi shape parameters at a time (a full frame per exposure each): when a fit
-            # frees gamma or x0, the charges of other values are dropped, not kept
-            self._charges = {k: v for k, v in self._charges.items() if k[1:] == key[1:]}
+            # one set of Fermi shape parameters at a time for each region: when a fit frees gamma or x0,
+            # the charges of other values are dropped, not kept
+            self._charges = {k: v for k, v in self._charges.items() if k[0] != region or k[2:] == key[2:]}
 
             # the law is proportional to A: computed once for A = 1 and scaled
             unit = dataclasses.replace(pmodel, A=1.0) if pmodel.kind == "fermi" else pmodel
@@ -130,6 +145,8 @@ class Problem:
             from .data import measured_fluence
 
             fluences = [e.fluence if e.fluence is not None else measured_fluence(e) for e in earlier]
+            if region == "fit":
+                fluences = [f[self.fit_rows] for f in fluences]
             self._charges[key] = persistence_charge(fluences, ends, 0.0, window, unit)[0].astype(np.float32)
         scale = pmodel.A if pmodel.kind == "fermi" else 1.0
         return self._charges[key], scale
@@ -150,24 +167,36 @@ class Problem:
             out = with_effect(out, "gain", {"gain": float(exp.gain)})
         return out
 
-    def _pieces(self, i, model, pieces):
-        """(rows kept, mean, variance, data, mask) of exposure ``i`` for each (rows, keep0, keep1)."""
+    def _pieces(self, i, model, pieces, region: str = "full"):
+        """(rows kept, mean, variance, data, mask) of exposure ``i`` for each (rows, keep0, keep1); ``region``
+        'fit' when ``pieces`` are the fit stripes."""
         exp = self.exposures[i]
         pmodel = model.persistence_model() if model.enabled("persistence") else None
         m = self._model_for(model, exp)
-        charge = self.charge(i, pmodel) if pmodel is not None else None
+        charge = self.charge(i, pmodel, region) if pmodel is not None else None
+        well = model.value("saturation", "full_well", off=None)
         # a measured ramp is compared by its last read minus its first: the part of the exposure
         # between them (IDEAL spreads evenly over the exposure; the dark current accrues as long)
         exptime = float(exp.read_times[-1]) if exp.is_ramp else exp.exptime
         share = exptime / exp.exptime if exp.exptime else 1.0
         for rows, keep0, keep1 in pieces:
             ideal = exp.ideal[rows] if share == 1.0 else exp.ideal[rows] * share
-            fw = forward(ideal, m, exptime=exptime,
-                         persistence=None if charge is None else charge[0][rows] * charge[1])
+            if charge is None:
+                pers = None
+            elif region == "fit":
+                at = self._stripe_start[(rows.start, rows.stop)]
+                pers = charge[0][at:at + (rows.stop - (rows.start or 0))] * charge[1]
+            else:
+                pers = charge[0][rows] * charge[1]
+            fw = forward(ideal, m, exptime=exptime, persistence=pers)
             sl = slice(keep0, keep1)
             mean, var = fw.mean[sl], fw.variance[sl]
             data = exp.data[-1][rows][sl]
             mask = np.isfinite(data) & (var > 0) & np.isfinite(mean)
+            if well:
+                # within a few sigma of the full well the clipped signal's mean and variance are not the
+                # first-order ones the chain gives: those pixels are left out
+                mask &= fw.fluence[sl] < well - NEAR_WELL_SIGMA * math.sqrt(well)
             if exp.valid is not None:
                 mask &= exp.valid[rows][sl]
             start = (rows.start or 0) + keep0
@@ -180,7 +209,7 @@ class Problem:
         out.pieces = []
         pieces = [(slice(0, self.shape[0]), 0, self.shape[0])] if full else self.stripes
         for i in range(len(self.exposures)):
-            for rows, mean, var, data, mask in self._pieces(i, model, pieces):
+            for rows, mean, var, data, mask in self._pieces(i, model, pieces, "full" if full else "fit"):
                 out.mean.append(mean)
                 out.variance.append(var)
                 out.data.append(data)

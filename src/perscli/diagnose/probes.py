@@ -47,6 +47,7 @@ class Probe:
     gap: float = float("nan")          # chi^2 / n of the residuals in the probe's own selection
     xlabel: str = ""
     log_x: bool = False
+    symlog_x: bool = False
     extra: dict = field(default_factory=dict)
 
     @property
@@ -110,7 +111,25 @@ def _gap(r, select=None):
     return float(np.mean(r * r)) if r.size else float("nan")
 
 
-def run_probes(problem, evaluation, history=None) -> dict:
+def _signed_log_edges(x, nbins: int = 12, core: float = 1.0):
+    """Bin edges for a covariate of either sign piled up near zero: one bin for |x| < ``core`` and
+    logarithmic bins out to the extremes on each side."""
+    x = x[np.isfinite(x)]
+    half = max(nbins // 2 - 1, 1)
+    edges = [-core, core]
+    neg, pos = -x[x < -core], x[x > core]
+    if neg.size:
+        edges = list(-np.geomspace(core, neg.max() * (1 + 1e-9), half + 1)[::-1]) + edges[1:]
+    if pos.size:
+        edges = edges[:-1] + list(np.geomspace(core, pos.max() * (1 + 1e-9), half + 1))
+    if not neg.size:
+        edges = [min(float(x.min()), -core) - 1e-9] + edges
+    if not pos.size:
+        edges = edges + [max(float(x.max()), core) + 1e-9]
+    return np.unique(np.asarray(edges, dtype=float))
+
+
+def run_probes(problem, evaluation, reference=None) -> dict:
     """Every probe that the data allow, on the pixels of ``evaluation``.
 
     Parameters
@@ -119,11 +138,16 @@ def run_probes(problem, evaluation, history=None) -> dict:
         Its ``covariates(evaluation)`` gives per-plane covariate arrays.
     evaluation : perscli.diagnose.likelihood.Evaluation
         On the fit stripes (a few per exposure): the probes bin those pixels.
+    reference : Evaluation, optional
+        Take the covariates (and so the bins) from this evaluation instead:
+        the probes of a model before and after a fit then share their x.
     """
     res = evaluation.residuals()
-    cov = problem.covariates(evaluation)
+    cov = problem.covariates(reference if reference is not None else evaluation)
     r = np.concatenate([x.ravel() for x in res])
     out = {}
+    counts = getattr(problem.exposures[0], "counts", "DN")
+    unit = "DN" if counts == "DN" else "e-"
 
     def cat(key):
         return np.concatenate([c[key].ravel() for c in cov]) if all(key in c for c in cov) else None
@@ -131,13 +155,17 @@ def run_probes(problem, evaluation, history=None) -> dict:
     signal = cat("signal")
     if signal is not None:
         positive = signal > 0
-        p = _binned("signal", np.where(positive, signal, np.nan), r, log_x=True, xlabel="expected signal")
+        p = _binned("signal", np.where(positive, signal, np.nan), r, log_x=True,
+                    xlabel=f"expected signal ({unit})")
         top = signal >= np.nanquantile(signal, 0.9)
         p.gap = _gap(r, top)
         out["signal"] = p
     neigh = cat("neighbours")
     if neigh is not None:
-        p = _binned("neighbours", neigh, r, xlabel="neighbours' signal - 4 x own")
+        # most pixels see sky, whose neighbours match it: one bin around zero, logarithmic bins beyond
+        p = _binned("neighbours", neigh, r, edges=_signed_log_edges(neigh),
+                    xlabel=f"neighbours' signal - 4 x own ({unit})")
+        p.symlog_x = True
         strong = np.abs(neigh) >= np.nanquantile(np.abs(neigh), 0.95)
         p.gap = _gap(r, strong)
         out["neighbours"] = p
@@ -145,7 +173,8 @@ def run_probes(problem, evaluation, history=None) -> dict:
     if hist is not None and np.nanmax(hist) > 0:
         some = hist > 0
         p = _binned("history", np.where(some, hist, np.nan), r, log_x=True, xlabel="earlier fluence (e-)")
-        p.gap = _gap(r, hist > 1e3)
+        # the gap where the history is bright; where no pixel is, where there is any
+        p.gap = _gap(r, hist > 1e3) if np.any(hist > 1e3) else _gap(r, some)
         out["history"] = p
     for key, label in (("time_since", "seconds since the previous exposure"), ("exposure_time", "exposure time (s)"),
                        ("read_time", "seconds since the first read")):

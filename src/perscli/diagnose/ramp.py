@@ -9,6 +9,20 @@ variance of each prediction is exact for a linear ramp: Poisson noise of the
 charge between the reads, and the read noise and rounding of the three reads
 involved (the read itself, the reference read and the first read).
 
+Persistence from an earlier ramp (its fluence, the last read times the
+gain) arrives at the law's decaying rate rather than the pixel's own: the
+prediction takes it out of the reference read and adds it back at each
+read, so persistence is a candidate when several ramps are given.
+
+The gain is the header's unless the ramps themselves refute it: a
+photon-transfer curve (:func:`photon_transfer`: two ramps of one scene, or
+one ramp's second differences) that Poisson noise of one gain describes and
+that measures it to 5%.  Grism time series and other scenes whose light
+changes hold no such case; diagnose then says so and keeps the header gain
+(a gain fit would absorb the extra variance).  The read noise of the
+starting model comes from the faintest pixels' second differences (pixels
+that see the sky: a WFC3-IR frame's reference pixels are quieter).
+
 Pixels whose ramps jump (a cosmic ray, or light that changes during the
 exposure, as in grism time series) cannot be predicted from their early
 reads; they are found once, with the starting model, as pixels with a read
@@ -28,24 +42,178 @@ from .likelihood import Evaluation
 JUMP_SIGMA = 10.0
 
 #: effects a self-predicted ramp can constrain
-RAMP_CANDIDATES = ("nonlinearity", "read_noise", "gain")
+RAMP_CANDIDATES = ("persistence", "nonlinearity", "read_noise", "gain")
+
+
+#: a photon-transfer gain is trusted only when its estimates in three ranges of signal agree (chi^2 p-value
+#: above this) and each is measured to :data:`PTC_PRECISION`: variance that grows faster than Poisson noise
+#: (light that changes between or during exposures, pointing jitter across a spectrum) makes them disagree
+PTC_CONSISTENCY_P = 0.01
+PTC_PRECISION = 0.05
+
+
+def _clipped_variance(d: np.ndarray) -> float:
+    """The variance of ``d`` with points beyond 4 sigma left out, iterated (hot pixels and jumps out)."""
+    for _ in range(5):
+        if d.size < 10:
+            break
+        m, sd = d.mean(), d.std()
+        keep = np.abs(d - m) < 4.0 * sd
+        if keep.all():
+            break
+        d = d[keep]
+    return float(d.var(ddof=1)) if d.size > 1 else float("nan")
+
+
+#: signal groups of a photon-transfer curve (quantiles of the pixels below the brightest tenth)
+PTC_GROUPS = 6
+
+
+def _ptc_points(exposures):
+    """Points of a photon-transfer curve: (mean signal, noise variance, its error) in counts, and the method.
+
+    Two ramps with the same reads (a pair of exposures of one scene): the
+    pixels' difference between the ramps' last reads, whose variance over 2
+    is the Poisson variance (signal / gain) plus twice the read noise's
+    (reads minus the first).  One ramp: the second differences of its
+    equally spaced reads, whose variance over 2 is one interval's Poisson
+    variance plus three times the read noise's.  Pixels are grouped by
+    signal (:data:`PTC_GROUPS` quantiles, the brightest tenth left out:
+    there a scene's own changes dominate); each group's error comes from
+    the spread between eight random subsets of its pixels.
+    """
+    ramps = [e for e in exposures if e.is_ramp]
+    pair = next(((a, b) for i, a in enumerate(ramps) for b in ramps[i + 1:]
+                 if a.data.shape == b.data.shape and np.allclose(a.read_times, b.read_times, rtol=1e-4)), None)
+    if pair is not None:
+        a, b = pair
+        valid = np.ones(a.data.shape[-2:], dtype=bool)
+        for e in pair:
+            if e.valid is not None:
+                valid &= e.valid
+        valid &= np.all(np.isfinite(a.data), axis=0) & np.all(np.isfinite(b.data), axis=0)
+        signal = 0.5 * (a.data[-1] + b.data[-1])
+        noise = (a.data[-1] - b.data[-1]) / np.sqrt(2.0)
+        method, weight = "the difference of two ramps", 2.0
+    elif ramps:
+        exp = ramps[0]
+        spacing = np.diff(np.concatenate([[0.0], exp.read_times]))
+        usual = np.isclose(spacing, np.median(spacing), rtol=1e-3)
+        d = np.diff(np.concatenate([np.zeros((1,) + exp.data.shape[1:]), exp.data]), axis=0)[usual]
+        if d.shape[0] < 4:
+            return [], "second differences", 3.0
+        dd = np.diff(d, axis=0)
+        valid = (exp.valid if exp.valid is not None else np.ones(exp.data.shape[-2:], dtype=bool)) \
+            & np.all(np.isfinite(dd), axis=0)
+        signal = np.broadcast_to(d.mean(axis=0), dd.shape)
+        noise = dd / np.sqrt(2.0)
+        valid = np.broadcast_to(valid, dd.shape)
+        method, weight = "second differences of one ramp", 3.0
+    else:
+        return [], "none", 1.0
+    sig, noi = signal[valid], noise[valid]
+    if sig.size < 300 * PTC_GROUPS:
+        return [], method, weight
+    cuts = np.quantile(sig, np.linspace(0.0, 0.9, PTC_GROUPS + 1))
+    rng = np.random.default_rng(0)
+    points = []
+    for g in range(PTC_GROUPS):
+        sel = (sig >= cuts[g]) & (sig <= cuts[g + 1])
+        x, y = sig[sel], noi[sel]
+        y = y - np.median(y)
+        var = _clipped_variance(y)
+        parts = np.array_split(rng.permutation(y.size), 8)
+        spread = np.std([_clipped_variance(y[k]) for k in parts], ddof=1) / np.sqrt(8.0)
+        points.append((float(x.mean()), var, float(spread)))
+    return points, method, weight
+
+
+def photon_transfer(exposures, header_gain=None) -> dict:
+    """The gain and read noise the measured ramps themselves give, and whether they hold a photon-transfer case.
+
+    The noise variance against the signal (:func:`_ptc_points`) is a line of
+    slope 1 / gain and intercept w x read noise^2 (w = 2 or 3, by method).
+    The gain is *trusted* only when the line describes every group (chi^2
+    p-value above :data:`PTC_CONSISTENCY_P`) and is measured to
+    :data:`PTC_PRECISION`; otherwise the data hold variance that is not the
+    Poisson noise of a gain (light that changes, pointing jitter, scene
+    differences between exposures), and the header's gain is kept.
+
+    Returns
+    -------
+    dict
+        ``gain``, ``gain_error`` (e-/count), ``read_noise`` (counts per read),
+        ``trusted`` (bool), ``method``, ``points`` and a one-line ``verdict``.
+    """
+    from scipy.stats import chi2
+
+    points, method, weight = _ptc_points(exposures)
+    out = {"method": method, "trusted": False, "gain": None, "gain_error": None, "read_noise": None,
+           "points": [list(p) for p in points]}
+    if len(points) < 3:
+        out["verdict"] = "no photon-transfer case (too few reads or pixels): the header gain is kept"
+        return out
+    m = np.array([p[0] for p in points])
+    v = np.array([p[1] for p in points])
+    e = np.array([p[2] for p in points])
+    ok = np.isfinite(v) & (e > 0)
+    if ok.sum() < 3 or np.ptp(m[ok]) <= 0:
+        out["verdict"] = "no photon-transfer case (no range of signal): the header gain is kept"
+        return out
+    a = np.stack([m[ok], np.ones(ok.sum())], axis=1) / e[ok, None]
+    coef, *_ = np.linalg.lstsq(a, v[ok] / e[ok], rcond=None)
+    cov = np.linalg.inv(a.T @ a)
+    slope, intercept = float(coef[0]), float(coef[1])
+    fit_chi2 = float(np.sum(((v[ok] - (slope * m[ok] + intercept)) / e[ok]) ** 2))
+    consistency = float(chi2.sf(fit_chi2, ok.sum() - 2))
+    out["consistency_p"] = consistency
+
+    def read_noise(g):
+        # from the faintest group, its small Poisson part taken out with gain g: the intercept of a line
+        # through groups that hold more than Poisson noise would be misplaced
+        return float(np.sqrt(max(v[0] - m[0] / g, 0.0) / weight)) if g else float(np.sqrt(max(v[0], 0.0) / weight))
+
+    out["read_noise"] = read_noise(header_gain)
+    if not slope > 0:
+        out["verdict"] = "no photon-transfer case (the noise does not grow with the signal): the header gain is kept"
+        return out
+    gain = 1.0 / slope
+    err = float(np.sqrt(cov[0, 0])) / slope ** 2
+    out.update(gain=gain, gain_error=err)
+    if consistency < PTC_CONSISTENCY_P or err > PTC_PRECISION * gain:
+        why = (f"the noise does not grow as Poisson noise of one gain (chi^2 p = {consistency:.2g})"
+               if consistency < PTC_CONSISTENCY_P else f"the gain is measured to {100 * err / gain:.0f}% only")
+        out["verdict"] = f"no photon-transfer case ({why}; {gain:.3g} +- {err:.2g}): the header gain is kept"
+        return out
+    out["trusted"] = True
+    out["read_noise"] = read_noise(gain)
+    if header_gain:
+        agree = abs(gain - header_gain) <= 3.0 * err + 0.05 * header_gain
+        out["verdict"] = (f"{gain:.3g} +- {err:.2g} e-/count from {method}: "
+                          + ("supports the header gain" if agree else f"refutes the header gain of {header_gain:.3g}"))
+    else:
+        out["verdict"] = f"{gain:.3g} +- {err:.2g} e-/count from {method}"
+    return out
 
 
 def ramp_model(exposures) -> DetectorModel:
-    """The starting model of a self-predicted ramp: Poisson noise, no nonlinearity, read noise estimated from
-    the first differences of the faintest pixels, the header's gain, rounding."""
+    """The starting model of a self-predicted ramp: Poisson noise, no nonlinearity, the read noise of the
+    faint pixels' second differences, the header's gain, rounding."""
     exp = next(e for e in exposures if e.is_ramp)
     gain = float(exp.gain) if exp.counts == "DN" and exp.gain else 1.0
-    first, last = exp.data[0], exp.data[-1]
-    # pixels faint over the whole ramp (chosen by their last read, so that the first difference's own
-    # scatter is not truncated by the choice): read 1 minus read 0 is then the read noise of two reads.
-    # Only pixels that see the sky: a WFC3-IR frame's reference pixels are quieter (7.9 e- against 13 e-
-    # per read in ibh7a7lsq) and would be most of the faintest fifth
-    valid = exp.valid if exp.valid is not None else np.ones(last.shape, dtype=bool)
-    usable = valid & np.isfinite(first) & np.isfinite(last)
-    faint = usable & (last <= np.nanquantile(np.where(usable, last, np.nan), 0.2))
-    spread = 1.4826 * np.nanmedian(np.abs(first[faint] - np.nanmedian(first[faint]))) if faint.any() else 1.0
-    sigma = max(float(spread) * gain / np.sqrt(2.0), 0.1)
+    # only pixels that see the sky: a WFC3-IR frame's reference pixels are quieter (7.9 e- against 13 e-
+    # per read in ibh7a7lsq) and would be most of the faintest; and second differences, which hold
+    # neither the rate nor the ramp's curvature, rather than the first read's difference
+    # the read noise from one ramp's second differences: a pair of exposures also differs by the scene
+    read = photon_transfer([exp], gain)["read_noise"]
+    if read is None or not read > 0:
+        first, last = exp.data[0], exp.data[-1]
+        valid = exp.valid if exp.valid is not None else np.ones(last.shape, dtype=bool)
+        usable = valid & np.isfinite(first) & np.isfinite(last)
+        faint = usable & (last <= np.nanquantile(np.where(usable, last, np.nan), 0.2))
+        read = 1.4826 * np.nanmedian(np.abs(first[faint] - np.nanmedian(first[faint]))) / np.sqrt(2.0) \
+            if faint.any() else 1.0
+    sigma = max(float(read) * gain, 0.1)
     effects = [Effect("poisson", {}), Effect("nonlinearity", {"beta": 0.0}), Effect("read_noise", {"sigma": sigma}),
                Effect("gain", {"gain": gain}), Effect("quantize", {})]
     for eff in effects:
@@ -66,6 +234,11 @@ class RampProblem:
                                    "least 4 (a reference read and later ones)")
         self.shape = self.exposures[0].data.shape[-2:]
         self.fit_pixels = fit_pixels
+        # the gain the reads themselves give, when they hold a photon-transfer case (else the header's is kept)
+        header = self.exposures[0].gain if self.exposures[0].counts == "DN" else None
+        self.photon_transfer = photon_transfer(self.exposures, header)
+        pt = self.photon_transfer
+        self.ptc_gain = (pt["gain"], pt["gain_error"]) if pt["trusted"] and header else None
         self.masks = [e.valid.copy() if e.valid is not None else np.ones(self.shape, dtype=bool)
                       for e in self.exposures]
         start = ramp_model(self.exposures)
@@ -91,6 +264,31 @@ class RampProblem:
     def allows(self, name: str) -> bool:
         return name in RAMP_CANDIDATES
 
+    def persistence(self, index: int, model: DetectorModel):
+        """Electrons of persistence in each read (minus the first) of ramp ``index`` that the earlier ramps'
+        fluence leaves, shape (reads, ny, nx); None for the first ramp or without persistence in ``model``."""
+        import dataclasses
+
+        from ..detector.persistence import persistence_charge
+        from ..io.frames import SECONDS_PER_DAY
+        from .data import measured_fluence
+
+        if index == 0 or not model.enabled("persistence"):
+            return None
+        pm = model.persistence_model()
+        key = (index, pm.kind, pm.x0, pm.dx, pm.alpha, pm.gamma, pm.half_well, pm.coefficients, pm.time_model,
+               pm.combine, pm.max_previous)
+        cache = self.__dict__.setdefault("_persistence", {})
+        if key not in cache:
+            # one set of shape parameters at a time; the law is proportional to A, computed for A = 1
+            cache.clear()
+            unit = dataclasses.replace(pm, A=1.0) if pm.kind == "fermi" else pm
+            cur = self.exposures[index]
+            earlier = self.exposures[:index]
+            ends = [(e.end - cur.start) * SECONDS_PER_DAY for e in earlier]
+            cache[key] = persistence_charge([measured_fluence(e) for e in earlier], ends, 0.0, cur.read_times, unit)
+        return cache[key] * (pm.A if pm.kind == "fermi" else 1.0)
+
     def evaluate(self, model: DetectorModel, *, full: bool = False) -> Evaluation:
         beta = float(model.value("nonlinearity", "beta", off=0.0))
         sigma = float(model.value("read_noise", "sigma", off=0.0))
@@ -107,10 +305,12 @@ class RampProblem:
                 q_ref = 2.0 * ref / (1.0 + np.sqrt(disc))
             else:
                 q_ref = ref
-            rate = q_ref / tau[j]
+            # persistence: charge that arrives at the law's decaying rate, not the pixel's own
+            pers = self.persistence(i, model)
+            rate = (q_ref - (pers[j] if pers is not None else 0.0)) / tau[j]
             for k in range(j + 1, len(tau)):
                 a = tau[k] / tau[j]
-                q = rate * tau[k]
+                q = rate * tau[k] + (pers[k] if pers is not None else 0.0)
                 mean = (q + beta * q * q) / gain
                 poisson = np.maximum(q - q_ref, 0.0) + (1.0 - a) ** 2 * np.maximum(q_ref, 0.0)
                 reads = 1.0 + a * a + (a - 1.0) ** 2

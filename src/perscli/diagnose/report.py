@@ -14,7 +14,9 @@ import numpy as np
 
 from .. import PerscliError, __version__
 from .candidates import by_name
+from .checks import ALPHA as CHECK_ALPHA
 from .probes import PROBES, run_probes
+from .search import MIN_DELTA_CHI2
 
 log = logging.getLogger(__name__)
 
@@ -93,12 +95,12 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
     before_eval = problem.evaluate(model)
     say(f"gap before: chi2/dof = {gap_before:.4g} over {n} pixels")
     probes_before = run_probes(problem, before_eval)
-    result = search(problem, model, progress=say)
+    result = search(problem, model, progress=say, ramp=mode == "self-predicted")
     after_eval = problem.evaluate(result.model)
     chi2_after, n_after = problem.chi2_full(result.model)
     nfit = sum(len(f["params"]) for f in result.found)
     gap_after = chi2_after / max(n_after - nfit, 1)
-    probes_after = run_probes(problem, after_eval)
+    probes_after = run_probes(problem, after_eval, reference=before_eval)
     say(f"gap after: chi2/dof = {gap_after:.4g}")
     # what each found effect closes on its own probe, and of the whole gap (cumulatively, in order)
     current = model
@@ -119,7 +121,9 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         c2, nn = (chi2_after, n_after) if entry is result.found[-1] else problem.chi2_full(current)
         gap_now = c2 / max(nn, 1)
         entry["gap_after_adding"] = gap_now
-        entry["fraction_of_gap_closed"] = ((gap_prev - gap_now) / (gap_before - 1.0)) if gap_before > 1 else 0.0
+        # how much of the distance to 1 (pure noise) this effect removes: a gap below 1 closes upwards
+        entry["fraction_of_gap_closed"] = ((abs(gap_prev - 1.0) - abs(gap_now - 1.0)) / abs(gap_before - 1.0)
+                                           if gap_before != 1.0 else 0.0)
         gap_prev = gap_now
         pb, pa = probes_before.get(entry["probe"]), probes_after.get(entry["probe"])
         entry["probe_gap_before"] = pb.gap if pb is not None else None
@@ -127,26 +131,32 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         # an effect explains its probe when the binned residuals there are noise once it is added
         entry["probe_explained"] = bool(pa is None or not pa.flagged)
     if result.found:
-        names = [e["effect"] + (" (or " + ", ".join(e["degenerate_with"]) + ": the data cannot tell them apart)"
-                                if e["degenerate_with"] else "") for e in result.found]
+        names = [f"{e['effect']} ({e['significance_sigma']:.0f} sigma)"
+                 + (" (or " + ", ".join(e["degenerate_with"]) + ": the data cannot tell them apart)"
+                    if e["degenerate_with"] else "") for e in result.found]
         verdict = "missing or mis-set: " + "; ".join(names)
     else:
         verdict = "no missing effect"
-    unexplained = [e["probe"] for e in result.found if not e["probe_explained"]]
-    if abs(gap_after - 1.0) > 0.05 or unexplained:
-        where = f" (residual trends remain in: {', '.join(sorted(set(unexplained)))})" if unexplained else ""
-        verdict += (f"; a disagreement no candidate describes remains: gap {gap_after:.3g} after{where}")
+    if result.unexplained:
+        what = ("unexplained: " + ", ".join(u["probe"] for u in result.unexplained)
+                + " (a disagreement no candidate describes; nothing is named for it)")
+        verdict = what if not result.found else verdict + "; " + what
     report = {
         "perscli": __version__, "mode": mode, "verdict": verdict,
         "measured": [e.label for e in exposures], "simulated": [e.sim for e in exposures],
         "model_source": model.source,
-        "found": result.found, "gap_before": gap_before, "gap_after": gap_after,
+        "found": result.found, "unexplained": result.unexplained, "withdrawn": result.withdrawn,
+        "correlations": result.correlations,
+        "checks": result.checks, "threshold": {"delta_chi2_one_parameter": MIN_DELTA_CHI2,
+                                               "check_p_value": CHECK_ALPHA},
+        "gap_before": gap_before, "gap_after": gap_after,
         "pixels": n, "candidates": result.candidates, "rounds": result.rounds,
         "probes_before": {k: p.as_dict() for k, p in probes_before.items()},
         "probes_after": {k: p.as_dict() for k, p in probes_after.items()},
     }
     if mode == "self-predicted":
         report["jumps_masked"] = int(problem.jumps)
+        report["photon_transfer"] = problem.photon_transfer
     return {"report": report, "model": result.model, "probes_before": probes_before, "probes_after": probes_after}
 
 
@@ -212,12 +222,14 @@ def _figures(outcome, folder) -> list:
         fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
         ax.axhline(0.0, color="0.6", lw=0.8)
         ax.errorbar(pb.centres, pb.means, yerr=pb.errors, fmt="o-", ms=4, color="C3",
-                    label=f"before (gap {pb.gap:.3g})")
+                    label=f"before (gap {_fmt(pb.gap)})")
         if pa is not None and pa.dof:
             ax.errorbar(pa.centres, pa.means, yerr=pa.errors, fmt="s-", ms=4, color="C0",
-                        label=f"after (gap {pa.gap:.3g})")
+                        label=f"after (gap {_fmt(pa.gap)})")
         if pb.log_x and np.all(pb.centres > 0):
             ax.set_xscale("log")
+        elif getattr(pb, "symlog_x", False):
+            ax.set_xscale("symlog", linthresh=1.0)
         ax.set_xlabel(pb.xlabel or PROBES[key])
         ax.set_ylabel("mean residual (data - model) / sigma")
         ax.set_title(f"probe: {PROBES[key]}", fontsize=10)
@@ -262,12 +274,21 @@ def _markdown(report) -> str:
              f"**{_fmt(report['gap_after'])}** after, over {report['pixels']} pixels", ""]
     if "jumps_masked" in report:
         lines += [f"- pixels masked as jumps (cosmic rays, changes of illumination): {report['jumps_masked']}", ""]
-    lines += ["![gaps before and after](gap.png)", "", "## Found", ""]
+    if report.get("photon_transfer"):
+        pt = report["photon_transfer"]
+        lines += [f"- photon transfer of the ramp's own reads: {pt.get('verdict', '-')}", ""]
+    thr = report.get("threshold", {})
+    lines += ["![gaps before and after](gap.png)", "", "## Found", "",
+              f"An effect is named when it improves -2 ln L by more than {_fmt(thr.get('delta_chi2_one_parameter'))} "
+              "for one free parameter (a false-alarm probability of 1e-3; the same for more), its value is physical, and no "
+              "misspecification check it would only absorb fires.  Errors are marginal, from the joint fit "
+              "of every named effect.", ""]
     if not report["found"]:
         lines += ["No candidate improves the likelihood significantly: no missing effect.", ""]
     else:
-        lines += ["| effect | parameter | fitted | error | model had | delta chi2 | delta BIC | share of gap closed | "
-                  "probe gap before -> after | probe explained | degenerate with |", "|" + "---|" * 11]
+        lines += ["| effect | parameter | fitted | error | model had | delta chi2 | significance (sigma) | "
+                  "share of gap closed | probe gap before -> after | probe explained | degenerate with |",
+                  "|" + "---|" * 11]
         for e in report["found"]:
             param = next(iter(e["params"]))
             value = e["params"][param]
@@ -276,11 +297,32 @@ def _markdown(report) -> str:
                 value = ", ".join(_fmt(v) for v in e["params"].values())
                 e = dict(e, errors={param: ", ".join(_fmt(v) for v in e["errors"].values())})
             lines.append(f"| {e['effect']} | {param} | {_fmt(value)} | {_fmt(e['errors'][param])} | "
-                         f"{_fmt(e['model_value'])} | {_fmt(e['delta_chi2'])} | {_fmt(e['delta_bic'])} | "
+                         f"{_fmt(e['model_value'])} | {_fmt(e['delta_chi2'])} | {_fmt(e.get('significance_sigma'))} | "
                          f"{_fmt(100 * e.get('fraction_of_gap_closed', 0.0))} % | "
                          f"{e.get('probe')}: {_fmt(e.get('probe_gap_before'))} -> {_fmt(e.get('probe_gap_after'))} | "
                          f"{'yes' if e.get('probe_explained') else 'no: a trend remains'} | "
                          f"{', '.join(e['degenerate_with']) or '-'} |")
+        lines.append("")
+    if report.get("correlations"):
+        lines += ["Correlations of the named effects' parameters (joint fit):", ""]
+        lines += [f"- {k}: {_fmt(v)}" for k, v in report["correlations"].items()] + [""]
+    if report.get("withdrawn"):
+        lines += ["Withdrawn (their fits may only absorb what a check found):", ""]
+        lines += [f"- {w['effect']} ({_fmt(w.get('significance_sigma'))} sigma): {w['withdrawn_because']}"
+                  for w in report["withdrawn"]] + [""]
+    lines += ["## Unexplained", ""]
+    if not report.get("unexplained"):
+        lines += ["Every misspecification check passes on the final model: nothing unexplained.", ""]
+    else:
+        lines += ["| check | significance (sigma) | what it found |", "|---|---|---|"]
+        lines += [f"| {u['probe']} | {_fmt(u['significance'])} | {u['description']} |" for u in report["unexplained"]]
+        lines.append("")
+    if report.get("checks"):
+        lines += ["## Misspecification checks (final model)", "",
+                  f"Each fires below p = {_fmt(thr.get('check_p_value'))}.", "",
+                  "| check | statistic | dof | p-value | fired |", "|---|---|---|---|---|"]
+        lines += [f"| {c['probe']} | {_fmt(c['statistic'])} | {_fmt(c['dof'])} | {c['p_value']:.3g} | "
+                  f"{'yes' if c['fired'] else 'no'} |" for c in report["checks"]]
         lines.append("")
     lines += ["## Every candidate (first round)", "",
               "| effect | parameter | fitted | error | model had | delta chi2 | delta BIC | significant |",

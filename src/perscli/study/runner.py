@@ -118,18 +118,80 @@ def run_dask(tasks: list, study_dir: str, progress, *, scheduler: str = "local",
             recs.append(rec)
         return recs
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        _shut_down(client, cluster)
+
+
+def _shut_down(client, cluster) -> None:
+    """Close the client and any local cluster without hiding the error that got us here.
+
+    A worker busy in compiled code may not die within Dask's close timeout;
+    the resulting TimeoutError would replace a failed task's message, so
+    shutdown problems are logged, never raised.
+    """
+    for closer in (client.close, getattr(cluster, "close", None)):
+        if closer is None:
+            continue
+        try:
+            closer(timeout=30)
+        except Exception as exc:  # noqa: BLE001 - shutdown is best effort
+            log.debug("dask shutdown: %r", exc)
 
 
 def _dask_key(t: dict) -> str:
     return f"perscli-{t['key']}-{t['fingerprint'][:8]}"
 
 
+def remove_stale_parts(study_dir: str) -> int:
+    """Remove what a killed run left half-written, before a run starts.
+
+    Records are written to ``NAME.PID.part`` and products through the output
+    writer's ``.perscli-*.part*`` temporaries, each renamed into place when
+    whole, so a SIGKILL can leave one behind.  ``.part`` files of a process
+    still alive are left alone.  Returns how many were removed.
+    """
+    removed = 0
+    for folder, dirs, files in os.walk(study_dir):
+        for name in list(dirs):
+            # a temporary output folder (diagnose-style ``.perscli-...``) of a killed run
+            if name.startswith(".perscli-"):
+                import shutil
+
+                shutil.rmtree(os.path.join(folder, name), ignore_errors=True)
+                dirs.remove(name)
+                removed += 1
+        for name in files:
+            if name.startswith(".perscli-") and ".part" in name:
+                # the output writer's temporary file (mkstemp: no process id); none is open before a run starts
+                try:
+                    os.remove(os.path.join(folder, name))
+                    removed += 1
+                except OSError:
+                    pass
+                continue
+            if not name.endswith(".part"):
+                continue
+            pid = name[:-5].rsplit(".", 1)[-1]
+            if pid.isdigit() and int(pid) != os.getpid():
+                try:
+                    os.kill(int(pid), 0)
+                    continue                  # its writer is still running
+                except ProcessLookupError:
+                    pass
+                except PermissionError:
+                    continue
+            try:
+                os.remove(os.path.join(folder, name))
+                removed += 1
+            except OSError:
+                pass
+    return removed
+
+
 def run(tasks: list, study_dir: str, *, scheduler: str = "local", workers: int = 2, quiet: bool = False) -> list:
     """Run the graph with ``scheduler`` ('serial', 'local' or a Dask scheduler address)."""
     os.makedirs(study_dir, exist_ok=True)
+    if remove_stale_parts(study_dir):
+        log.info("removed the half-written files of an earlier run")
     progress = Progress(len(tasks), quiet=quiet)
     if scheduler == "serial":
         return run_serial(tasks, study_dir, progress)

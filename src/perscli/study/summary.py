@@ -245,8 +245,9 @@ def markdown(summary: dict) -> str:
         lines += ["Differential: each final simulated only on the stamps of galaxies that earlier exposures' star "
                   "light can reach; a galaxy whose stamps persistence did not change has De = 0 exactly and is "
                   "counted without a fit (the sample: every galaxy measure fits, predicted S/N above the cut).", ""]
-    lines += ["| variant | galaxies | measured | |De| >= 1e-8 | |De| >= 1e-4 | |D|e|| >= 1e-8 | |D|e|| >= 1e-4 | "
-              "|De| >= 1e-8 of catalogue | <De1> | <De2> |",
+    # absolute values written with \| so that a Markdown table keeps its columns
+    lines += ["| variant | galaxies | measured | \\|De\\| >= 1e-8 | \\|De\\| >= 1e-4 | \\|D\\|e\\|\\| >= 1e-8 | "
+              "\\|D\\|e\\|\\| >= 1e-4 | \\|De\\| >= 1e-8 of catalogue | <De1> | <De2> |",
               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
               f"| paper | {PAPER['galaxies']:,} | | ~1% | ~0.5% | ~1% | ~0.5% | | {PAPER['de1_mean']:.1e} | "
               f"{PAPER['de2_mean']:.1e} |"]
