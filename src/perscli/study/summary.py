@@ -74,8 +74,9 @@ def variant_results(study_dir: str, name: str, prefix: str = "", differential: b
                 out[f"frac_{stem}ge"] = {f"{t:.0e}": _num(f) for t, f in zip(thr, frac)}
                 out[f"n_{stem}ge"] = {f"{t:.0e}": int(n) for t, n in zip(thr, nge)}
     ext = name.upper()
-    tables = (sorted(glob.glob(os.path.join(study_dir, prefix, "shapes", "part*.fits"))) or
-              sorted(glob.glob(os.path.join(study_dir, prefix, "shapes", "sca*", "e*.fits")))) if differential else []
+    tables = (_products(os.path.join(study_dir, prefix, "shapes", "part*.fits"), r"part\d+of\d+\.fits") or
+              _products(os.path.join(study_dir, prefix, "shapes", "sca*", "e*.fits"), r"e\d+\.fits")) \
+        if differential else []
     if tables:
         # the differential study: every galaxy of the sample is counted, only those whose stamps changed fitted
         heads = [_header(t, ext) for t in tables]
@@ -203,6 +204,14 @@ def combine_realisations(per: list) -> dict:
                    "orders_below_at_2sigma": _num(math.log10(budget / bound)) if bound > 0 and budget > 0 else None})
     out["xi"] = xi
     return out
+
+
+def _products(pattern: str, name: str) -> list:
+    """The files matching ``pattern`` whose name is exactly ``name`` (a regex): products, not what a killed
+    task left beside them."""
+    import re
+
+    return sorted(p for p in glob.glob(pattern) if re.fullmatch(name, os.path.basename(p)))
 
 
 def write_summary(study_dir: str, params: dict, out: str) -> None:
@@ -358,6 +367,39 @@ def _write_bytes(path: str, data: bytes) -> None:
     os.replace(tmp, path)
 
 
+def load_cost(path: str) -> dict:
+    """Read and check a study's cost.json (what :func:`cost` wrote) for :func:`project`.
+
+    Raises
+    ------
+    PerscliError
+        The file is not JSON, or not a cost.json: an object of kinds of
+        product, each with non-negative numbers ``tasks``, ``cpu_s`` and
+        ``bytes``.
+    """
+    from .. import PerscliError
+
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except OSError as exc:
+        raise PerscliError(f"{path}: cannot read ({exc.strerror or exc}); give the cost.json a study wrote") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        where = f" at line {exc.lineno} column {exc.colno}" if isinstance(exc, json.JSONDecodeError) else ""
+        raise PerscliError(f"{path}: not JSON{where}; give the cost.json a finished study wrote") from None
+    if not isinstance(data, dict) or not data:
+        raise PerscliError(f"{path}: not a study's cost.json (expected an object of product kinds); give the "
+                           "cost.json a finished study wrote")
+    for kind, d in data.items():
+        ok = isinstance(d, dict) and all(
+            isinstance(d.get(k), (int, float)) and not isinstance(d.get(k), bool) and math.isfinite(d[k])
+            and d[k] >= 0 for k in ("tasks", "cpu_s", "bytes"))
+        if not ok or d["tasks"] == 0:
+            raise PerscliError(f"{path}: entry {kind!r} lacks non-negative tasks, cpu_s and bytes; give the "
+                               "cost.json a finished study wrote")
+    return data
+
+
 def project(tasks, measured: dict) -> dict:
     """The cost of a task graph from the per-product costs another run measured (its cost.json).
 
@@ -369,7 +411,8 @@ def project(tasks, measured: dict) -> dict:
     Returns
     -------
     dict
-        cpu_hours, terabytes and the per-kind figures used.
+        cpu_hours, terabytes, the per-kind figures used, and ``missing``: the
+        kinds of task the measured run had none of (not in the totals).
     """
     need = {}
     for t in tasks:
@@ -379,10 +422,11 @@ def project(tasks, measured: dict) -> dict:
             if scaled else 1
         need[kind] = need.get(kind, 0) + max(1, units)
     cpu = bytes_ = 0.0
-    per = {}
+    per, missing = {}, []
     for kind, n in need.items():
         m = measured.get(kind)
         if not m:
+            missing.append(kind)
             continue
         units = m["tasks"] if kind not in ("measure", "changes", "regions", "correlate") else \
             max(1, m.get("frames", m["tasks"]))
@@ -390,4 +434,4 @@ def project(tasks, measured: dict) -> dict:
         per[kind] = {"units": n, "cpu_s_each": c, "bytes_each": b}
         cpu += n * c
         bytes_ += n * b
-    return {"cpu_hours": cpu / 3600.0, "terabytes": bytes_ / 1e12, "per_kind": per}
+    return {"cpu_hours": cpu / 3600.0, "terabytes": bytes_ / 1e12, "per_kind": per, "missing": sorted(missing)}

@@ -253,7 +253,9 @@ def _final(study_dir, p, out):
     frames, arrays, rec = [], [], {"galaxies": 0, "objects": 0, "blocks": 0, "frames": len(rows_of)}
     try:
         for expid, (exposure, history, rows, seed) in rows_of.items():
-            frame = f"{out}.{os.getpid()}.e{expid:06d}.fits"
+            # NAME.PID.part: a killed run's scratch frames are removed before the next (remove_stale_parts)
+            # and never match a product's name
+            frame = f"{out}.e{expid:06d}.{os.getpid()}.part"
             frames.append(frame)
             arrays.append({})
             # the scratch file gives the headers; the pixels stay in memory
