@@ -4,16 +4,24 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.perscli-installed
 
-.PHONY: demo demo-diagnose demo-field test bench bench-render bench-measure bench-correlate bench-diagnose man samples clean
+.PHONY: install test-slow demo demo-diagnose demo-field test bench bench-render bench-measure bench-correlate bench-diagnose man samples clean
 
-$(STAMP): pyproject.toml setup.py src/perscli/_kernels.c
+$(STAMP): pyproject.toml setup.py src/perscli/_kernels.c $(wildcard man/*.1)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	# bytecode up front, as a regular (non-editable) install does: with PYTHONDONTWRITEBYTECODE set
 	# every command would otherwise recompile perscli's sources (~70 ms a process)
 	$(BIN)/python -m compileall -q src/perscli
+	# the man pages where man looks for them when .venv/bin is on PATH (an editable install skips
+	# data files): man perscli-render
+	mkdir -p $(VENV)/share/man/man1
+	cp man/*.1 $(VENV)/share/man/man1/
 	touch $@
+
+# perscli in .venv, with its man pages
+install: $(STAMP)
+	@echo "installed: .venv/bin/perscli (source .venv/bin/activate, then perscli --help, man perscli-render)"
 
 # The main job on the bundled sample data: persistence of three earlier
 # exposures on the fourth, then the persistence alone.
@@ -71,8 +79,13 @@ demo-field: $(STAMP)
 	    --seed 3 --set persistence=off -o $(FIELD)/exp3_nopersist.fits --overwrite
 	@echo "field demo outputs in $(FIELD)/"
 
+# the suite a developer runs often (at most 10 minutes on 2 cores); the slow tests (the whole small
+# study, the README walkthrough, the calibration of diagnose) are `make test-slow`, which CI also runs
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -m "not slow"
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
 
 # All benchmarks (several minutes); each rewrites only its own section of benchmarks/RESULTS.md.
 bench: $(STAMP)

@@ -7,6 +7,23 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
+
+def _signals_back_to_default():
+    """Undo an ignored SIGINT or SIGHUP that the suite inherited (started under nohup, or with & from a script).
+
+    Ignored signals are inherited across exec: the commands the tests start and then interrupt would ignore
+    them too, and the tests of Ctrl-C and hangups would test nothing.
+    """
+    import signal
+
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if signal.getsignal(signal.SIGHUP) == signal.SIG_IGN:
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
+_signals_back_to_default()
+
 SHARED_DATA = Path(os.environ.get("PERSCLI_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 SAMPLE_DATA = Path(__file__).resolve().parents[1] / "sample_data"
 

@@ -48,7 +48,9 @@ def render_sequence(truth, outdir, *, bounds, n: int = 3, seed: int = 100, expti
         # a dither of a few pixels between exposures: ghosts fall beside the stars that made them
         args = ["render", truth, "--bounds", *bounds, "--ra", RA + k * 1.5e-4, "--dec", DEC, "--pa", PA,
                 "--mjd", repr(mjd), "--filter", FILTER, "--sca", SCA, "--seed", seed + k, "--exptime", exptime,
-                "-o", path]
+                "--persistence-source", "all", "-o", path]
+        # the FLUENCE of earlier exposures persists (not the default, the stars' light): the history that
+        # diagnose's forward model and independent_chain use
         for s in settings:
             args += ["--set", s]
         for p in out:

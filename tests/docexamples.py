@@ -181,18 +181,22 @@ def shared_files(shared: Path) -> dict:
     return {p.name: p for p in shared.rglob("*") if p.is_file()}
 
 
-def prepare_folder(folder: Path, shared: Path, bindir: Path) -> None:
+def prepare_folder(folder: Path, shared: Path, bindir: Path, *, samples_at_top: bool = True) -> None:
     """The sample data, the examples folder, the shared inputs (links) and a .venv/bin/perscli link.
 
     ``folder`` stands for a clone: ``../shared`` beside it is linked to the
     shared folder (as examples/small.yaml names its schedule relative to itself).
+    The shared inputs are linked by name, as a user who downloaded them (MAST's
+    WFC3 ramps, the public Roman schedule) would have them.  ``samples_at_top``:
+    the sample files are also copied to the top (for the --help examples, which
+    name files in the current folder); README's examples run from a clone as it is.
     """
     folder.mkdir(parents=True, exist_ok=True)
     beside = folder.parent / "shared"
     if shared.is_dir() and not beside.exists():
         os.symlink(shared.parent, beside)
     for p in (ROOT / "sample_data").iterdir():
-        if p.is_file():
+        if p.is_file() and samples_at_top:
             shutil.copy(p, folder / p.name)
     shutil.copytree(ROOT / "sample_data", folder / "sample_data", dirs_exist_ok=True)
     shutil.copytree(ROOT / "examples", folder / "examples", dirs_exist_ok=True)
@@ -205,7 +209,7 @@ def prepare_folder(folder: Path, shared: Path, bindir: Path) -> None:
         os.symlink(bindir / "perscli", venv / "perscli")
 
 
-def run_examples(examples, folder: Path, *, shared: Path, bindir: Path | None = None, timeout: float = 900,
+def run_examples(examples, folder: Path, *, shared: Path, bindir: Path | None = None, timeout: float | None = None,
                  known_shared=None) -> list:
     """Run examples in order in ``folder`` (prepared with :func:`prepare_folder`); one Outcome each.
 

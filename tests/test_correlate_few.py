@@ -27,6 +27,9 @@ def pair(folder, n, seed=1, size=1.0):
     dec = DEC0 + rng.uniform(-size / 2, size / 2, n)
     ra = RA0 + rng.uniform(-size / 2, size / 2, n) / np.cos(np.radians(DEC0))
     g1b, g2b = rng.normal(0, 0.27, n), rng.normal(0, 0.27, n)
+    # shapes have |g| < 1 (correlate refuses others): the rare draws beyond 0.9 are pulled in to it
+    shrink = np.minimum(1.0, 0.9 / np.hypot(g1b, g2b))
+    g1b, g2b = g1b * shrink, g2b * shrink
     de1, de2 = rng.normal(0, 1e-5, n), rng.normal(0, 1e-5, n)
     paths = []
     for name, g1, g2 in (("a", g1b + de1, g2b + de2), ("b", g1b, g2b)):

@@ -60,6 +60,9 @@ def make_pair(folder, k, n=600, *, seed=None, ids=None, ra=None, dec=None, heade
     n = len(ra)
     ids = np.arange(1, n + 1) if ids is None else ids
     g1b, g2b = rng.normal(0, 0.27, n), rng.normal(0, 0.27, n)
+    # shapes have |g| < 1 (correlate refuses others): the rare draws beyond 0.9 are pulled in to it
+    shrink = np.minimum(1.0, 0.9 / np.hypot(g1b, g2b))
+    g1b, g2b = g1b * shrink, g2b * shrink
     de1, de2 = rng.normal(0, 1e-5, n), rng.normal(0, 1e-5, n)
     x = y = None
     if xy_angle is not None:

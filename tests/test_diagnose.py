@@ -65,7 +65,9 @@ def sequence(scene, name, *settings, n=3, seed=100, exptimes=None):
         # a dither of a few pixels between exposures: ghosts fall beside the stars that made them
         args = ["render", scene["truth"], "--bounds", *BOUNDS, "--ra", RA + k * 1.5e-4, "--dec", DEC, "--pa", PA,
                 "--mjd", repr(mjd), "--filter", FILTER, "--sca", SCA, "--seed", seed + k, "--exptime", exptime,
-                "-o", path]
+                "--persistence-source", "all", "-o", path]
+        # the FLUENCE of earlier exposures persists: the history diagnose's forward model uses (not the default,
+        # the stars' light)
         for s in settings:
             args += ["--set", s]
         for p in out:
@@ -201,7 +203,7 @@ def test_the_fitted_model_renders_what_was_fitted(scene, simulated):
         path = d / f"e{k}.fits"
         args = ["render", scene["truth"], "--bounds", *BOUNDS, "--ra", RA + k * 1.5e-4, "--dec", DEC, "--pa", PA,
                 "--mjd", repr(mjd), "--filter", FILTER, "--sca", SCA, "--seed", 500 + k, "--model",
-                outdir / "model.yaml", "-o", path]
+                outdir / "model.yaml", "--persistence-source", "all", "-o", path]
         for p in out:
             args += ["--previous", p]
         run(*args)

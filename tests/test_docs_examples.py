@@ -55,13 +55,14 @@ def test_the_harness_fails_a_broken_example_and_a_clobbered_output(tmp_path):
         _check(outcomes)
 
 
-@pytest.mark.parametrize("source", ["readme", "help"])
+@pytest.mark.parametrize("source", [pytest.param("readme", marks=pytest.mark.slow), "help"])
 def test_documented_examples_run(tmp_path, source):
-    """README's examples in one folder, the --help examples of every command in another, each in order."""
+    """README's examples in one folder (a clone as it is: it runs the small study, so it is slow), the --help
+    examples of every command in another (the sample files beside them), each in order."""
     examples = docs.readme_examples() if source == "readme" else help_examples_in_order()
     assert len(examples) >= 30
     folder = tmp_path / "clone"
-    docs.prepare_folder(folder, SHARED_DATA, docs.script_dir())
+    docs.prepare_folder(folder, SHARED_DATA, docs.script_dir(), samples_at_top=source == "help")
     outcomes = docs.run_examples(examples, folder, shared=SHARED_DATA)
     print(docs.report(outcomes))
     _check(outcomes)

@@ -85,7 +85,9 @@ def truth(work):
 
 
 def reference_sequence(work, truth, workers, *extra):
-    off = ["--set", "saturation=off", "--workers", workers, *extra]
+    # the HDUs and the persistence source (FLUENCE) of the chain before the registry, not today's defaults
+    off = ["--set", "saturation=off", "--workers", workers, "--hdus", "SCI,IDEAL,FLUENCE,PERSIST,MODEL",
+           "--persistence-source", "all", *extra]
     e1 = render(work / f"e1_w{workers}.fits", truth, *off, seed=11)
     e2 = render(work / f"e2_w{workers}.fits", truth, *off, "--previous", e1, mjd=MJD2, ra=RA + 0.0004, seed=12)
     e3 = render(work / f"e3_w{workers}.fits", truth, *off, "--previous", e1, "--previous", e2,
@@ -110,10 +112,13 @@ def test_renders_are_byte_identical_to_the_chain_before_the_registry(work, truth
 def test_registry_order_and_schemas():
     from perscli.detector import effects
 
-    assert effects.ORDER == ("sky", "poisson", "reciprocity", "dark", "persistence", "saturation", "nonlinearity",
-                             "ipc", "read_noise", "offset", "gain", "quantize")
-    # the Roman model has every effect but the offset (a bias level: a candidate for diagnose)
-    assert effects.ROMAN_ORDER == tuple(n for n in effects.ORDER if n != "offset")
+    assert effects.ORDER == ("sky", "poisson", "reciprocity", "dark", "persistence", "brighter_fatter", "saturation",
+                             "nonlinearity", "ipc", "read_noise", "correlated_read_noise", "offset", "gain",
+                             "quantize")
+    # the Roman model has every effect but the offset (a bias level), brighter-fatter and correlated read
+    # noise (GalSim's Roman chain has neither): candidates for diagnose, switched on with --set
+    off = ("offset", "brighter_fatter", "correlated_read_noise")
+    assert effects.ROMAN_ORDER == tuple(n for n in effects.ORDER if n not in off)
     assert [e.name for e in effects.default_model().effects] == list(effects.ROMAN_ORDER)
     for name, cls in effects.REGISTRY.items():
         assert cls.name == name and cls.description and cls.stage in ("scene", "charge", "readout")
@@ -189,13 +194,15 @@ def test_persistence_source_and_fluence_cap_are_model_parameters(tmp_path):
                                           model_to_yaml)
 
     m = load_detector_model("roman")
-    assert m.get("persistence").resolved()["source"] == "all"
+    assert m.get("persistence").resolved()["source"] == "stars"          # the default: the stars' light
     assert m.get("persistence").resolved()["fluence_cap"] == "well"
-    for settings, expect in ((["persistence.source=stars"], ("stars", None, 1e5)),
+    for settings, expect in (([], ("stars", None, 1e5)),
+                             (["persistence.source=all"], ("all", None, 1e5)),
                              (["persistence.source=5e4", "persistence.fluence_cap=2e5"], ("threshold", 5e4, 2e5)),
-                             (["persistence.fluence_cap=none"], ("all", None, None)),
-                             (["saturation=off"], ("all", None, None)),
-                             (["saturation.full_well=8e4"], ("all", None, 8e4))):
+                             (["persistence.fluence_cap=none"], ("stars", None, None)),
+                             (["persistence.source=all", "persistence.fluence_cap=none"], ("all", None, None)),
+                             (["saturation=off"], ("stars", None, None)),
+                             (["saturation.full_well=8e4"], ("stars", None, 8e4))):
         model = load_detector_model("roman", settings)
         assert Persistence.fluence_input(model) == expect, settings
         # the MODEL table and the YAML keep them
@@ -420,7 +427,7 @@ def test_model_reloads_from_the_frame_and_reproduces_it(work, truth, earlier):
     a = render(work / "a.fits", truth, *TWEAKS, "--previous", e1, "--previous", e2, mjd=MJD3, seed=31)
     b = render(work / "b.fits", truth, "--model", a, "--previous", e1, "--previous", e2, mjd=MJD3, seed=31)
     ia, ib = read_images(a), read_images(b)
-    assert sorted(ia) == ["FLUENCE", "IDEAL", "PERSIST", "SCI"]
+    assert sorted(ia) == ["FLUENCE", "IDEAL", "PERSIST", "SCI", "STARFLU"]          # the default HDUs
     for name in ia:
         assert ia[name].tobytes() == ib[name].tobytes(), name
     # the model read back is the one written: every effect, its order, on/off and every parameter
@@ -430,6 +437,7 @@ def test_model_reloads_from_the_frame_and_reproduces_it(work, truth, earlier):
     assert back.describe() == made.describe()
     assert [(e.name, e.enabled) for e in back.effects] == [(e.name, e.enabled) for e in made.effects]
     assert load_detector_model(b).describe() == made.describe()
+    assert back.get("persistence").resolved()["source"] == "stars"          # the default, recorded
     with fits.open(a) as hdul:
         t = Table(hdul["MODEL"].data)
         assert hdul[0].header["DETNEFF"] == 11 and hdul[0].header["DETMODEL"] == "roman"

@@ -250,8 +250,10 @@ def test_a_flipped_bit_in_ideal_or_fluence_is_caught_and_names_the_hdu(chain, tm
         assert f"({name})" in result.stderr and "DATASUM" in result.stderr, result.stderr
         assert not (tmp_path / "o.fits").exists()
     # a header bit of the earlier exposure's SCI (whose timing keywords are used) is caught by CHECKSUM
-    # although its data are not read; --no-checksum lets it through
-    header_at = offsets(chain["e1"])["SCI"]["header_start"] + 80 * 12 + 3
+    # although its data are not read; --no-checksum lets it through.  The bit is in the last digit of
+    # CD1_1's value, so that the card stays valid FITS: a flip that makes it invalid (CD1_1 -> CD1^1) is
+    # refused even with --no-checksum (tests/test_fuzz_faults.py)
+    header_at = offsets(chain["e1"])["SCI"]["header_start"] + 80 * 12 + 29
     bad = flip(chain["e1"], tmp_path / "hdr.fits", header_at)
     result = run("apply-persistence", chain["e2"], bad, "--mode", "predict", "-o", tmp_path / "o.fits", code=1)
     assert "(SCI)" in result.stderr and "CHECKSUM" in result.stderr and "--no-checksum" in result.stderr

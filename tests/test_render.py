@@ -466,14 +466,17 @@ def pairs(work, pers_truth):
     sky0.write_text("effects: []\n")
     p["e1_bare"] = render(work / "e1_bare.fits", pers_truth, "--model", sky0, bounds=PERS, seed=1)
     ra2 = RA + 0.0012
+    every = ["--persistence-source", "all"]         # the earlier exposure's FLUENCE persists (default: stars)
     simple = ["--set", "nonlinearity=off", "--set", "ipc=off", "--set", "quantize=off", "--set", "saturation=off",
               "--set", "gain.gain=2"]
-    p["with"] = render(work / "e2_with.fits", pers_truth, "--previous", p["e1"], *simple,
+    p["with"] = render(work / "e2_with.fits", pers_truth, "--previous", p["e1"], *every, *simple,
                        bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
-    p["off"] = render(work / "e2_off.fits", pers_truth, "--previous", p["e1"], "--set", "persistence=off",
+    p["off"] = render(work / "e2_off.fits", pers_truth, "--previous", p["e1"], *every, "--set", "persistence=off",
                       *simple, bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
     p["none"] = render(work / "e2_none.fits", pers_truth, *simple, bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
-    p["full_with"] = render(work / "e2_full_with.fits", pers_truth, "--previous", p["e1_bare"],
+    p["stars"] = render(work / "e2_stars.fits", pers_truth, "--previous", p["e1"], *simple,      # the default
+                        bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
+    p["full_with"] = render(work / "e2_full_with.fits", pers_truth, "--previous", p["e1_bare"], *every,
                             bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
     p["full_none"] = render(work / "e2_full_none.fits", pers_truth, bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
     return p
@@ -554,13 +557,20 @@ def test_persistence_provenance(pairs):
     assert prim["PSP01DT"] == pytest.approx(GAP, abs=1e-3)
     assert "previous=1" in " ".join(prim["HISTORY"])
     assert "PRV01" not in load(pairs["off"])["PRIMARY"][1]
+    assert prim["PS_SRC"] == "all"
+    # the default source: the stars' light of the earlier exposure (its STARFLU) persists
+    stars = load(pairs["stars"])["PRIMARY"][1]
+    assert stars["PS_SRC"] == "stars" and stars["PRV01"] == "e1.fits"
+    with fits.open(pairs["e1"]) as hdul:
+        assert stars["PRV01DS"] == hdul["STARFLU"].header["DATASUM"] != hdul["FLUENCE"].header["DATASUM"]
 
 
 # -- output structure -----------------------------------------------------------------------------
 
 def test_hdus_and_headers(pairs):
-    for name, ext in (("with", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "PERSIST", "MODEL"]),
-                      ("none", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "MODEL"])):
+    # the default HDUs: STARFLU among them (the default persistence source is the stars' light)
+    for name, ext in (("with", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL"]),
+                      ("none", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "STARFLU", "MODEL"])):
         with fits.open(pairs[name]) as hdul:
             assert [h.name for h in hdul] == ext
             assert all(h.data.dtype == np.dtype(">f4") and h.data.shape == (128, 128) for h in hdul[1:-1])

@@ -134,12 +134,14 @@ def test_starflu_is_the_light_of_the_stars_alone(work, truth, optics, hist):
     assert "stars" in hdr["CONTENT"] and h["headers"]["FLUENCE"]["SATWELL"] == WELL
 
 
-def test_starflu_only_when_asked_and_workers_give_the_same_bytes(work, truth):
+def test_starflu_by_default_and_workers_give_the_same_bytes(work, truth):
     a = render(work / "w1.fits", truth, "--hdus", "SCI,FLUENCE,STARFLU")
     b = render(work / "w2.fits", truth, "--hdus", "SCI,FLUENCE,STARFLU", "--workers", 2)
     c = render(work / "w3.fits", truth, "--hdus", "SCI,FLUENCE,STARFLU")
     assert raw_cards_masked(a) == raw_cards_masked(b) == raw_cards_masked(c)
-    assert "STARFLU" not in images(render(work / "w4.fits", truth))["names"]
+    # the default persistence source is the stars' light: a frame made with the default HDUs is a history
+    assert "STARFLU" in images(render(work / "w4.fits", truth))["names"]
+    assert "STARFLU" not in images(render(work / "w5.fits", truth, "--hdus", "SCI,FLUENCE"))["names"]
 
 
 # -- what persists --------------------------------------------------------------------------------
@@ -147,9 +149,10 @@ def test_starflu_only_when_asked_and_workers_give_the_same_bytes(work, truth):
 @pytest.fixture(scope="module")
 def persisted(work, truth, hist):
     p = {}
-    p["all"] = later(work, truth, "all.fits", "--previous", hist["full"])
-    p["all_flag"] = later(work, truth, "all_flag.fits", "--previous", hist["full"], "--persistence-source", "all")
-    p["stars"] = later(work, truth, "stars.fits", "--previous", hist["full"], "--persistence-source", "stars")
+    p["all"] = later(work, truth, "all.fits", "--previous", hist["full"], "--persistence-source", "all")
+    p["stars"] = later(work, truth, "stars.fits", "--previous", hist["full"])
+    p["stars_flag"] = later(work, truth, "stars_flag.fits", "--previous", hist["full"], "--persistence-source",
+                            "stars")
     p["thr"] = later(work, truth, "thr.fits", "--previous", hist["full"], "--persistence-source", "5e4")
     p["stars_set"] = later(work, truth, "stars_set.fits", "--previous", hist["full"],
                            "--set", "persistence.source=stars")
@@ -160,7 +163,8 @@ def test_source_all_is_every_photon(hist, persisted):
     h, a = images(hist["full"]), images(persisted["all"])
     np.testing.assert_allclose(a["PERSIST"], law(h["FLUENCE"]), rtol=1e-5, atol=1e-6)
     assert a["PERSIST"].min() > 0                       # the earlier exposure's sky persists everywhere
-    assert raw_cards_masked(persisted["all"]) == raw_cards_masked(persisted["all_flag"])   # 'all': the default
+    # 'stars' is the default (render and study alike)
+    assert raw_cards_masked(persisted["stars"]) == raw_cards_masked(persisted["stars_flag"])
 
 
 def test_source_stars_is_the_light_of_stars_capped_at_the_well(hist, persisted):
@@ -260,19 +264,21 @@ def test_fluence_above_the_well_persists_as_the_well(work, truth, hist):
     h = images(hist["nosat"])
     assert h["names"] == ["PRIMARY", "FLUENCE", "STARFLU"]
     assert h["FLUENCE"].max() > 3 * WELL                             # no saturation in the earlier frame
-    capped = images(later(work, truth, "cap_well.fits", "--previous", hist["nosat"]))
+    every = ("--persistence-source", "all")                         # the FLUENCE persists (not the default)
+    capped = images(later(work, truth, "cap_well.fits", "--previous", hist["nosat"], *every))
     np.testing.assert_allclose(capped["PERSIST"], law(np.minimum(h["FLUENCE"], WELL)), rtol=1e-5, atol=1e-6)
-    none = images(later(work, truth, "cap_none.fits", "--previous", hist["nosat"],
+    none = images(later(work, truth, "cap_none.fits", "--previous", hist["nosat"], *every,
                         "--set", "persistence.fluence_cap=none"))
     np.testing.assert_allclose(none["PERSIST"], law(h["FLUENCE"]), rtol=1e-5, atol=1e-6)
     assert none["PERSIST"].max() > 1.2 * capped["PERSIST"].max()     # the law grows beyond the well
-    half = images(later(work, truth, "cap_half.fits", "--previous", hist["nosat"],
+    half = images(later(work, truth, "cap_half.fits", "--previous", hist["nosat"], *every,
                         "--set", "persistence.fluence_cap=5e4"))
     np.testing.assert_allclose(half["PERSIST"], law(np.minimum(h["FLUENCE"], 5e4)), rtol=1e-5, atol=1e-6)
-    assert images(later(work, truth, "cap_none.fits", "--previous", hist["nosat"],
+    assert images(later(work, truth, "cap_none.fits", "--previous", hist["nosat"], *every,
                         "--set", "persistence.fluence_cap=none"))["headers"]["PERSIST"]["PS_CAP"] == "none"
     # a model without a well has nothing to clip at: 'well' then means no cap
-    nosat = images(later(work, truth, "cap_nosat.fits", "--previous", hist["nosat"], "--set", "saturation=off"))
+    nosat = images(later(work, truth, "cap_nosat.fits", "--previous", hist["nosat"], *every,
+                         "--set", "saturation=off"))
     np.testing.assert_allclose(nosat["PERSIST"], law(h["FLUENCE"]), rtol=1e-5, atol=1e-6)
     assert nosat["headers"]["PRIMARY"]["PS_CAP"] == "none"
 
@@ -287,11 +293,14 @@ def test_stars_beyond_the_well_persist_uncapped_with_cap_none(work, truth, hist)
 def test_fluence_input_of_a_model():
     from perscli.detector.effects import Persistence, load_detector_model
 
-    assert Persistence.fluence_input(load_detector_model("roman")) == ("all", None, WELL)
+    # the default source is the stars' light (STARFLU), render and study alike
+    assert Persistence.fluence_input(load_detector_model("roman")) == ("stars", None, WELL)
     assert Persistence.fluence_input(load_detector_model("roman", ["saturation.full_well=8e4",
-                                                                   "persistence.source=stars"])) == \
-        ("stars", None, 8e4)
-    assert Persistence.fluence_input(load_detector_model("roman", ["saturation=off"])) == ("all", None, None)
+                                                                   "persistence.source=all"])) == \
+        ("all", None, 8e4)
+    assert Persistence.fluence_input(load_detector_model("roman", ["saturation=off"])) == ("stars", None, None)
+    assert Persistence.fluence_input(load_detector_model("roman", ["saturation=off", "persistence.source=all"])) == \
+        ("all", None, None)
     assert Persistence.fluence_input(load_detector_model("roman", ["persistence.source=1000",
                                                                    "persistence.fluence_cap=none"])) == \
         ("threshold", 1000.0, None)
@@ -315,29 +324,48 @@ def test_hdus_are_written_in_order_and_checked(work, truth, hist):
 def test_a_frame_without_fluence_is_refused_as_previous(work, truth, hist):
     sci_only = render(work / "sci_only.fits", truth, "--hdus", "SCI,MODEL")
     before = listing(work)
+    # the FLUENCE case: --persistence-source all
+    result = later(work, truth, "refused.fits", "--previous", sci_only, "--persistence-source", "all", expect=1)
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and "sci_only.fits: no FLUENCE extension" in lines[0] and "FLUENCE in --hdus" in lines[0]
+    assert listing(work) == before
+    # the STARFLU case: the default source (stars), with both ways out
     result = later(work, truth, "refused.fits", "--previous", sci_only, expect=1)
     lines = result.stderr.splitlines()
-    assert len(lines) == 1 and "sci_only.fits: no FLUENCE extension" in lines[0] and "--hdus" in lines[0]
+    assert len(lines) == 1 and "sci_only.fits: no STARFLU extension" in lines[0]
+    assert "STARFLU in --hdus" in lines[0] and "or use --persistence-source all" in lines[0]
     assert listing(work) == before
     no_stars = render(work / "no_stars.fits", truth, "--hdus", "FLUENCE")
     before = listing(work)
-    result = later(work, truth, "refused.fits", "--previous", no_stars, "--persistence-source", "stars", expect=1)
-    assert "no_stars.fits: no STARFLU extension" in result.stderr and "STARFLU in --hdus" in result.stderr
+    for flag in ((), ("--persistence-source", "stars")):
+        result = later(work, truth, "refused.fits", "--previous", no_stars, *flag, expect=1)
+        lines = result.stderr.splitlines()
+        assert len(lines) == 1 and "no_stars.fits: no STARFLU extension" in lines[0], flag
+        assert "STARFLU in --hdus" in lines[0] and "or use --persistence-source all" in lines[0], flag
     # an explicit HDU must be the one that persists
-    result = later(work, truth, "refused.fits", "--previous", hist["full"] + "[SCI]", expect=1)
+    result = later(work, truth, "refused.fits", "--previous", hist["full"] + "[SCI]", "--persistence-source", "all",
+                   expect=1)
     assert "FLUENCE" in result.stderr and len(result.stderr.splitlines()) == 1
+    result = later(work, truth, "refused.fits", "--previous", hist["full"] + "[FLUENCE]", expect=1)
+    assert "comes from its STARFLU" in result.stderr and len(result.stderr.splitlines()) == 1
     assert listing(work) == before
+    # the way out works: a frame without STARFLU is a history under --persistence-source all
+    later(work, truth, "way_out.fits", "--previous", no_stars, "--persistence-source", "all")
 
 
 def test_history_without_sci_and_explicit_extension(work, truth, hist, persisted):
     # FLUENCE and STARFLU only (no SCI): still an earlier exposure, for either source
     light = render(work / "light.fits", truth, "--hdus", "FLUENCE,STARFLU")
-    a = images(later(work, truth, "light_all.fits", "--previous", light))
+    a = images(later(work, truth, "light_all.fits", "--previous", light, "--persistence-source", "all"))
     np.testing.assert_array_equal(a["PERSIST"], images(persisted["all"])["PERSIST"])
     s = images(later(work, truth, "light_stars.fits", "--previous", light, "--persistence-source", "stars"))
     np.testing.assert_array_equal(s["PERSIST"], images(persisted["stars"])["PERSIST"])
-    e = images(later(work, truth, "explicit.fits", "--previous", hist["full"] + "[FLUENCE]"))
+    e = images(later(work, truth, "explicit.fits", "--previous", hist["full"] + "[FLUENCE]",
+                     "--persistence-source", "all"))
     np.testing.assert_array_equal(e["PERSIST"], images(persisted["all"])["PERSIST"])
+    # under the default source (stars), the explicit extension is STARFLU
+    es = images(later(work, truth, "explicit_stars.fits", "--previous", hist["full"] + "[STARFLU]"))
+    np.testing.assert_array_equal(es["PERSIST"], images(persisted["stars"])["PERSIST"])
     prim = a["headers"]["PRIMARY"]
     assert prim["PRV01"] == "light.fits"
     with fits.open(light) as hdul:

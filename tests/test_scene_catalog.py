@@ -279,7 +279,8 @@ def test_output_file_columns_units_and_header(tmp_path):
     out = tmp_path / "truth.fits"
     result = invoke("catalog", "--ra", RA, "--dec", DEC, "--size", 4, "--seed", 3, "-o", out)
     assert result.exit_code == 0, result.output
-    assert result.stdout == "" and result.stderr == ""
+    # stderr: one line, the count of rows written (tests/test_fuzz_values.py checks it against the table)
+    assert result.stdout == "" and result.stderr.startswith(f"{out}: ") and result.stderr.count("\n") == 1
     with fits.open(out, checksum=True) as hdul:
         hdu = hdul["TRUTH"]
         data, hdr = hdu.data, hdu.header

@@ -46,8 +46,19 @@ def test_typos_are_named_with_the_closest_key(tmp_path):
 
 
 def test_types_and_values_are_checked():
-    with pytest.raises(PerscliError, match="must be a number"):
+    with pytest.raises(PerscliError, match="must be a finite number"):
         load_study(None, preset="ci", overrides=["field.ra=east"])
+    # what a fuzzer found passing the dry run (or crashing): each refused up front, in one line
+    bad = {"exposures.count=2.5": "whole number", "exposures.count=true": "finite number",
+           "field.radius=.nan": "finite number", "persistence.models=5": "persistence model",
+           "correlate.npatch=0": "npatch", "measure.stamp=7": "measure.stamp",
+           "catalog.galaxy_density=-3": "galaxy_density", "catalog.margin_arcsec=-1": "margin",
+           "measure.min_snr=-2": "min_snr", "correlate.thresholds=[0]": "thresholds",
+           "budget.bands=nonsense": "budget bands", "budget.modes=Q": "modes",
+           "catalog.gaia=[/no/such/chunk.fits]": "catalog.gaia"}
+    for override, message in bad.items():
+        with pytest.raises(PerscliError, match=message):
+            load_study(None, preset="ci", overrides=[override])
     with pytest.raises(PerscliError, match="ra must be in"):
         load_study(None, preset="ci", overrides=["field.ra=370"])
     with pytest.raises(PerscliError, match="persistence.sources"):
@@ -150,6 +161,38 @@ def test_dry_run_reports_the_graph(tmp_path):
     result = run("study", "--preset", "ci", "-o", tmp_path / "o", "--dry-run", *sum([["--set", c] for c in CI], []))
     assert "tasks" in result.output and "final" in result.output
     assert not (tmp_path / "o").exists()
+
+
+def _one_line(result, code):
+    assert result.exit_code == code, result.output
+    lines = [ln for ln in result.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in result.output, result.output
+    return lines[0]
+
+
+def test_bad_scheduler_cost_file_and_output_are_one_line_before_anything_runs(tmp_path):
+    args = ["study", "--preset", "ci", "--dry-run"]
+    line = _one_line(run(*args, "-o", tmp_path / "o", "--scheduler", "bogus", ok=False), 2)
+    assert "--scheduler" in line and "tcp://HOST:8786" in line
+    for text, message in (("{\n", "not JSON at line 2"), ("[]", "not a study's cost.json"),
+                          ('{"final": {"tasks": 1}}', "entry 'final' lacks")):
+        bad = tmp_path / "cost.json"
+        bad.write_text(text)
+        line = _one_line(run(*args, "-o", tmp_path / "o", "--cost-from", bad, ok=False), 1)
+        assert message in line and str(bad) in line
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    assert "is a file" in _one_line(run(*args, "-o", a_file, ok=False), 1)
+    assert "not a stream" in _one_line(run(*args, "-o", "-", ok=False), 1)
+    assert a_file.read_text() == "x" and not (tmp_path / "o").exists()
+
+
+def test_a_cost_file_lacking_kinds_says_what_the_projection_leaves_out(tmp_path):
+    from perscli.study.summary import project
+
+    tasks = [{"kind": "final", "key": "final/sca1/e1", "params": {}}, {"kind": "budget", "key": "b", "params": {}}]
+    p = project(tasks, {"final": {"tasks": 2, "cpu_s": 10.0, "bytes": 100}})
+    assert p["missing"] == ["budget"] and abs(p["cpu_hours"] - 5.0 / 3600) < 1e-12
 
 
 # -- runs ------------------------------------------------------------------------------------
@@ -323,7 +366,21 @@ def test_half_written_files_of_a_killed_run_are_removed_before_the_next(tmp_path
     for p in (dead, alive, writer):
         p.write_text("half")
     folder.mkdir()
+    # a per-exposure final's scratch frame, named as the task names it (NAME.eEXPID.PID.part)
+    scratch = d / "shapes" / "e004184.fits.e005524.999999999.part"
+    scratch.write_text("half")
     (d / "shapes" / "done.fits").write_text("whole")
-    assert remove_stale_parts(str(d)) == 3
-    assert not dead.exists() and not writer.exists() and not folder.exists()
+    assert remove_stale_parts(str(d)) == 4
+    assert not dead.exists() and not writer.exists() and not folder.exists() and not scratch.exists()
     assert alive.exists() and (d / "shapes" / "done.fits").exists()
+
+
+def test_the_summary_reads_products_only_not_what_a_killed_task_left_beside_them(tmp_path):
+    from perscli.study.summary import _products
+
+    d = tmp_path / "shapes" / "sca08"
+    d.mkdir(parents=True)
+    for name in ("e004184.fits", "e004185.fits", "e004184.fits.13740.e005524.fits", "e004184.fits.e1.2.part"):
+        (d / name).write_text("x")
+    found = _products(str(tmp_path / "shapes" / "sca*" / "e*.fits"), r"e\d+\.fits")
+    assert [os.path.basename(p) for p in found] == ["e004184.fits", "e004185.fits"]

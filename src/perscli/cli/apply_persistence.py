@@ -7,8 +7,8 @@ import logging
 import click
 
 from .helpers import FILE, check_outputs, progress_reporter, report_errors
-from .options import (compress_opt, exptime_opt, gain_opt, model_opt, no_checksum_opt, output_opt, overwrite_opt,
-                      units_opt, verbosity_opts, workers_opt)
+from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, model_opt, no_checksum_opt, output_opt,
+                      overwrite_opt, units_opt, verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -66,7 +66,7 @@ def _power_of_two(ctx, param, value):
 @click.option("--dq-bit", type=int, default=None, callback=_power_of_two, metavar="VALUE",
               help=f"The DQ value --flag-above sets, a power of two [default: {DQ_BIT}, a value calwf3 is not known to "
                    "set in WFC3-IR data].")
-@click.option("--gap", type=click.FloatRange(min=0), default=None, metavar="SECONDS",
+@click.option("--gap", type=FiniteRange(min=0), default=None, metavar="SECONDS",
               help="Ignore header timestamps: PREVIOUS... then CURRENT, in command-line order, are consecutive "
                    "exposures separated by SECONDS.")
 @units_opt

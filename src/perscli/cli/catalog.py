@@ -155,9 +155,13 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_rows, ga
         table = make_truth_catalog_file(output, ra, dec, size, overwrite=overwrite, galaxy_density=galaxy_density,
                                         star_density=star_density, star_model=star_model, gaia=gaia or None,
                                         seed=seed, columns=columns)
-    log.info("%s: %d galaxies and %d %s stars in %.6g arcmin^2",
-             "stdout" if output == "-" else output, table.meta["NGAL"], table.meta["NSTAR"],
-             "gaia" if table.meta["STARSRC"] == "gaia" else table.meta["STARMOD"], table.meta["FIELDAR"])
+    # what was written, in one line on stderr (stdout may be the table itself), unless -q
+    verbosity = (ctx.find_root().obj or {}).get("verbosity", 0)
+    if verbosity >= 0:
+        meta = table.meta
+        stars = "gaia" if meta["STARSRC"] == "gaia" else meta["STARMOD"]
+        click.echo(f"{'stdout' if output == '-' else output}: {len(table)} rows written ({meta['NGAL']} galaxies, "
+                   f"{meta['NSTAR']} {stars} stars in {meta['FIELDAR']:.6g} arcmin^2)", err=True)
     if gaia and table.meta["NSTAR"] == 0:
         log.warning("no Gaia star of %s lies inside the field; check %s", ", ".join(gaia),
                     "--footprints" if footprints else "--ra/--dec/--size")

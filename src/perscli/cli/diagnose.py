@@ -7,7 +7,7 @@ import logging
 import click
 
 from .helpers import FILE, FOLDER, report_errors
-from .options import model_opt, no_checksum_opt, overwrite_opt, verbosity_opts
+from .options import FiniteRange, model_opt, no_checksum_opt, overwrite_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
 
@@ -24,9 +24,9 @@ log = logging.getLogger("perscli")
               help="Folder to write: model.yaml, report.json, report.md and PNG figures.")
 @click.option("--fit-pixels", type=click.IntRange(min=1000), default=1_000_000, show_default=True, metavar="N",
               help="Pixels per exposure used in the fits (evenly spaced stripes); the gaps use every pixel.")
-@click.option("--gain", type=click.FloatRange(min=0, min_open=True), default=None, metavar="E_PER_DN",
+@click.option("--gain", type=FiniteRange(min=1e-3, max=1e3), default=None, metavar="E_PER_DN",
               help="Gain of measured DN frames whose header has no GAIN or CCDGAIN.")
-@click.option("--exptime", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
+@click.option("--exptime", type=FiniteRange(min=0, min_open=True, max=1e7), default=None, metavar="SECONDS",
               help="Exposure time of measured frames whose header has none.")
 @no_checksum_opt
 @overwrite_opt
@@ -40,11 +40,19 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
     simulation's IDEAL, with the persistence of the earlier exposures; the
     residuals are examined against the pixel's signal, its neighbours', the
     fluence of earlier exposures, exposure and read times and position.  Each
-    candidate (persistence A, ipc alpha, nonlinearity beta, reciprocity
-    alpha, dark current, offset level, read_noise sigma, gain) is fitted by
-    likelihood; the best is named when it improves -2 ln L by more than 25
-    and BIC by more than 10, added, and the search repeats.  Candidates the
-    data cannot tell apart are reported as one degenerate group.
+    candidate (persistence A, ipc alpha, brighter_fatter coefficient,
+    nonlinearity beta, reciprocity alpha, dark current, offset level,
+    read_noise sigma, correlated_read_noise row and column, gain) is fitted
+    by likelihood; the best is named when its likelihood-ratio improvement
+    passes a test with a false-alarm probability of 1e-3 and its value is
+    physical, every named effect is refitted together (marginal errors and
+    correlations), and the search repeats.  Candidates the data cannot tell
+    apart are reported as one degenerate group.  Misspecification checks
+    (row and column noise, 1/f noise, outliers and hot pixels, noise that
+    grows with the signal, a flat field, displaced or reshaped sources,
+    persistence with another time law) then run on the final model: what
+    they find is reported as "unexplained" and the effects it could be
+    mistaken for are withdrawn.
 
     OUTDIR gets model.yaml (the simulation's model with the effects found at
     their fitted values: perscli render --model OUTDIR/model.yaml), report.json,
@@ -67,21 +75,16 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
     """
     import os
 
-    from ..diagnose.report import diagnose as run, write_report
-
     from .. import PerscliError
+    from ..diagnose.report import diagnose as run, write_report
+    from ..io.output import check_output_folder
 
     inputs = list(measured) + list(simulated) + ([model_spec] if model_spec and os.path.exists(model_spec) else [])
-    target = os.path.abspath(outdir)
-    if os.path.exists(target) and not os.path.isdir(target):
-        raise PerscliError(f"{outdir}: is a file; -o names the folder diagnose writes")
-    if os.path.exists(target) and not overwrite:
-        raise PerscliError(f"{outdir}: already exists; use --overwrite to replace it")
-    for name in inputs:
-        path = os.path.abspath(name.split("[", 1)[0])
-        if name != "-" and (path == target or path.startswith(target + os.sep)):
-            raise PerscliError(f"{outdir}: holds the input {name}; diagnose replaces the whole folder: "
-                               "choose another output folder")
+    # diagnose writes its folder beside it and renames it into place: the folder it goes in must exist
+    parent = os.path.dirname(os.path.abspath(outdir)) if outdir != "-" else "."
+    if not os.path.isdir(parent):
+        raise PerscliError(f"{parent}: folder does not exist; create it or choose another output")
+    check_output_folder(outdir, overwrite=overwrite, inputs=inputs)
 
     import sys
 

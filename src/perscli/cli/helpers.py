@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import logging
+import signal
 import sys
 
 import click
@@ -39,39 +41,139 @@ def check_outputs(output: str, *, inputs=(), plot: str | None = None, overwrite:
     """Refuse, before any work, an output (-o, --plot) that would replace any input or each other.
 
     ``inputs`` are every file the command reads (None, '-' and names that
-    are not files, such as a model's name, are skipped).  Raises PerscliError:
-    one line, exit status 1.
+    are not files, such as a model's name, are skipped).  The outputs become
+    the command's output group (:class:`perscli.io.output.OutputGroup`):
+    published together when the command succeeds, none of them when it
+    fails.  Raises PerscliError: one line, exit status 1.
     """
     import os
 
     from .. import PerscliError
-    from ..io.output import check_output
+    from ..io.output import check_output, declare_output, is_stdout
 
     inputs = [str(name) for name in inputs if name is not None]
     check_output(output, overwrite=overwrite, inputs=inputs)
+    declare_output(output)
     if plot is not None:
         check_output(plot, overwrite=overwrite, inputs=inputs)
-        if output != "-" and os.path.abspath(plot) == os.path.abspath(output):
+        if is_stdout(output) and is_stdout(plot):
+            raise PerscliError(f"{plot}: --plot and -o both name standard output: give the figure a file name")
+        if not is_stdout(output) and os.path.abspath(plot) == os.path.abspath(output):
             raise PerscliError(f"{plot}: --plot and -o name the same file: choose another name for the figure")
+        declare_output(plot)
+
+
+def describe_os_error(exc: OSError, outputs=()) -> str:
+    """An OSError that reached the command line (no library call said it better) as one line.
+
+    Parameters
+    ----------
+    exc : OSError
+        The error.
+    outputs : sequence of str
+        The command's outputs (``-o``, ``--plot``), named for a write fault
+        whose error names no file (``write()`` and ``close()`` do not) or
+        a temporary file perscli made beside an output (``.perscli-*``),
+        which the user never sees.
+
+    Returns
+    -------
+    str
+        A write fault names the output(s) and what to do
+        (:func:`perscli.io.output.write_error`); anything else names the
+        file and the system's reason.
+    """
+    import os
+
+    from ..io.output import STDOUT_LABEL, WRITE_ERRNOS, is_stdout, write_error
+
+    name = exc.filename
+    ours = name is None or any(part.startswith(".perscli-") for part in str(name).split(os.sep))
+    # permission denied on a file the user named may be an input being read: said as it is, below
+    writing = exc.errno in WRITE_ERRNOS and exc.errno not in (errno.EBADF, errno.ENXIO) and (
+        ours or exc.errno not in (errno.EACCES, errno.EPERM))
+    if writing:
+        if not ours:
+            return str(write_error(str(name), exc))
+        outputs = [str(o) for o in outputs if o is not None]
+        if outputs:
+            files = [o for o in outputs if not is_stdout(o)]
+            label = " or ".join(STDOUT_LABEL if is_stdout(o) else o for o in outputs)
+            return str(write_error(files[0] if files else "-", exc, name=label))
+        reason = exc.strerror or str(exc)
+        return f"cannot write an output ({reason}); check the device and the folder, or write elsewhere"
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    return f"{name}: {reason}" if name else f"{reason} (an operating-system error; -vv shows where)"
+
+
+def _outputs_of(kwargs) -> list:
+    """The outputs a command's arguments name: ``-o`` (``output``, ``outdir`` or ``dest``), ``--plot``."""
+    return [kwargs[key] for key in ("output", "outdir", "dest", "plot") if isinstance(kwargs.get(key), str)]
 
 
 def report_errors(func):
-    """Turn library errors into one clear line and exit 1 (a traceback with -vv)."""
+    """Turn library errors into one clear line and exit 1 (a traceback with -vv).
+
+    The command runs inside an output group (:class:`perscli.io.output.OutputGroup`):
+    the outputs it declared (:func:`check_outputs`) are published together
+    when it returns, or ends with a deliberate exit status (``ctx.exit``),
+    and none of them when it fails or is interrupted.  Errors from the
+    operating system (a full disk, a file-size limit, a read-only folder)
+    are one line too; SIGINT (Ctrl-C) ends the command like SIGTERM, with
+    exit status 130 (:class:`perscli.executor.Terminated`), which carries
+    the command's name for the line :func:`perscli.cli.main.main` prints.
+    """
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
+        from ..executor import Terminated
+        from ..io.output import OutputGroup
+
+        group = OutputGroup()
         try:
-            return func(*args, **kwargs)
+            try:
+                with group.active():
+                    result = func(*args, **kwargs)
+            except click.exceptions.Exit:
+                group.commit()          # a chosen exit status (budget --check): the outputs stand
+                raise
+            except BaseException:
+                group.discard()
+                raise
+            group.commit()
+            return result
         except PerscliError as exc:
-            if logging.getLogger("perscli").isEnabledFor(logging.DEBUG):
-                logging.getLogger("perscli").exception("traceback")
+            _debug_traceback()
             raise DataError(str(exc)) from None
         except MemoryError:
             raise DataError("out of memory: use smaller inputs or fewer --workers") from None
         except KeyboardInterrupt:
-            raise click.Abort() from None
+            # SIGINT where perscli's handler is not installed (a library, a test runner): as SIGTERM
+            exc = Terminated(signal.SIGINT)
+            exc.command = _command_name()
+            raise exc from None
+        except Terminated as exc:
+            # which command was cut short: what it leaves behind differs (a study keeps what it finished)
+            if getattr(exc, "command", None) is None:
+                exc.command = _command_name()
+            raise
+        except OSError as exc:
+            if isinstance(exc, BrokenPipeError):
+                raise                   # click's own handling: a reader that went away is no error
+            _debug_traceback()
+            raise DataError(describe_os_error(exc, _outputs_of(kwargs))) from None
 
     return wrapper
+
+
+def _command_name() -> str | None:
+    ctx = click.get_current_context(silent=True)
+    return ctx.info_name if ctx is not None else None
+
+
+def _debug_traceback() -> None:
+    if logging.getLogger("perscli").isEnabledFor(logging.DEBUG):
+        logging.getLogger("perscli").exception("traceback")
 
 
 def progress_reporter(label: str, stream=None):
@@ -210,8 +312,24 @@ class PathName(click.Path):
             CompletionItem(name) for name in self.names if name.startswith(incomplete)]
 
 
+class OutputName(PathName):
+    """An output file name: ``/dev/stdout`` (and /dev/fd/1, /proc/self/fd/1) is taken as '-'.
+
+    Commands treat '-' as standard output; the other names of it would
+    otherwise be files that exist ("already exists") or that a temporary
+    file cannot be made beside (/dev).
+    """
+
+    def convert(self, value, param, ctx):
+        from ..io.output import is_stdout
+
+        return "-" if value is not None and is_stdout(value) else value
+
+
 #: a file name: an input or an output ('-' for standard input or output)
 FILE = PathName()
+#: an output file name ('-' or /dev/stdout for standard output)
+OUTPUT = OutputName()
 #: a folder name (an output folder)
 FOLDER = PathName(folder=True)
 

@@ -7,7 +7,7 @@ import logging
 import click
 
 from .helpers import FILE, check_outputs, file_or, progress_reporter, report_errors
-from .options import output_opt, overwrite_opt, verbosity_opts, workers_opt
+from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, verbosity_opts, workers_opt
 
 #: perscli.measure.shapes.MIN_SNR_DEFAULT, written out so that --help does not import the fitter
 MIN_SNR_DEFAULT = 5.0
@@ -19,7 +19,8 @@ log = logging.getLogger("perscli")
 @click.argument("frames", nargs=-1, required=True, metavar="FRAME...", type=FILE)
 @click.option("--catalog", required=True, metavar="CAT.fits", type=FILE,
               help="Objects to measure: id and ra/dec (degrees) or x/y (FITS pixels); hlr and mag_<FILTER> "
-                   "columns, when present, give the starting point.")
+                   "columns, when present, give the starting point.  Checked as render checks it: unique ids, "
+                   "RA/Dec on the sky, hlr >= 0 (> 0 for a galaxy), |e| < 1.")
 @click.option("--psf", default="roman", show_default=True, metavar="roman|PSF.fits", type=file_or("roman"),
               help="roman: GalSim's Roman PSF for the frame's SCA and FILTER.  Or a PSF image (file.fits[EXT] "
                    "picks an HDU; of several, each frame takes the one of its SCA and FILTER) sampled finer "
@@ -68,13 +69,15 @@ log = logging.getLogger("perscli")
 @click.option("--joint", is_flag=True,
               help="One fit per galaxy over all the FRAMEs it falls on (one filter; WCS and EXPTIME needed), "
                    "with g, T, flux and position on the sky: a JOINT table.")
+@columns_opt("the --catalog", "id=NUMBER,ra=ALPHA_J2000,dec=DELTA_J2000")
+@no_checksum_opt
 @output_opt
 @overwrite_opt
 @workers_opt("processes fitting the objects (the output does not depend on N)")
 @verbosity_opts
 @report_errors
 def measure(frames, catalog, psf, psf_pixel, psf_oversampling, allow_undersampled_psf, write_psf, method, stamp,
-            sky, read_noise, blend_radius, kinds, min_snr, all_rows, joint, output, overwrite, workers):
+            sky, read_noise, blend_radius, kinds, min_snr, all_rows, joint, columns, output, overwrite, workers):
     """Measure the shapes of the catalogue's galaxies on each FRAME, or jointly over all of them.
 
     Which objects: the catalogue rows of --kinds (the galaxies, by the truth
@@ -174,7 +177,7 @@ def measure(frames, catalog, psf, psf_pixel, psf_oversampling, allow_undersample
                             progress=progress_reporter("galaxies" if joint else "objects"), kinds=kinds,
                             min_snr=min_snr, all_rows=all_rows, joint=joint, psf_pixel=psf_pixel,
                             psf_oversampling=psf_oversampling, allow_undersampled_psf=allow_undersampled_psf,
-                            write_psf=write_psf)
+                            write_psf=write_psf, columns=columns)
     log.info("%s: %d rows (%d without flags) from %d frame(s); %d fitted, %d below --min-snr",
              "stdout" if output == "-" else output, summary["rows"], summary["good"], summary["frames"],
              summary["fitted"], summary["cut"])

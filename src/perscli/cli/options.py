@@ -44,11 +44,11 @@ import math
 import click
 
 from ..instrument import ROMAN_FILTERS, ROMAN_N_SCA
-from .helpers import FILE, file_or
+from .helpers import FILE, OUTPUT, file_or
 
 output_opt = click.option(
-    "-o", "--output", "output", required=True, metavar="PATH", type=FILE,
-    help="Output FITS file, or '-' for standard output.")
+    "-o", "--output", "output", required=True, metavar="PATH", type=OUTPUT,
+    help="Output FITS file, or '-' (or /dev/stdout) for standard output.")
 
 overwrite_opt = click.option(
     "--overwrite", is_flag=True, default=False, help="Replace the output if it exists.")
@@ -57,13 +57,26 @@ units_opt = click.option(
     "--units", metavar="UNIT", default=None,
     help="Units of every input, overriding BUNIT: electron, electron/s, DN or DN/s.")
 
+class FiniteRange(click.FloatRange):
+    """A range of floats that refuses 'nan' and 'inf' too (click's FloatRange lets NaN through, and
+    'inf' through a range without an upper bound): ``--exptime inf`` would make any charge infinite."""
+
+    def convert(self, value, param, ctx):
+        rv = super().convert(value, param, ctx)
+        if not math.isfinite(rv):
+            self.fail(f"{value!r} is not a finite number in the range {self._describe_range()}.", param, ctx)
+        return rv
+
+
+# the ranges of perscli.io.frames (GAIN_RANGE, MAX_EXPTIME), written here again so that --help does not
+# import numpy: a gain no detector has, or an exposure time of 0 s, would silently give no persistence
 gain_opt = click.option(
-    "--gain", type=click.FloatRange(min=0, min_open=True), metavar="E_PER_DN", default=None,
-    help="Gain in e-/DN, overriding GAIN/CCDGAIN (needed for DN inputs without them).")
+    "--gain", type=FiniteRange(min=1e-3, max=1e3), metavar="E_PER_DN", default=None,
+    help="Gain in e-/DN (0.001 to 1000), overriding GAIN/CCDGAIN (needed for DN inputs without them).")
 
 exptime_opt = click.option(
-    "--exptime", type=click.FloatRange(min=0), metavar="SECONDS", default=None,
-    help="Exposure time for inputs whose header has no EXPTIME or XPOSURE.")
+    "--exptime", type=FiniteRange(min=0, min_open=True, max=1e7), metavar="SECONDS", default=None,
+    help="Exposure time (more than 0 s) for inputs whose header has no EXPTIME or XPOSURE.")
 
 def workers_opt(what: str):
     """``--workers N``: cores to use, ``what`` saying for what (processes or threads; see perscli.executor)."""

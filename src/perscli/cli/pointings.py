@@ -203,4 +203,7 @@ def pointings(ctx, schedule, plan, ra, dec, radius, filter_name, limit, after, b
                 f"within {radius:g} degrees"
             log.warning("%s: no exposure %s about (%g, %g)%s; the output table is empty",
                         schedule, what, ra, dec, f" in {filter_name}" if filter_name else "")
-    log.info("%s: %d exposures", "stdout" if output == "-" else output, len(chosen))
+    # what was written, in one line on stderr (stdout may be the table itself), unless -q
+    verbosity = (ctx.find_root().obj or {}).get("verbosity", 0)
+    if verbosity >= 0:
+        click.echo(f"{'stdout' if output == '-' else output}: {len(chosen)} rows written (exposures)", err=True)

@@ -52,16 +52,17 @@ def _list_effects(ctx, param, value):
 @click.option("--set", "settings", multiple=True, metavar="EFFECT.KEY=VALUE",
               help="Override the model: e.g. read_noise.sigma=5, persistence.base=pessimistic, ipc=off.")
 @click.option("--previous", multiple=True, metavar="FRAME", type=FILE,
-              help="An earlier exposure of the same SCA (a frame perscli rendered); repeatable. Its FLUENCE "
-                   "(STARFLU for --persistence-source stars) leaves persistence in this one.")
+              help="An earlier exposure of the same SCA (a frame perscli rendered); repeatable. Its STARFLU "
+                   "(FLUENCE for --persistence-source all) leaves persistence in this one.")
 @click.option("--persistence-source", "persistence_source", metavar="all|stars|ELECTRONS", default=None,
-              help="What of the --previous frames persists: all (their FLUENCE: every photon), stars (their "
-                   "STARFLU: the light of stars only, the paper's setting) or a number of electrons (only pixels "
-                   "whose FLUENCE exceeds it); same as --set persistence.source=...  [default: the model's, all]")
+              help="What of the --previous frames persists: stars (their STARFLU: the light of stars only, as in "
+                   "the paper and perscli study), all (their FLUENCE: every photon, the sky's too) or a number of "
+                   "electrons (only pixels whose FLUENCE exceeds it); same as --set persistence.source=...  "
+                   "[default: the model's, stars]")
 @click.option("--hdus", metavar="NAME,...", default=None,
               help="The HDUs to write, among SCI,IDEAL,FLUENCE,STARFLU,PERSIST,MODEL (STARFLU: the stars' "
-                   "fluence, for later frames rendered with --persistence-source stars)  "
-                   "[default: SCI,IDEAL,FLUENCE,PERSIST,MODEL]")
+                   "fluence, what later frames' persistence comes from by default)  "
+                   "[default: SCI,IDEAL,FLUENCE,STARFLU,PERSIST,MODEL]")
 @click.option("--dry-run", "dry_run", is_flag=True, default=False,
               help="Draw nothing, write no frame or figure (no -o or --seed needed): print where the frame lands (its "
                    "corners on the sky, its size) and how many stars and galaxies of TRUTH.fits land on it.")
@@ -99,18 +100,21 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
 
     The output has SCI (the frame, DN after gain), IDEAL (noise-free electrons
     from sky and sources), FLUENCE (the charge collected, at most the full
-    well: what drives later persistence), with --previous PERSIST (electrons
-    of persistence), and MODEL (the resolved detector model, which --model
-    FRAME.fits reads back); WCS, timing, SCA, FILTER and GAIN in the headers.
-    --hdus chooses among them and STARFLU (the noise-free electrons of the
-    stars alone, not clipped at the well).
+    well), STARFLU (the noise-free electrons of the stars alone, not clipped
+    at the well), with --previous PERSIST (electrons of persistence), and
+    MODEL (the resolved detector model, which --model FRAME.fits reads
+    back); WCS, timing, SCA, FILTER and GAIN in the headers.  --hdus
+    chooses among them.
 
-    What of the --previous frames persists (--persistence-source): all their
-    FLUENCE, their STARFLU (stars), or the FLUENCE of pixels above a number
-    of electrons; the fluence fed to the persistence law is capped at
-    persistence.fluence_cap (default: the saturation full well, 1e5 e-).
-    A frame rendered once with FLUENCE and STARFLU serves as the history of
-    later frames for any source.
+    What of the --previous frames persists (--persistence-source): their
+    STARFLU (stars, the default: the bright-star ghosts the paper and
+    perscli study measure), all their FLUENCE (the sky's and the galaxies'
+    light too: in frames rounded to whole DN, a sky-level halo of ~1e-4 of
+    the sky that flips pixels by one DN), or the FLUENCE of pixels above a
+    number of electrons; the fluence fed to the persistence law is capped
+    at persistence.fluence_cap (default: the saturation full well, 1e5 e-).
+    A frame rendered with the default HDUs serves as the history of later
+    frames for any source.
 
     The exposure (pointing, PA, date, filter) comes from a row of
     --pointings or from --ra --dec --pa --mjd --filter; Roman must be able
@@ -139,7 +143,7 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
       perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 512 1 512 --seed 1 \\
           --hdus SCI,FLUENCE,STARFLU --compress gzip -o h0.fits
       perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 512 1 512 --seed 2 --previous h0.fits \\
-          --persistence-source stars --hdus SCI,PERSIST -o e1_stars.fits
+          --persistence-source all --hdus SCI,PERSIST -o e1_all.fits
       perscli catalog --ra 9.5 --dec -44.06 --size 10 -o sca7_truth.fits
       perscli render sca7_truth.fits --ra 10 --dec -44 --pa 30 --mjd 61541.97 --filter J129 --sca 7 \\
           --bounds 1 512 1 512 --model roman_detector.yaml --set read_noise.sigma=5 --seed 4 --plot explicit.png \\

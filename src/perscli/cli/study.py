@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from .helpers import FILE, FOLDER, report_errors
-from .options import overwrite_opt, verbosity_opts, workers_opt
+from .options import no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
 
 
 @click.command("study", short_help="Run a whole persistence study from one YAML description (Dask or serial).")
@@ -18,6 +18,7 @@ from .options import overwrite_opt, verbosity_opts, workers_opt
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Override a setting, e.g. exposures.count=5 or persistence.sources=[stars,all]; repeatable.")
 @click.option("--scheduler", default="local", show_default=True, metavar="serial|local|ADDRESS",
+              callback=lambda ctx, param, value: _scheduler(value),
               help="serial: in this process; local: a Dask LocalCluster of --workers processes; "
                    "ADDRESS: an existing Dask scheduler (tcp://host:8786), e.g. one dask-jobqueue started.")
 @workers_opt("worker processes of --scheduler local's Dask LocalCluster, one task each at a time")
@@ -25,6 +26,9 @@ from .options import overwrite_opt, verbosity_opts, workers_opt
 @click.option("--cost-from", "cost_from", type=click.Path(exists=True, dir_okay=False), default=None,
               metavar="COST.json", help="With --dry-run: project CPU-hours and bytes from the cost.json of "
                                        "an earlier study (e.g. the small preset's).")
+# eager: it sets PERSCLI_NO_CHECKSUM before anything is read, and the serial run, the LocalCluster's worker
+# processes and every task's readers inherit it, as for the other commands
+@no_checksum_opt
 @overwrite_opt
 @verbosity_opts
 @report_errors
@@ -82,19 +86,25 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
 
     ctx = click.get_current_context(silent=True)
     verbosity = (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
+    from ..io.output import check_output_folder
+
+    # before the description is even built: a study's folder may exist (it resumes), never be a file
+    check_output_folder(outdir, resume=True, inputs=[description])
     s = load_study(description, preset=preset, overrides=settings)
     tasks = task_dicts(build(s))
     n = _counts(tasks)
     if dry_run:
+        from ..study.summary import load_cost, project
+
+        # read before anything is printed: a bad file is the only line
+        measured = load_cost(cost_from) if cost_from else None
         click.echo(f"study {s['name']}: {len(tasks)} tasks: " + ", ".join(f"{v} {k}" for k, v in n.items()))
         if cost_from:
-            import json
-
-            from ..study.summary import project
-
-            with open(cost_from) as fh:
-                p = project(tasks, json.load(fh))
+            p = project(tasks, measured)
             click.echo(f"projected from {cost_from}: {p['cpu_hours']:.1f} CPU-hours, {p['terabytes']:.3f} TB")
+            if p["missing"]:
+                click.echo(f"study: {cost_from} has no {', '.join(p['missing'])} tasks to project from: they are "
+                           "not in these figures", err=True)
         return
     import os
 
@@ -106,12 +116,34 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
         from ..study.tasks import STATE
 
         shutil.rmtree(os.path.join(outdir, STATE), ignore_errors=True)
-    with open(os.path.join(outdir, "study.yaml"), "w") as fh:
-        fh.write(dump(s))
+    from ..io.output import write_error
+
+    path = os.path.join(outdir, "study.yaml")
+    try:
+        # whole or not at all: a full disk must not leave a truncated description beside the products
+        tmp = f"{path}.{os.getpid()}.part"
+        try:
+            with open(tmp, "w") as fh:
+                fh.write(dump(s))
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    except OSError as exc:
+        raise write_error(path, exc) from None
     recs = run(tasks, outdir, scheduler=scheduler, workers=workers, quiet=verbosity < 0)
     made = sum(1 for r in recs if not r.get("skipped"))
     print(f"study {s['name']}: {made} products made, {len(tasks) - made} already there; "
           f"summary in {outdir}/summary.md", file=sys.stderr)
+
+
+def _scheduler(value: str) -> str:
+    """'serial', 'local' or a Dask scheduler's address (tcp://host:port, tls://, ucx://, inproc://, or host:port)."""
+    import re
+
+    if value in ("serial", "local") or re.fullmatch(r"(tcp|tls|ucx|inproc|ws|wss)://\S+|[\w.\-]+:\d{1,5}", value):
+        return value
+    raise click.BadParameter(f"{value!r} is not serial, local or a Dask scheduler address (tcp://HOST:8786)")
 
 
 def _counts(tasks) -> dict:

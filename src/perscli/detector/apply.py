@@ -294,6 +294,12 @@ def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str |
     model = with_settings(model, time_model=time_model, max_previous=max_previous, lookback=lookback)
     previous = list(previous)
     require_timing(current)
+    if not current.is_ramp and previous and not current.end > current.start:
+        # persistence is integrated over the current exposure: over 0 s it is 0, and the output would
+        # silently be the input (EXPSTART = EXPEND, or MJDs so large that 100 s do not change them)
+        raise PerscliError(f"{current.label}: the exposure lasts 0 s ({current.timing_source}: start = end = "
+                           f"MJD {current.start!r}): no persistence can fall on it; fix the timing keywords, or "
+                           "give --gap SECONDS (and --exptime SECONDS)")
     overlaps = []
     for prev in previous:
         require_timing(prev)
@@ -684,7 +690,16 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
                     np.add(rows, work, out=work)
                 else:
                     np.subtract(rows, work, out=work)
-            out[k, r0:r1] = work
+            # values beyond the output's floats (a current frame scaled by BZERO = 1E300, stored as
+            # 32-bit) would be written as infinities with exit 0: numpy raises instead (no extra pass)
+            with np.errstate(over="raise"):
+                try:
+                    out[k, r0:r1] = work
+                except FloatingPointError:
+                    raise PerscliError(
+                        f"{current.label}: values up to {np.nanmax(np.abs(work)):.3g} do not fit in the output's "
+                        f"{8 * out.dtype.itemsize}-bit floats: the data or their scaling (BSCALE/BZERO) are "
+                        "corrupt; check the frame") from None
             out_sums.append(_kernels.datasum(out[k, r0:r1]))
         return (part,) + peak_total + (out_sums,)
 

@@ -699,9 +699,10 @@ def _persistence_schema():
         Param("combine", "choice", "sum", "", "sum over earlier exposures (the paper, GalSim) or per-pixel max "
               "(WFC3 pipeline)", choices=COMBINES),
         Param("max_previous", "int", 10, "", "only the N most recent earlier exposures count (0: all)", lo=0),
-        Param("source", "float", "all", "e-", "what of an earlier exposure persists: all (its FLUENCE: every "
-              "photon), stars (its STARFLU: the light of stars only, the paper's setting), or a number: only "
-              "pixels whose FLUENCE exceeds that many electrons", lo=0.0, choices=("all", "stars")),
+        Param("source", "float", "stars", "e-", "what of an earlier exposure persists: stars (its STARFLU: the "
+              "light of stars only; the paper's setting and the study's), all (its FLUENCE: every photon, sky and "
+              "galaxies too), or a number: only pixels whose FLUENCE exceeds that many electrons", lo=0.0,
+              choices=("all", "stars")),
         Param("floor", "float", 0.0, "e-", "pixels of an earlier exposure whose persisting fluence (STARFLU or "
               "FLUENCE) is at or below this leave nothing: how far faint light persists (0: all of it, the linear "
               "law down to zero; the paper does not say)", lo=0.0),
@@ -1210,6 +1211,11 @@ def _from_yaml(path: str) -> DetectorModel:
 
     doc = load_yaml(path, "detector model")
     if isinstance(doc, dict) and "effects" in doc:
+        others = [str(k) for k in doc if k != "effects"]
+        if others:
+            # a misspelt section would otherwise be ignored in silence
+            raise PerscliError(f"{path}: unknown key(s) {', '.join(others)} beside 'effects:'; a detector model "
+                               "file holds only 'effects:' (a list of effects in physical order)")
         doc = doc["effects"]
     if isinstance(doc, dict):
         items = list(doc.items())

@@ -331,6 +331,11 @@ def variance_shape(problem, evaluation, *, nbins: int = 10, blocks=("read_noise"
                  blocks=blocks, detail={"signal": centre, "variance": v.tolist()})
 
 
+#: what a flat-field error can pass for: it multiplies every source's light, so anything that acts on the signal
+#: (and persistence, whose ghosts sit where the sources were when pointings repeat)
+FLAT_FIELD_BLOCKS = ("gain", "nonlinearity", "reciprocity", "persistence", "brighter_fatter", "ipc")
+
+
 def flat_field(problem, evaluation) -> Check:
     ny, nx = problem.shape
     num = np.zeros(64)
@@ -347,7 +352,7 @@ def flat_field(problem, evaluation) -> Check:
     ok = den > 0
     if ok.sum() < 4:
         return Check("flat_field", 0.0, 0, 1.0, "a gain that varies over the detector",
-                     blocks=("gain", "nonlinearity", "reciprocity"))
+                     blocks=FLAT_FIELD_BLOCKS)
     eps = num[ok] / den[ok]
     err2 = 1.0 / den[ok]
     mean = float(np.sum(eps / err2) / np.sum(1.0 / err2))
@@ -355,7 +360,7 @@ def flat_field(problem, evaluation) -> Check:
     dof = int(ok.sum()) - 1
     return Check("flat_field", chi2, dof, _chi2_p(chi2, dof),
                  "the response differs from block to block of the detector (a flat-field error)",
-                 blocks=("gain", "nonlinearity", "reciprocity"),
+                 blocks=FLAT_FIELD_BLOCKS,
                  detail={"rms": float(np.std(eps)), "mean": mean})
 
 

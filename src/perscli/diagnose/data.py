@@ -120,6 +120,10 @@ def read_measured(names, *, gain=None, exptime=None) -> list:
     out = []
     for name in names:
         with open_frame(name, gain=gain, exptime=exptime) as frame:
+            if frame.start is None or frame.end is None:
+                raise PerscliError(f"{frame.label}: no exposure timing: diagnose puts exposures in time order and "
+                                   "computes persistence from their times; add EXPSTART/EXPEND (MJD), "
+                                   "MJD-BEG/MJD-END, or DATE-OBS with EXPTIME to the header")
             require_timing(frame)
             data, counts = _counts(frame)
             if counts == "DN" and frame.gain is None:
@@ -140,7 +144,8 @@ def read_measured(names, *, gain=None, exptime=None) -> list:
                                 data=data, counts=counts, gain=frame.gain, read_times=read_times,
                                 offsets=(frame.keyword("LTV1"), frame.keyword("LTV2")),
                                 datasum=frame.datasum(frame.sci[-1]), valid=valid)
-            exposure.extra.update(reference_pixels=nref, dq_flagged=ndq)
+            exposure.extra.update(reference_pixels=nref, dq_flagged=ndq,
+                                  rendered=any(h.name == "IDEAL" for h in frame.hdus))
             out.append(exposure)
     out.sort(key=lambda e: e.start)
     shapes = {e.data.shape[-2:] for e in out}
@@ -148,8 +153,21 @@ def read_measured(names, *, gain=None, exptime=None) -> list:
         raise PerscliError(f"measured frames differ in shape ({sorted(shapes)}): diagnose one detector area at a time")
     for a, b in zip(out, out[1:]):
         if b.start < a.end:
+            sim = next((e for e in (a, b) if e.extra.get("rendered")), None)
+            if sim is not None:
+                # the usual cause: --simulated sim/*.fits, where the shell's glob passes only the first file
+                # to --simulated and the others as measured frames
+                raise PerscliError(f"{b.label} starts before {a.label} ends, and {sim.label} is a perscli render "
+                                   "output (it has IDEAL): if it is a simulation, give it with --simulated (one "
+                                   "--simulated per file: a shell glob after --simulated passes only the first)")
             raise PerscliError(f"{b.label} starts before {a.label} ends: exposures of one detector cannot overlap; "
                                "check their timestamps")
+    for e in out:
+        if not np.isfinite(e.data).any():
+            raise PerscliError(f"{e.label}: no finite pixel")
+        if e.is_ramp and (len(e.read_times) < 1 or not np.all(np.diff(np.concatenate([[0.0], e.read_times])) > 0)):
+            raise PerscliError(f"{e.label}: its reads do not follow one another in time (SAMPTIME repeats or goes "
+                               "back): a ramp's reads need increasing times")
     return out
 
 
@@ -204,6 +222,9 @@ def attach_simulations(exposures, sims) -> list:
             if ideal.shape != exp.data.shape[-2:]:
                 raise PerscliError(f"{frame.label}: IDEAL is {ideal.shape}, the measured {exp.label} is "
                                    f"{exp.data.shape[-2:]}: pair frames of the same detector area")
+            if not np.isfinite(ideal).any():
+                raise PerscliError(f"{frame.label}: IDEAL has no finite pixel: the simulation of {exp.label} is "
+                                   "empty or corrupt; render it again")
             exp.ideal = ideal
             exp.sim = frame.label
             flu = [h for h in frame.hdus if h.name == "FLUENCE"]

@@ -323,35 +323,44 @@ MEAN_EFFECTS = ("persistence", "ipc", "nonlinearity", "reciprocity", "dark", "of
 
 
 def noise_correlation(problem, model):
-    """How the model's noise is shared between neighbouring pixels: (normalised kernel, per piece the share of
-    each pixel's variance that interpixel capacitance spreads), or None when nothing is shared.
+    """How the model's noise is shared between pixels: (normalised IPC kernel or None, per piece the share of
+    each pixel's variance that interpixel capacitance spreads, per piece the shares of row and of column read
+    noise, per piece its exposure), or None when nothing is shared.
 
     Noise that exists before the charge is read (Poisson, dark, persistence)
     passes through the IPC kernel K, so two pixels a lag apart share
-    ``v_pre * (K * K)(lag)``; read noise, row and column noise and rounding
-    come after it and are not spread.  The likelihood takes pixels as
-    independent; :func:`dispersion` uses this to correct its improvements.
+    ``v_pre * (K * K)(lag)``; read noise and rounding come after it and are
+    not spread; correlated read noise is shared by every pixel of a row (its
+    row part) or of a column (its column part) of one exposure.  The
+    likelihood takes pixels as independent; :func:`dispersion` uses this to
+    correct its improvements.
     """
     from scipy import signal as sps
 
     from .checks import _counts_gain
 
-    if not model.enabled("ipc") or not hasattr(problem, "stripes"):
+    ipc = model.enabled("ipc")
+    row = float(model.value("correlated_read_noise", "row", off=0.0)) ** 2
+    col = float(model.value("correlated_read_noise", "column", off=0.0)) ** 2
+    if not hasattr(problem, "stripes") or not (ipc or row or col):
         return None
-    k = model.get("ipc").instance().kernel()
-    auto = sps.correlate2d(k, k, mode="full")           # 5 x 5: lags up to 2
-    auto = auto / auto[2, 2]
-    read = float(model.value("read_noise", "sigma", off=0.0)) ** 2
-    read += float(model.value("correlated_read_noise", "row", off=0.0)) ** 2
-    read += float(model.value("correlated_read_noise", "column", off=0.0)) ** 2
+    auto = None
+    if ipc:
+        k = model.get("ipc").instance().kernel()
+        auto = sps.correlate2d(k, k, mode="full")           # 5 x 5: lags up to 2
+        auto = auto / auto[2, 2]
+    read = float(model.value("read_noise", "sigma", off=0.0)) ** 2 + row + col
     quant = 1.0 / 12.0 if model.enabled("quantize") else 0.0
     ev = problem.evaluate(model)
-    shares = []
+    shares, lines, which = [], [], []
     for (i, _), v, mask in zip(ev.pieces, ev.variance, ev.mask):
         g = _counts_gain(problem, model, problem.exposures[i])
         post = read / g ** 2 + quant
-        shares.append(np.where(mask, np.clip((v - post) / v, 0.0, 1.0), 0.0))
-    return auto, shares
+        vv = np.where(mask, v, np.inf)
+        shares.append(np.where(mask, np.clip((v - post) / v, 0.0, 1.0), 0.0) if ipc else None)
+        lines.append((np.where(mask, row / g ** 2 / vv, 0.0), np.where(mask, col / g ** 2 / vv, 0.0)))
+        which.append(i)
+    return auto, shares, lines, which
 
 
 def dispersion(shared, base, after) -> float:
@@ -361,20 +370,37 @@ def dispersion(shared, base, after) -> float:
 
     A candidate's likelihood-ratio improvement is divided by it and its
     squared error multiplied (a quasi-likelihood correction): ~1.1 for smooth
-    directions in Roman frames, whose charge noise neighbours share.
+    directions in Roman frames, whose charge noise neighbours share; much more
+    for a level (dark, offset) when row and column read noise move whole lines.
     """
     from scipy import ndimage
 
     if shared is None:
         return 1.0
-    auto, shares = shared
+    auto, shares, lines, which = shared
     num = den = 0.0
-    for m0, v0, m1, mask, f in zip(base.mean, base.variance, after.mean, base.mask, shares):
+    columns = {}
+    for m0, v0, m1, mask, f, (rs, cs), i in zip(base.mean, base.variance, after.mean, base.mask, shares, lines,
+                                                 which):
         a = np.where(mask, (m1 - m0) / np.sqrt(v0), 0.0)
-        b = a * np.sqrt(f)
-        num += float(np.sum(a * a * (1.0 - f)) + np.sum(b * ndimage.correlate(b, auto, mode="constant")))
+        if auto is not None:
+            b = a * np.sqrt(f)
+            num += float(np.sum(a * a * (1.0 - f)) + np.sum(b * ndimage.correlate(b, auto, mode="constant")))
+        else:
+            num += float(np.sum(a * a))
         den += float(np.sum(a * a))
-    return min(max(num / den, 0.5), 3.0) if den > 0 else 1.0
+        if a.ndim == 2:
+            # a row's read noise is one value for the whole row: its pixels' residuals move together
+            r = a * np.sqrt(rs)
+            num += float(np.sum(np.sum(r, axis=1) ** 2) - np.sum(r * r))
+            c = a * np.sqrt(cs)
+            columns.setdefault(i, [np.zeros(a.shape[1]), 0.0])
+            columns[i][0] += np.sum(c, axis=0)
+            columns[i][1] += float(np.sum(c * c))
+    for total, diagonal in columns.values():
+        # a column's spans every piece of its exposure
+        num += float(np.sum(total ** 2) - diagonal)
+    return min(max(num / den, 0.5), 50.0) if den > 0 else 1.0
 
 
 def _mean_only_delta(problem, base, fitted_model, after=None) -> float:

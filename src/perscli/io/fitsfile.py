@@ -698,18 +698,8 @@ class HDU:
         is opened: a corrupted keyword (EXPEND read as EZPEND) is caught even in
         an HDU whose data are never read.  :meth:`verify` checks the data too.
         """
-        if not checksums_enabled():
-            return
-        from .. import _kernels
-
         raw = bytes(self.source.pread(self.header_offset, self.data_offset - self.header_offset))
-        stored = _stored_cards(raw)
-        stated = str(stored.get("DATASUM", "")).strip()
-        if "CHECKSUM" not in stored or not stated.isdigit() or int(stated) > 0xFFFFFFFF:
-            return
-        if ones_complement_add(_kernels.datasum(raw), int(stated)) != 0xFFFFFFFF:
-            raise PerscliError(f"{self.file.label}: {self.label}: the header does not match its CHECKSUM: "
-                               f"{CHECKSUM_HINT}")
+        _verify_header_bytes(raw, f"{self.file.label}: {self.label}")
 
     # -- reading images ----------------------------------------------------------------------------
     def stream_rows(self, r0: int, r1: int, plane: int = 0, *, scratch: bool = False) -> np.ndarray:
@@ -867,15 +857,27 @@ def _describe_cfitsio(label: str, exc: Exception) -> PerscliError:
                         "or check that it really is FITS")
 
 
-def _image_view(cards) -> list:
+def _image_view(cards, where: str = "") -> list:
     """The header of a tile-compressed image as its reader sees it: ZBITPIX, ZNAXISn become BITPIX,
     NAXISn (the stored table's own structure is dropped), the other cards as they are."""
     stored = Header(cards)
-    out = [format_card("XTENSION", "IMAGE"), format_card("BITPIX", int(stored.get("ZBITPIX", -32)))]
-    naxis = int(stored.get("ZNAXIS", 0))
-    out.append(format_card("NAXIS", naxis))
-    out += [format_card(f"NAXIS{k}", int(stored.get(f"ZNAXIS{k}", 0))) for k in range(1, naxis + 1)]
+    try:
+        bitpix = _whole(stored.get("ZBITPIX", -32), "ZBITPIX", where)
+        naxis = _whole(stored.get("ZNAXIS", 0), "ZNAXIS", where)
+        dims = [_whole(stored.get(f"ZNAXIS{k}", 0), f"ZNAXIS{k}", where) for k in range(1, min(naxis, 999) + 1)]
+    except PerscliError as exc:
+        raise PerscliError(f"{exc} (a tile-compressed image)") from None
+    out = [format_card("XTENSION", "IMAGE"), format_card("BITPIX", bitpix), format_card("NAXIS", naxis)]
+    out += [format_card(f"NAXIS{k}", n) for k, n in enumerate(dims, 1)]
     return out + [c for c in cards if not _is_structural(c[:8].rstrip()) or c[:8].rstrip() in ("EXTNAME",)]
+
+
+def _whole(value, key: str, where: str) -> int:
+    """A structural keyword's value, which must be a whole number (not text, a float or a logical)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        shown = "missing" if value is None else f"= {value!r}, not a whole number"
+        raise PerscliError(f"{where}: {key} {shown}: the header is corrupt; re-copy the file")
+    return value
 
 
 def _stored_size(label: str, index: int, header: Header, fallback: int) -> int:
@@ -896,10 +898,30 @@ def _stored_size(label: str, index: int, header: Header, fallback: int) -> int:
 _EXTENSIONS = ("IMAGE", "BINTABLE", "TABLE", "A3DTABLE", "IUEIMAGE")
 
 
+def _check_axes(hdr, where: str, index: int) -> None:
+    """Refuse a header whose BITPIX, NAXIS, NAXISn, PCOUNT or GCOUNT is missing or not a whole number.
+
+    Every size and shape is computed from them: a flipped bit can turn
+    'NAXIS1  =' into 'NAXIS1  <' (NAXIS1 missing) or '32' into '0 32' (text)
+    when no CHECKSUM says so.
+    """
+    _whole(hdr.get("BITPIX"), "BITPIX", where)
+    naxis = _whole(hdr.get("NAXIS"), "NAXIS", where)
+    if not 0 <= naxis <= 999:
+        raise PerscliError(f"{where}: NAXIS = {naxis} is not 0 to 999; the header is corrupt")
+    for k in range(1, naxis + 1):
+        _whole(hdr.get(f"NAXIS{k}"), f"NAXIS{k}", where)
+    for key in ("PCOUNT", "GCOUNT"):
+        if key in hdr or index > 0:
+            _whole(hdr.get(key, 0 if key == "PCOUNT" else 1), key, where)
+
+
 def _check_structure(label: str, hdu: HDU) -> None:
     """Structural and scaling keywords that CFITSIO lets through but make the file or its data meaningless."""
     hdr = hdu.header
     where = f"{label}: {hdu.label}"
+    if not hdu.compressed:
+        _check_axes(hdr, where, hdu.index)
     if hdu.index == 0 and hdr.get("SIMPLE") is not True:
         raise PerscliError(f"{where}: SIMPLE = {hdr.get('SIMPLE')!r}: the file says it does not conform to FITS; "
                            "it is corrupt or not FITS")
@@ -913,12 +935,149 @@ def _check_structure(label: str, hdu: HDU) -> None:
                 raise PerscliError(f"{where}: {key} = {value!r} is not a finite number; the file is corrupt")
     if "BSCALE" in hdr and hdr["BSCALE"] == 0:
         raise PerscliError(f"{where}: BSCALE = 0 would make every pixel equal to BZERO; the file is corrupt")
+    if hdu.kind == "image" and ("BSCALE" in hdr or "BZERO" in hdr) and int(hdr.get("BITPIX", 0)) in _BITPIX_DTYPES:
+        _check_scaled_range(hdr, where)
     if hdu.kind == "image":
         if int(hdr.get("BITPIX", 0)) not in _BITPIX_DTYPES:
             raise PerscliError(f"{where}: BITPIX = {hdr.get('BITPIX')!r} is not a FITS value; the file is corrupt")
         for n in hdu.shape:
             if n < 0:
                 raise PerscliError(f"{where}: a negative NAXISn; the file is corrupt")
+
+
+def _check_scaled_range(hdr, where: str) -> None:
+    """Refuse BSCALE/BZERO that take the stored numbers beyond the floats they are read as.
+
+    Readers turn scaled 8- and 16-bit integers into 32-bit floats (astropy
+    does; perscli's outputs of such frames are 32-bit), anything else into
+    64-bit floats: ``BZERO = 1E300`` on 16-bit data makes every pixel
+    infinite, which no reader would call data.
+    """
+    bscale, bzero = float(hdr.get("BSCALE", 1.0)), float(hdr.get("BZERO", 0.0))
+    dtype = np.dtype(_BITPIX_DTYPES[int(hdr["BITPIX"])])
+    target = np.float32 if dtype.kind != "f" and dtype.itemsize <= 2 or dtype == np.dtype(">f4") else np.float64
+    limit = float(np.finfo(target).max)
+    # the stored extremes: the integer type's range, or (floats) the value 1 as a scale of BSCALE
+    lo, hi = (float(np.iinfo(dtype).min), float(np.iinfo(dtype).max)) if dtype.kind != "f" else (-1.0, 1.0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        ends = [bzero + bscale * lo, bzero + bscale * hi]
+    if not all(math.isfinite(v) and abs(v) <= limit for v in ends):
+        bits = 8 * np.dtype(target).itemsize
+        raise PerscliError(f"{where}: BZERO = {bzero:g} and BSCALE = {bscale:g} take the stored "
+                           f"{'integers' if dtype.kind != 'f' else 'values'} beyond the range of the {bits}-bit "
+                           "floats they are read as; the scaling keywords are corrupt")
+
+
+# -- header cards as FITS allows them ---------------------------------------------------------------
+
+_KEYWORD = re.compile(rb"[A-Z0-9_-]* *")
+_NUMBER = rb"[+-]?(?:\d+\.?\d*|\.\d+)(?:[EeDd][+-]?\d+)?"
+#: a fixed- or free-format value (FITS Standard 4.2): string, logical, number, complex, or none; then a comment
+_VALUE = re.compile(rb" *(?:'(?:[^']|'')*'|[TF]|" + _NUMBER + rb"|\( *" + _NUMBER + rb" *, *" + _NUMBER
+                    + rb" *\))? *(?:/.*)?")
+_STRING = re.compile(rb" *(?:'(?:[^']|'')*')? *(?:/.*)?")
+_PRINTABLE = bytes(range(0x20, 0x7F))
+
+
+def _card_problem(card: bytes) -> str | None:
+    """What makes one 80-byte card invalid FITS (None when it is valid)."""
+    if card.translate(None, _PRINTABLE):
+        bad = next(b for b in card if b < 0x20 or b > 0x7E)
+        return f"holds the byte {bad:#04x}, which is not printable ASCII text"
+    key = card[:8]
+    if key == b"HIERARCH":
+        if b"=" in card[8:] and not _VALUE.fullmatch(card[8:].split(b"=", 1)[1]):
+            return "has a value that is not a FITS value (an unterminated string, or text that is no number)"
+        return None
+    if not _KEYWORD.fullmatch(key):
+        return "has a keyword name with characters FITS does not allow (A-Z, 0-9, - and _)"
+    if key == b"CONTINUE":
+        return None if _STRING.fullmatch(card[8:]) else "continues a string without a valid string value"
+    if card[8:10] == b"= " and key.rstrip() not in (b"COMMENT", b"HISTORY", b""):
+        if not _VALUE.fullmatch(card[10:]):
+            return "has a value that is not a FITS value (an unterminated string, or text that is no number)"
+    return None
+
+
+def _check_cards(raw: bytes, where: str) -> None:
+    """Refuse a header (its stored bytes, END included) holding a card that is not valid FITS.
+
+    Such cards would be copied into outputs that other readers refuse
+    (astropy: 'Card is not FITS standard'), and text with control
+    characters breaks the libraries a header is given to (WCS).
+    """
+    for i in range(0, len(raw) - CARD + 1, CARD):
+        card = raw[i:i + CARD]
+        if card[:8] == b"END     ":
+            return
+        problem = _card_problem(card)
+        if problem is not None:
+            # control characters shown escaped: a BEL or an ESC in the message would ring or redraw the terminal
+            text = "".join(ch if " " <= ch <= "~" else f"\\x{ord(ch):02x}" for ch in card.decode("latin-1")).rstrip()
+            shown = text if len(text) <= 40 else text[:40] + "..."
+            raise PerscliError(f"{where}: card {i // CARD + 1} ({shown}) {problem}: the header is corrupt; "
+                               "re-copy the file or fix the card")
+
+
+def _verify_header_bytes(raw: bytes, where: str) -> None:
+    """Check a header's bytes against its CHECKSUM, with the DATASUM it states (no data read)."""
+    if not checksums_enabled():
+        return
+    from .. import _kernels
+
+    stored = _stored_cards(raw)
+    stated = str(stored.get("DATASUM", "")).strip()
+    if "CHECKSUM" not in stored or not stated.isdigit() or int(stated) > 0xFFFFFFFF:
+        return
+    if ones_complement_add(_kernels.datasum(raw), int(stated)) != 0xFFFFFFFF:
+        raise PerscliError(f"{where}: the header does not match its CHECKSUM: {CHECKSUM_HINT}")
+
+
+def _header_fault(source: Source, label: str, max_hdus: int = 10000):
+    """Walk the headers with perscli's own reader: the first that fails its CHECKSUM or holds an invalid card.
+
+    For files CFITSIO cannot read (or reads only part of): a flipped bit in
+    a signed header is reported as what it is, a checksum mismatch, rather
+    than as the truncation or garbage CFITSIO then sees.  None when every
+    header it can reach is sound (CFITSIO's own message then stands).
+    """
+    try:
+        offset = 0
+        for index in range(max_hdus):
+            if offset + BLOCK > source.size:
+                return None
+            pos, found = offset, False
+            while not found and pos + BLOCK <= source.size:
+                block = bytes(source.pread(pos, BLOCK))
+                pos += BLOCK
+                found = any(block[i:i + 8] == b"END     " for i in range(0, BLOCK, CARD))
+            if not found:
+                return None
+            raw = bytes(source.pread(offset, pos - offset))
+            where = f"{label}: HDU {index}"
+            try:
+                _verify_header_bytes(raw, where)
+                _check_cards(raw, where)
+            except PerscliError as exc:
+                return exc
+            cards = []
+            for i in range(0, len(raw), CARD):
+                if raw[i:i + 8] == b"END     ":
+                    break
+                cards.append(raw[i:i + CARD].decode("ascii", "replace"))
+            header = Header(cards)
+            try:
+                # a missing or garbled NAXISn makes CFITSIO read the data as the next header
+                _check_axes(header, where, index)
+            except PerscliError as exc:
+                return exc
+            size = _stored_size(label, index, header, None)
+            if size is None or size < 0:
+                return None
+            offset = pos + padded(size)
+    except Exception:  # noqa: BLE001 - a diagnosis only: CFITSIO's message stands
+        return None
+    return None
 
 
 class FitsFile:
@@ -961,29 +1120,36 @@ class FitsFile:
             except PerscliError:
                 raise
             except Exception as exc:  # CFITSIO's errors (fitsio raises several types) on a corrupt file
-                raise _describe_cfitsio(self.label, exc) from None
+                # a flipped bit in a signed header is said as such, not as what CFITSIO made of it
+                raise _header_fault(self.source, self.label) or _describe_cfitsio(self.label, exc) from None
             self.hdus = []
             for i, (offsets, exttype, compressed, cards) in enumerate(infos):
                 kind = "image" if exttype == "IMAGE_HDU" else "table"
-                if compressed:
-                    cards = _image_view(cards)
-                header = Header(cards)
                 start = int(offsets["data_start"])
+                header_start = int(offsets["header_start"])
+                # first what the header's own bytes say: its CHECKSUM (a flipped bit in NAXIS1 is a
+                # checksum mismatch, not a truncation or a missing keyword), then cards FITS allows
+                raw = bytes(self.source.pread(header_start, start - header_start))
+                extname = str(Header(cards).get("EXTNAME", "PRIMARY" if i == 0 else "")).strip().upper()
+                where = f"{self.label}: HDU {i}" + (f" ({extname})" if extname else "")
+                _verify_header_bytes(raw, where)
+                _check_cards(raw, where)
+                if compressed:
+                    cards = _image_view(cards, where)
+                header = Header(cards)
                 # CFITSIO's data_end includes the block padding; the data's own size is the header's
                 size = int(offsets["data_end"]) - start
                 if not compressed:
                     size = _stored_size(self.label, i, header, size)
-                hdu = HDU(i, header, int(offsets["header_start"]), start, start + size, bool(compressed), kind, self)
+                hdu = HDU(i, header, header_start, start, start + size, bool(compressed), kind, self)
+                _check_structure(self.label, hdu)
                 if hdu.data_end > self.source.size:
                     raise PerscliError(
                         f"{self.label}: the file is truncated: {hdu.label} needs {padded(hdu.data_end)} bytes "
                         f"but the file has {self.source.size}; re-copy or regenerate it")
-                _check_structure(self.label, hdu)
                 self.hdus.append(hdu)
             if not self.hdus:
                 raise PerscliError(f"{self.label}: no HDU could be read; the file is corrupt")
-            for hdu in self.hdus:
-                hdu.verify_header()
             end = padded(self.hdus[-1].data_end)
             if end > self.source.size:
                 raise PerscliError(f"{self.label}: the file is truncated (the last HDU's padding is missing); "
@@ -999,6 +1165,9 @@ class FitsFile:
     def _explain_extra(self, end: int) -> None:
         """Bytes after the last HDU CFITSIO could read: say what they most likely are."""
         extra = self.source.size - end
+        fault = _header_fault(self.source, self.label)
+        if fault is not None:
+            raise fault
         head = bytes(self.source.pread(end, min(extra, BLOCK)))
         n = len(self.hdus)
         if head.startswith(b"XTENSION="):
@@ -1095,10 +1264,19 @@ def _format_value(value) -> str:
             mant, exp = text.split("E")
             text = f"{mant}.0E{exp}"
         return f"{text:>20}"
-    text = str(value).replace("'", "''")
+    text = _ascii_text(str(value)).replace("'", "''")
     # fixed format: the closing quote at column 20 or later, as astropy and cfitsio write it
     quoted = f"'{text:<8}'"
     return f"{quoted:<20}"
+
+
+def _ascii_text(text: str) -> str:
+    """``text`` as printable ASCII, the only characters a FITS header holds: others are escaped
+    (``é`` becomes ``\\xe9``, a tab ``\\t``), so that a file name or a message of any script can
+    be recorded without making the header invalid."""
+    if text.isascii() and text.isprintable():
+        return text
+    return "".join(ch if " " <= ch <= "~" else ch.encode("unicode_escape").decode("ascii") for ch in text)
 
 
 def format_card(key: str, value=None, comment: str | None = None) -> str:
@@ -1112,13 +1290,13 @@ def format_card(key: str, value=None, comment: str | None = None) -> str:
     if len(key) > 8:
         raise ValueError(f"keyword {key!r} is longer than 8 characters")
     if key in ("HISTORY", "COMMENT", ""):
-        return f"{key:<8}{str(value or '')}"[:CARD].ljust(CARD)
+        return f"{key:<8}{_ascii_text(str(value or ''))}"[:CARD].ljust(CARD)
     text = _format_value(value)
     if isinstance(value, str) and len(text.rstrip()) > 70:
-        return _long_string_cards(key, value, comment)
+        return _long_string_cards(key, _ascii_text(value), comment)
     card = f"{key:<8}= {text}"
     if comment:
-        card += f" / {comment}"
+        card += f" / {_ascii_text(comment)}"
     return card[:CARD].ljust(CARD)
 
 
@@ -1138,7 +1316,7 @@ def _long_string_cards(key: str, value: str, comment: str | None) -> str:
         head = f"{key:<8}= " if i == 0 else "CONTINUE  "
         cards.append(f"{head}{body}".ljust(CARD)[:CARD])
     if comment:
-        cards[-1] = (cards[-1].rstrip() + f" / {comment}")[:CARD].ljust(CARD)
+        cards[-1] = (cards[-1].rstrip() + f" / {_ascii_text(comment)}")[:CARD].ljust(CARD)
     return "".join(cards)
 
 
@@ -1308,9 +1486,24 @@ def _native(arr: np.ndarray) -> np.ndarray:
 
 
 def _header_cards(cards) -> list:
-    """The cards to copy into an output HDU: everything but structure and checksums, then placeholders."""
+    """The cards to copy into an output HDU: everything but structure and checksums, then placeholders.
+
+    Raises
+    ------
+    PerscliError
+        A card that is not valid FITS (inputs are checked as they are
+        opened, so this guards perscli's own cards): an output that other
+        readers refuse is never written.
+    """
     out = [c.ljust(CARD)[:CARD] for c in cards
            if not _is_structural(c[:8].rstrip()) and c.strip() != "" and c[:8] != "END     "]
+    for card in out:
+        try:
+            problem = _card_problem(card.encode("ascii"))
+        except UnicodeEncodeError:
+            problem = "holds characters that are not ASCII text"
+        if problem is not None:
+            raise PerscliError(f"cannot write the header card {card.rstrip()!r}: it {problem}")
     return out + _PLACEHOLDERS
 
 
@@ -1373,8 +1566,18 @@ def _write_cards(fits, cards) -> None:
         try:
             fits._FITS.write_record(ext, card)
         except (OSError, ValueError) as exc:
+            # a fault of the file (a full disk, a file-size limit: CFITSIO's status 104 to 113) is the
+            # writer's to report (write_fits_path names the system's reason), not the card's
+            status = re.search(r"FITSIO status = (\d+)", str(exc))
+            if isinstance(exc, OSError) and status and int(status.group(1)) in _CFITSIO_FILE_FAULTS:
+                raise
             raise PerscliError(f"cannot write the header card {card.rstrip()!r}: {_cfitsio_reason(exc)}") from None
     fits.update_hdu_list()
+
+
+#: CFITSIO status codes of a file that cannot be written or read back (FILE_NOT_OPENED to
+#: MEMORY_ALLOCATION: 106 WRITE_ERROR, 107 END_OF_FILE after a short write, 112 READONLY_FILE)
+_CFITSIO_FILE_FAULTS = frozenset(range(104, 114))
 
 
 def _finish_checksums(path: str) -> None:
@@ -1444,10 +1647,56 @@ def write_fits_path(hdus, path: str, *, compress: str = "none") -> None:
     if compress == "none" and all(_plain_image(h.data) for h in hdus):
         _write_plain(hdus, path)
         return
-    with fitsio.FITS(path, "rw", clobber=True, ignore_empty=True) as out:
-        for i, hdu in enumerate(hdus):
-            _write_one(out, hdu, first=i == 0, compress=compress)
+    try:
+        with fitsio.FITS(path, "rw", clobber=True, ignore_empty=True) as out:
+            for i, hdu in enumerate(hdus):
+                _write_one(out, hdu, first=i == 0, compress=compress)
+    except OSError as exc:
+        if exc.errno is not None or "FITSIO status" not in str(exc):
+            raise
+        # CFITSIO says 'error writing to FITS file' (or 'tried to move past end of file' after one):
+        # the system's reason is found again, so that the message names it
+        _raise_write_fault(path, _cfitsio_reason(exc))
+    _check_complete(path, len(hdus))
     _finish_checksums(path)
+
+
+def _check_complete(path: str, nhdus: int) -> None:
+    """Raise the OSError of a write CFITSIO lost: fitsio may close a file cut short by a full disk or
+    a file-size limit (ENOSPC, EFBIG) without an error, leaving fewer bytes than its headers declare."""
+    import fitsio
+
+    size = os.path.getsize(path)
+    try:
+        with fitsio.FITS(path) as f:
+            offsets = [h.get_offsets() for h in f]
+        complete = len(offsets) == nhdus and padded(int(offsets[-1]["data_end"])) == size and size % BLOCK == 0
+    except Exception:  # noqa: BLE001 - CFITSIO cannot read back what it wrote: incomplete
+        complete = False
+    if not complete:
+        _raise_write_fault(path, f"the file is incomplete ({size} bytes)")
+
+
+def _raise_write_fault(path: str, what: str):
+    """Raise the OSError behind a write that CFITSIO reported without the system's reason.
+
+    One block is written past the end of ``path``: a full disk, a quota or
+    a file-size limit fails it again with its own errno (ENOSPC, EDQUOT,
+    EFBIG), which the message the user reads then names.  When it does not
+    fail, an OSError (EIO) with ``what``.
+    """
+    size = os.path.getsize(path)
+    fd = os.open(path, os.O_WRONLY)
+    try:
+        offset, end = size, size + BLOCK
+        while offset < end:     # a write that partly fits returns short; the next one fails
+            written = os.pwrite(fd, bytes(end - offset), offset)
+            if written <= 0:
+                break
+            offset += written
+    finally:
+        os.close(fd)
+    raise OSError(errno.EIO, f"the FITS writer (CFITSIO) failed: {what}", path)
 
 
 _PLAIN_BITPIX = {"f4": -32, "f8": -64, "i2": 16, "i4": 32, "i8": 64, "u1": 8}

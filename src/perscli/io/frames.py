@@ -90,6 +90,18 @@ WFC3_IR_FULL_FRAME_LTV = {1024: 5.0, 1014: 0.0}
 MJD_EPOCH = _dt.datetime(1858, 11, 17)
 SECONDS_PER_DAY = 86400.0
 
+#: MJD of any exposure perscli takes: 1858-11-17 to 2132-09-01 (perscli.scene.MJD_RANGE, written here
+#: again so that reading a frame does not import the scene package).  A timing keyword outside it is
+#: corrupt (EXPSTART = 1E300) or not an MJD (a Julian Date), and would silently put an exposure
+#: centuries from the others: no persistence at all.
+MJD_RANGE = (0.0, 100000.0)
+#: gains perscli takes, in e-/DN: every infrared array and CCD is within it (HST, JWST, Roman: 1-3);
+#: GAIN = 1E308 would turn any persistence into 0 DN, GAIN = 1E-300 into infinity
+GAIN_RANGE = (1e-3, 1e3)
+#: the longest exposure time perscli takes for a rate frame (s): 10^7 s, 116 days, above any single
+#: exposure or stack; a larger EXPTIME is corrupt and overflows the charge (rate x EXPTIME)
+MAX_EXPTIME = 1e7
+
 TIMING_HINT = ("add EXPSTART/EXPEND (MJD), MJD-BEG/MJD-END, or DATE-OBS with EXPTIME to the header, "
                "or give --gap SECONDS (and --exptime SECONDS) to treat the inputs as a regular sequence "
                "in command-line order")
@@ -357,6 +369,13 @@ class Frame:
                 raise PerscliError(
                     f"{self.label}: BUNIT is {self.unit} but the header has neither GAIN nor CCDGAIN; "
                     "give --gain E_PER_DN")
+            # checked where it is used: a gain outside any detector's would make the charge 0 or infinite
+            # (GAIN = 1E308: no persistence at all), and a frame in electrons does not use it
+            if not GAIN_RANGE[0] <= self.gain <= GAIN_RANGE[1]:
+                raise PerscliError(
+                    f"{self.label}: gain {self.gain:g} e-/DN is outside {GAIN_RANGE[0]:g} to {GAIN_RANGE[1]:g}, "
+                    "the range of real detectors: the header's GAIN/CCDGAIN is corrupt; fix it or give --gain "
+                    "E_PER_DN")
             factor *= self.gain
         if is_rate:
             if seconds is None:
@@ -365,6 +384,13 @@ class Frame:
                 raise PerscliError(
                     f"{self.label}: BUNIT is {self.unit} (a rate) but the header has no EXPTIME or XPOSURE; "
                     "give --exptime SECONDS")
+            # a rate frame's charge is rate x time: with 0 s it is 0 whatever the data (the frame would
+            # silently receive or give no persistence)
+            if not 0 < seconds <= MAX_EXPTIME:
+                raise PerscliError(
+                    f"{self.label}: BUNIT is {self.unit} (a rate) but the exposure time is {seconds:g} s: the "
+                    f"charge is the rate times a time between 0 and {MAX_EXPTIME:g} s; fix EXPTIME (or "
+                    "XPOSURE, EXPSTART/EXPEND) in the header")
             factor *= seconds
         return factor
 
@@ -524,7 +550,14 @@ def _science_hdus(name, hdus, selected=None):
 
 def _read_times(name, hdus, sci, layout, nplanes):
     if layout == "wfc3-ramp":
-        times = np.array([float(hdus[i].header["SAMPTIME"]) for i in sci])
+        times = []
+        for i in sci:
+            value = hdus[i].header["SAMPTIME"]
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise PerscliError(f"{name}: {hdus[i].label}: SAMPTIME={value!r} is not a number of seconds; "
+                                   "the header is corrupt: fix it or re-copy the file")
+            times.append(float(value))
+        times = np.array(times)
     else:
         tables = [h for h in hdus if h.name in ("READTIMES", "READ_TIMES", "TIMES")
                   and h.kind == "table"]
@@ -670,6 +703,18 @@ def open_frame(name: str, *, units: str | None = None, gain: float | None = None
         raise
 
 
+def _check_mjd(label: str, source: str, start: float, end: float) -> None:
+    """Refuse timing keywords outside :data:`MJD_RANGE` (a corrupt value, or a Julian Date)."""
+    for what, value in (("start", start), ("end", end)):
+        if not MJD_RANGE[0] <= value <= MJD_RANGE[1]:
+            # a Julian Date is the one common mistake worth naming; anything else is only corrupt
+            jd = 2400000.5 + MJD_RANGE[0] <= value <= 2400000.5 + MJD_RANGE[1]
+            hint = f" (a Julian Date? MJD = JD - 2400000.5 = {value - 2400000.5:.5f})" if jd else ""
+            raise PerscliError(f"{label}: the exposure {what} MJD {value:g} ({source}) is not in "
+                               f"[{MJD_RANGE[0]:g}, {MJD_RANGE[1]:g}] (1858 to 2132){hint}: the timing keywords "
+                               "are corrupt; fix them")
+
+
 def assign_sequence_timing(frames, gap: float, exptime: float | None = None):
     """Give frames the timing of a regular sequence, in the order given.
 
@@ -692,6 +737,14 @@ def assign_sequence_timing(frames, gap: float, exptime: float | None = None):
 
 
 def require_timing(frame: Frame):
-    """Raise a clear error if ``frame`` has no start/end time."""
+    """Raise a clear error if ``frame`` has no start/end time, or one outside :data:`MJD_RANGE`.
+
+    Raises
+    ------
+    PerscliError
+        No timing keywords, or timing that cannot be an exposure's.
+    """
     if frame.start is None or frame.end is None:
         raise PerscliError(f"{frame.label}: no exposure timing; {TIMING_HINT}")
+    # checked here, where the timing is used, not when the frame is opened: --gap replaces it
+    _check_mjd(frame.label, frame.timing_source, frame.start, frame.end)

@@ -203,11 +203,46 @@ def psf_profile(spec: str, frame, *, pixel_scale: float, options=None):
     return made.profile
 
 
-def read_positions(path: str):
-    """id, and ra/dec (degrees) or x/y (pixels, 1-indexed FITS convention), plus hlr and mag columns if present."""
-    from ..io.tables import read_table
+#: the columns read_positions reads from a catalogue (all optional but id and ra/dec or x/y): what
+#: ``--columns`` may map
+CATALOG_READS = ("id", "ra", "dec", "x", "y", "hlr", "e1", "e2", "kind", "mag_*")
 
-    table = read_table(path, what="catalogue (id and ra/dec or x/y)")
+
+def read_positions(path: str, *, columns=None):
+    """The objects of a catalogue: id, ra/dec (degrees) or x/y (pixels, FITS convention), and what it adds.
+
+    Optional columns read when present: hlr (arcsec), e1 and e2 (only
+    checked: the fit starts round), kind (lower-cased) and every mag_*.
+    Every value is checked by :func:`perscli.scene.check_catalog`, the check
+    ``perscli render`` makes of the same catalogue.
+
+    Parameters
+    ----------
+    path : str
+        The catalogue (``perscli catalog``'s TRUTH table, or any table with
+        id and ra/dec or x/y).
+    columns : dict, optional
+        Column mapping {perscli name: file column} (``--columns``; names of
+        :data:`CATALOG_READS`).  Given (even empty), a missing column's
+        message suggests the option.
+
+    Returns
+    -------
+    dict
+        The columns by perscli name (mag columns lower-cased), plus ``label``
+        and ``datasum`` (for provenance).
+
+    Raises
+    ------
+    PerscliError
+        Unreadable, without id or positions, a mapping of a column perscli
+        does not read, or values no object can have (repeated ids, positions
+        off the sky, hlr < 0, |e| >= 1, ...).
+    """
+    from ..io.tables import read_table
+    from ..scene import check_catalog
+
+    table = read_table(path, what="catalogue (id and ra/dec or x/y)", columns=columns, known=CATALOG_READS)
     names = {n.lower() for n in table.names}
     out = {"id": table.column("id", kind="integer", needed=("id", "ra", "dec"))}
     if {"ra", "dec"} <= names:
@@ -218,7 +253,7 @@ def read_positions(path: str):
         out["y"] = table.column("y").astype(np.float64)
     else:
         raise PerscliError(f"{table.label}: the catalogue needs ra/dec (degrees) or x/y (pixels) columns")
-    for optional in ("hlr", "kind"):
+    for optional in ("hlr", "kind", "e1", "e2"):
         if optional in names:
             out[optional] = table.column(optional, kind="text" if optional == "kind" else "number")
     if "kind" in out:
@@ -231,6 +266,9 @@ def read_positions(path: str):
         if key in out and not np.all(np.isfinite(out[key])):
             bad = int((~np.isfinite(out[key])).sum())
             raise PerscliError(f"{table.label}: column {key} has {bad} non-finite value(s); drop those rows")
+    # the values render would refuse are refused here too (one check for both): repeated ids (whose SHAPES
+    # rows correlate refuses), RA/Dec off the sky (WCS tracebacks), negative or zero sizes, |e| >= 1
+    check_catalog(table.label, out, header=table.header)
     return out
 
 
@@ -1145,8 +1183,12 @@ def _float_pixels(frame) -> np.ndarray:
 
 _SHAPES_UNITS = {"x": "pix", "y": "pix", "ra": "deg", "dec": "deg", "T": "pix2", "x_err": "pix", "y_err": "pix",
                  "T_err": "pix2"}
+# flux and flux_err are in electrons per second, but get no TUNIT: the FITS standard has no unit for electrons,
+# and astropy's FITS reader warns (UnitsWarning) on 'electron/s', 'electron / s' or any other spelling; 'ct/s'
+# would parse, but perscli reads 'counts' as DN (perscli.io.frames.normalize_unit).  The unit is in their
+# TTYPE comments (_DESCRIPTIONS) and in the header's COMMENT cards instead
 _JOINT_UNITS = {"ra": "deg", "dec": "deg", "ra_err": "arcsec", "dec_err": "arcsec", "T": "arcsec2",
-                "T_err": "arcsec2", "flux": "electron/s", "flux_err": "electron/s"}
+                "T_err": "arcsec2"}
 _DESCRIPTIONS = {"snr_pred": "S/N predicted from the catalogue (cut: MINSNR)",
                  "g1": "reduced shear, +g1 along the first axis", "g2": "reduced shear, +g2 along the diagonal",
                  "nframes": "frames the galaxy falls on with >= 20 usable pixels"}
@@ -1155,7 +1197,8 @@ _DESCRIPTIONS = {"snr_pred": "S/N predicted from the catalogue (cut: MINSNR)",
 def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp", stamp=48, sky=None,
                   read_noise=None, blend_radius=4.0, workers=1, overwrite=False, progress=None, kinds=None,
                   min_snr=MIN_SNR_DEFAULT, all_rows: bool = False, joint: bool = False, psf_pixel=None,
-                  psf_oversampling=None, allow_undersampled_psf: bool = False, write_psf=None) -> dict:
+                  psf_oversampling=None, allow_undersampled_psf: bool = False, write_psf=None,
+                  columns=None) -> dict:
     """``perscli measure`` as a function: shapes of the catalogue's galaxies on each frame, or jointly.
 
     Writes a FITS file.  Per frame (the default): a SHAPES table, one row per
@@ -1195,6 +1238,9 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
     write_psf : str or None
         Also write the PSF images used there, one HDU per PSF
         (:func:`perscli.measure.psf.psf_hdus`), readable as ``psf``.
+    columns : dict, optional
+        Column mapping {perscli name: catalogue column} for a catalogue
+        another tool wrote (``--columns``; see :func:`read_positions`).
     method, stamp, sky, read_noise, blend_radius, workers, overwrite, progress
         As the command's options.
 
@@ -1235,7 +1281,7 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
         if write_psf != "-" and dest != "-" and os.path.abspath(write_psf) == os.path.abspath(dest):
             raise PerscliError(f"{write_psf}: --write-psf and -o name the same file: choose another name for the PSF")
     psf_used = []
-    cat = read_positions(catalog)
+    cat = read_positions(catalog, columns=columns)
     _, kinds_text = select_kinds(cat, kinds)       # bad --kinds fail here, before any frame is read
     inputs = [("CAT", catalog, cat["datasum"])]
     params = {"METHOD": (method, "exp (mixture fit) or hsm (REGAUSS)"),
@@ -1268,7 +1314,8 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
         table = {key: cols[key] for key in order}
         descriptions = dict(_DESCRIPTIONS, g1="reduced shear on the sky, +g1 East-West (RA axis)",
                             g2="reduced shear on the sky, +g2 North-West/South-East",
-                            ra_err="error of the centre towards the West", dec_err="error towards the North")
+                            ra_err="error of the centre towards the West", dec_err="error towards the North",
+                            flux="[e-/s] electrons per second (no FITS unit)", flux_err="[e-/s] error of flux")
         hdus.append(table_hdu(table, "JOINT", units=_JOINT_UNITS, descriptions=descriptions))
         params.update({"NSEL": (counts["selected"], "catalogue rows of KINDS"),
                        "NONFRM": (counts["on"], "of them on at least one frame"),

@@ -266,7 +266,9 @@ def read_truth(path: str, filter_name: str, *, columns=None):
     Raises
     ------
     PerscliError
-        Not a readable FITS table, a missing column, or non-finite values.
+        Not a readable FITS table, a missing column, non-finite values, an
+        unknown kind, or values no object can have
+        (:func:`perscli.scene.check_catalog`).
     """
     from ..io.tables import read_table
 
@@ -286,12 +288,14 @@ def read_truth(path: str, filter_name: str, *, columns=None):
         if np.any(bad):
             raise PerscliError(f"{label}: column {mag if c == 'mag' else c} has {int(bad.sum())} non-finite "
                                f"value(s) (first at id {cols['id'][bad][0]}); fix or drop those rows")
-    from ..scene import check_positions
-
-    check_positions(label, cols["ra"], cols["dec"])
     unknown = set(np.unique(cols["kind"]).tolist()) - {"star", "galaxy"}
     if unknown:
         raise PerscliError(f"{label}: column kind has {sorted(unknown)}; expected 'star' or 'galaxy'")
+    from ..scene import check_catalog
+
+    # the catalogue check measure makes too: ids, positions, sizes and ellipticities that GalSim can draw
+    # (hlr = 0 divided by zero, |e| >= 1 raised GalSim's range error)
+    check_catalog(label, cols, header=table.header)
     cols["datasum"] = table.datasum
     return cols
 

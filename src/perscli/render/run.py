@@ -90,7 +90,9 @@ def _exposure_cards(exposure: Exposure, optics, seed: int, bunit: str, gain: flo
 HDU_NAMES = ("SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL")
 
 #: what ``perscli render`` writes unless told otherwise (PERSIST only with earlier exposures)
-DEFAULT_HDUS = ("SCI", "IDEAL", "FLUENCE", "PERSIST", "MODEL")
+#: STARFLU among them: a frame rendered with the defaults is the history of later ones under the default
+#: persistence source (stars)
+DEFAULT_HDUS = ("SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL")
 
 
 def check_hdus(hdus) -> tuple:
@@ -183,8 +185,9 @@ def open_history(name: str, source: str):
     from ..io.frames import open_frame
 
     want = "STARFLU" if source == "stars" else "FLUENCE"
-    why = ("--persistence-source stars needs the stars' fluence of every earlier exposure: render it with "
-           "STARFLU in --hdus" if want == "STARFLU" else
+    why = ("the persistence source is the stars' light (the default; --persistence-source stars), which needs "
+           "the stars' fluence of every earlier exposure: render it with STARFLU in --hdus (the default), or use "
+           "--persistence-source all" if want == "STARFLU" else
            "an earlier exposure leaves persistence through the charge it collected: render it with FLUENCE in "
            "--hdus (the default)")
     if name == "-":

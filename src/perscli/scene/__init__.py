@@ -109,6 +109,131 @@ def check_positions(label: str, ra, dec) -> None:
                            f"degrees (first: row {i}, ra={ra[i]:g} dec={dec[i]:g}); fix or drop them")
 
 
+def check_column_scaling(label: str, header) -> None:
+    """Refuse a table whose TSCALn or TZEROn cannot scale a column.
+
+    TSCALn = 0 makes every value of column n equal to TZEROn (a catalogue
+    whose RA column is all 0, say), and a TSCALn or TZEROn that is not a
+    finite number makes every value NaN or infinite: CFITSIO applies them
+    without complaint, so the values would be silently wrong.
+
+    Parameters
+    ----------
+    label : str
+        The file, for the message.
+    header : mapping
+        The table's header (``perscli.io.tables.InputTable.header``).
+
+    Raises
+    ------
+    PerscliError
+        One line naming the column and the keyword.
+    """
+    # this belongs with the other structure checks of the FITS layer (perscli.io), for every table;
+    # until it is there, the catalogue readers of render and measure make it themselves
+    try:
+        nfields = int(header.get("TFIELDS", 0) or 0)
+    except (TypeError, ValueError):
+        return      # the FITS layer reports a bad TFIELDS
+    for k in range(1, nfields + 1):
+        name = str(header.get(f"TTYPE{k}", f"column {k}")).strip()
+        for key in (f"TSCAL{k}", f"TZERO{k}"):
+            if key not in header:
+                continue
+            value = _number(header[key])
+            if not math.isfinite(value) or (key.startswith("TSCAL") and value == 0):
+                raise PerscliError(f"{label}: {key} = {header[key]!r} (column '{name}') would make every value "
+                                   "of the column the same or not a number; the file is corrupt: re-copy or "
+                                   "regenerate it")
+
+
+def check_catalog(label: str, cols: dict, *, header=None) -> None:
+    """Refuse a catalogue whose values cannot describe objects: the one check of catalogue columns.
+
+    Used by every reader of a truth catalogue that draws or measures its
+    objects (``perscli render``, ``perscli measure``), on the columns it
+    read, so that a bad value is one line naming the file and the first bad
+    row instead of a GalSim or WCS traceback, a crash, or a silently wrong
+    output.  Checked, for each column present:
+
+    - ``id``: unique (each row is one object; ``perscli correlate`` matches
+      the measurements of an object by id and refuses repeated ones);
+    - ``ra``, ``dec``: RA in [0, 360], Dec in [-90, 90] degrees
+      (:func:`check_positions`); ``x``, ``y``: finite;
+    - ``hlr`` (half-light radius, arcsec): never negative or infinite, and
+      > 0 for every galaxy (a profile of zero size cannot be drawn);
+    - ``e1``, ``e2``: |e| = sqrt(e1^2 + e2^2) < 1 wherever given (an
+      ellipticity of 1 is a line), and finite for every galaxy.
+
+    Galaxies are the rows whose ``kind`` is 'galaxy'; without a kind column
+    no row is known to be one, and only the checks that hold for any row
+    apply.  Non-finite values the caller allows (a star's NaN hlr, a
+    position off every frame) are left to it.
+
+    Parameters
+    ----------
+    label : str
+        The file, for the messages.
+    cols : dict of str -> ndarray
+        The columns read, by perscli name (``kind`` lower-case).
+    header : mapping, optional
+        The table's header: its column scaling is checked too
+        (:func:`check_column_scaling`).
+
+    Raises
+    ------
+    PerscliError
+        One line naming the file, the column, how many rows and the first.
+    """
+    if header is not None:
+        check_column_scaling(label, header)
+    ids = np.asarray(cols["id"]) if "id" in cols else None
+
+    def first(bad: np.ndarray) -> str:
+        i = int(np.flatnonzero(bad)[0])
+        return f"id {int(ids[i])}" if ids is not None else f"row {i}"
+
+    if ids is not None and len(ids):
+        s = np.sort(ids)
+        dup = s[1:][s[1:] == s[:-1]]
+        if len(dup):
+            raise PerscliError(f"{label}: id {int(dup[0])} appears more than once ({len(np.unique(dup))} repeated "
+                               "id(s)): each row is one object with its own id; renumber or drop the duplicates")
+    if "ra" in cols and "dec" in cols:
+        check_positions(label, cols["ra"], cols["dec"])
+    for key in ("x", "y"):
+        if key in cols:
+            bad = ~np.isfinite(np.asarray(cols[key], dtype=np.float64))
+            if np.any(bad):
+                raise PerscliError(f"{label}: column {key} has {int(bad.sum())} non-finite value(s) (first at "
+                                   f"{first(bad)}); fix or drop those rows")
+    galaxy = (np.asarray(cols["kind"]) == "galaxy") if "kind" in cols else None
+    if "hlr" in cols:
+        hlr = np.asarray(cols["hlr"], dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            bad = (hlr < 0) | np.isinf(hlr)
+            if galaxy is not None:
+                bad |= galaxy & ~(hlr > 0)
+        if np.any(bad):
+            i = int(np.flatnonzero(bad)[0])
+            raise PerscliError(f"{label}: column hlr has {int(bad.sum())} value(s) that cannot be a half-light "
+                               f"radius (first at {first(bad)}: hlr = {hlr[i]:g}): hlr is in arcsec, >= 0, and > 0 "
+                               "for a galaxy; fix or drop those rows")
+    if "e1" in cols and "e2" in cols:
+        e1 = np.asarray(cols["e1"], dtype=np.float64)
+        e2 = np.asarray(cols["e2"], dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            # hypot: no overflow for huge components, inf for an infinite one, NaN left to the caller
+            bad = np.hypot(e1, e2) >= 1.0
+            if galaxy is not None:
+                bad |= galaxy & ~(np.isfinite(e1) & np.isfinite(e2))
+        if np.any(bad):
+            i = int(np.flatnonzero(bad)[0])
+            raise PerscliError(f"{label}: {int(bad.sum())} row(s) with an ellipticity |e| = sqrt(e1^2 + e2^2) "
+                               f">= 1 or not a number (first at {first(bad)}: e1 = {e1[i]:g}, e2 = {e2[i]:g}): "
+                               "|e| < 1 (|e| = 1 is a line); fix or drop those rows")
+
+
 def check_pa(pa, what: str = "position angle") -> float:
     """A position angle in degrees, checked to lie in [-360, 360].
 

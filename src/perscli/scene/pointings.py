@@ -212,16 +212,53 @@ def read_schedule(path: str, *, stdin=None, columns=None) -> Schedule:
     Raises
     ------
     PerscliError
-        Unreadable file, or a column of :data:`SCHEDULE_COLUMNS` missing or
-        holding the wrong type (the message names it).
+        Unreadable file, a column of :data:`SCHEDULE_COLUMNS` missing or
+        holding the wrong type (the message names it), or an exposure time
+        <= 0 (:func:`check_exptimes`).
     """
     table = read_table(path, what="schedule", stdin=stdin, columns=columns or {}, known=tuple(SCHEDULE_COLUMNS))
     cols = {name: table.column(name, kind=kind, needed=tuple(SCHEDULE_COLUMNS))
             for name, kind in SCHEDULE_COLUMNS.items()}
+    check_exptimes(table.label, cols["exptime"], what="schedule")
     return Schedule(mjd=cols["date"].astype(np.float64), exptime=cols["exptime"].astype(np.float64),
                     ra=cols["ra"].astype(np.float64), dec=cols["dec"].astype(np.float64),
                     pa=cols["pa"].astype(np.float64), filter=cols["filter"], name=path,
                     datasum=table.datasum)
+
+
+def check_exptimes(label: str, exptime, *, what: str = "pointings table") -> None:
+    """Refuse exposure times that no exposure can have: <= 0 seconds (or, in a pointings table, not finite).
+
+    A schedule may hold rows without a time (NaN), which are never selected
+    (:func:`select_covering`, :func:`previous_exposures`); a pointings table
+    is what render takes one exposure from, so every row must have one.  A
+    negative time would otherwise pass into the output and into render's
+    exposure (an end before its start).
+
+    Parameters
+    ----------
+    label : str
+        The file, for the message.
+    exptime : array_like
+        Seconds.
+    what : {'schedule', 'pointings table'}
+        What the file is: a schedule allows non-finite times.
+
+    Raises
+    ------
+    PerscliError
+        One line naming the file, how many rows and the first.
+    """
+    exptime = np.asarray(exptime, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = exptime <= 0
+        if what != "schedule":
+            bad |= ~np.isfinite(exptime)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise PerscliError(f"{label}: column exptime has {int(bad.sum())} value(s) that cannot be an exposure time "
+                           f"(first: row {i}, exptime = {exptime[i]:g} s): an exposure lasts > 0 seconds; "
+                           f"fix or drop those rows of the {what}")
 
 
 def _check_centre(ra: float, dec: float):
@@ -894,12 +931,14 @@ def _pointings_of(table) -> list:
     if "mjd" not in names and "date" in names:
         cols = {name: table.column(name, kind=kind, needed=tuple(SCHEDULE_COLUMNS))
                 for name, kind in SCHEDULE_COLUMNS.items()}
+        check_exptimes(table.label, cols["exptime"], what="schedule")
         return [Pointing(expid=i, mjd=float(cols["date"][i]), exptime=float(cols["exptime"][i]),
                          ra=float(cols["ra"][i]), dec=float(cols["dec"][i]), pa=float(cols["pa"][i]),
                          filter=str(cols["filter"][i]), sca=0) for i in range(len(table))]
     kinds = {"expid": "integer", "sca": "integer", "filter": "text"}
     cols = {name: table.column(name, kind=kinds.get(name, "number"), needed=tuple(POINTING_COLUMNS))
             for name in POINTING_COLUMNS}
+    check_exptimes(table.label, cols["exptime"])
     return [Pointing(expid=int(cols["expid"][i]), mjd=float(cols["mjd"][i]), exptime=float(cols["exptime"][i]),
                      ra=float(cols["ra"][i]), dec=float(cols["dec"][i]), pa=float(cols["pa"][i]),
                      filter=str(cols["filter"][i]), sca=int(cols["sca"][i])) for i in range(len(table))]

@@ -589,7 +589,8 @@ def budget_figure(result: Comparison, *, linthresh: float | None = None) -> byte
 
     xi+ of the measurement with error bars (bins over the budget in red)
     against the budget's curve, log separation, symlog xi+; the linear range
-    ``|xi+| < linthresh`` is shaded grey.
+    ``|xi+| < linthresh`` is shaded grey.  The legend sits below the axes, so
+    that it hides no point.
 
     Parameters
     ----------
@@ -623,7 +624,7 @@ def budget_figure(result: Comparison, *, linthresh: float | None = None) -> byte
     fine = np.geomspace(lo / 1.3, hi * 1.3, 600)
     curve = xi_plus(fine * sep_unit_radians(result.unit), result.amplitudes, result.modes)
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    fig, ax = plt.subplots(figsize=(6.4, 5.4))
     label = f"additive budget ({result.bands}, {'E and B' if result.modes == 'EB' else 'E'} modes)"
     ax.plot(fine, curve, color="black", lw=1.5, label=label)
     if measured:
@@ -634,7 +635,8 @@ def budget_figure(result: Comparison, *, linthresh: float | None = None) -> byte
         if bad.any():
             ax.errorbar(result.theta[bad], result.xip[bad], yerr=result.sigma_xip[bad], fmt="s", ms=4, capsize=2,
                         color="tab:red", label=f"over budget by > {result.n_sigma:g} sigma")
-        ax.set_title(textwrap.fill(result.verdict, 95), fontsize=8)
+        # 80 characters: at 95 a long verdict ran past the right edge of the figure
+        ax.set_title(textwrap.fill(result.verdict, 80), fontsize=8)
     ax.set_xscale("log")
     ax.set_yscale("symlog", linthresh=linthresh)
     ax.axhspan(-linthresh, linthresh, color="0.85", zorder=0, label=f"linear range |y| < {linthresh:.1g}")
@@ -642,7 +644,9 @@ def budget_figure(result: Comparison, *, linthresh: float | None = None) -> byte
     ax.set_xlim(fine[0], fine[-1])
     ax.set_xlabel(rf"$\theta$ ({result.unit})")
     ax.set_ylabel(r"$\xi_+(\theta)$")
-    ax.legend(fontsize=8, loc="best")
+    # below the axes, never over them: loc="best" put the legend on the points at 4-6 arcmin (the
+    # budget's curve fills the top, the points the middle, and no corner of the axes is free)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
     fig.tight_layout()
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=100)

@@ -229,8 +229,10 @@ def _positions(table, rows, mode: str, pixel_scale: float):
         if not has_radec:
             raise PerscliError(f"{table.label}: HDU {table.index} has no ra/dec columns for --positions radec; "
                                "use --positions xy (pixel positions) or add ra/dec in degrees")
-        return (table.column("ra").astype(np.float64)[rows], table.column("dec").astype(np.float64)[rows],
-                "radec", "deg", {"COORDS": ("radec", "positions: ra, dec (deg), spherical")})
+        ra = table.column("ra").astype(np.float64)[rows]
+        dec = table.column("dec").astype(np.float64)[rows]
+        _check_sky(table, rows, ra, dec)
+        return ra, dec, "radec", "deg", {"COORDS": ("radec", "positions: ra, dec (deg), spherical")}
     if not has_xy:
         raise PerscliError(f"{table.label}: HDU {table.index} has neither ra/dec nor x/y columns; "
                            "a SHAPES table needs positions")
@@ -245,6 +247,59 @@ def _positions(table, rows, mode: str, pixel_scale: float):
         raise PerscliError(f"{table.label}: column x has unit '{table.unit('x')}', which is neither pixels nor an "
                            "angle (arcsec, arcmin, deg, rad): fix TUNIT or use --positions radec")
     return x, y, "xy", _ANGLE_UNITS[unit], params
+
+
+def _check_sky(table, rows, ra, dec) -> None:
+    """Refuse ra/dec that are numbers but no position on the sky (Dec 100, RA 1e6).
+
+    TreeCorr takes any angle, so Dec 100 (the sphere folded over the pole)
+    or RA 1e6 would be correlated as some other position without a word;
+    the ranges are those of every perscli input (:data:`perscli.scene.RA_RANGE`,
+    :data:`perscli.scene.DEC_RANGE`), refused, never wrapped.  NaN and
+    infinite values are left to :func:`_finite_rows` (dropped with a
+    warning, as for any column).
+    """
+    from ..scene import DEC_RANGE, RA_RANGE
+
+    with np.errstate(invalid="ignore"):
+        bad = np.isfinite(ra) & ~((ra >= RA_RANGE[0]) & (ra <= RA_RANGE[1]))
+        bad |= np.isfinite(dec) & ~((dec >= DEC_RANGE[0]) & (dec <= DEC_RANGE[1]))
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        where = _row_name(table, rows[i])
+        raise PerscliError(f"{table.label}: {int(bad.sum())} row(s) with RA outside [0, 360] or Dec outside "
+                           f"[-90, 90] degrees (first: {where}, ra={ra[i]:g} dec={dec[i]:g}): not a position on "
+                           "the sky; fix or drop those rows (or correlate x/y with --positions xy)")
+
+
+def _row_name(table, row) -> str:
+    """'id N' of a table row when the table has ids, else 'row N' (0-based)."""
+    if "id" in _names(table):
+        with contextlib.suppress(PerscliError):
+            return f"id {int(table.column('id', kind='integer')[row])}"
+    return f"row {int(row)}"
+
+
+def _refuse_beyond(label: str, what: str, values, limit: float, keep, ids, hint: str) -> None:
+    """Refuse when ``values`` (a magnitude: |g|, |De|) reach ``limit`` in a row that is used (``keep``).
+
+    NaN never reaches it (non-finite rows are dropped with a warning by
+    :func:`_finite_rows`, as before); an infinite value does.  Such a value
+    is not a shape: correlated, |g| = 1e300 filled XI, COV and STATS with
+    inf and NaN.  The limit itself is refused too: |g| = 1 is an ellipse of
+    zero width, which perscli measure never leaves unflagged (flag 32).
+    """
+    with np.errstate(invalid="ignore"):
+        bad = np.asarray(keep, dtype=bool) & (np.asarray(values) >= limit)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        first = f"id {int(ids[i])}" if ids is not None else f"row {i}"
+        raise PerscliError(f"{label}: {int(bad.sum())} unflagged row(s) with {what} >= {limit:g} (first: {first}, "
+                           f"{what} = {float(np.asarray(values)[i]):g}): {hint}")
+
+
+_G_HINT = ("a reduced shear has |g| < 1 (perscli measure flags a fit that reaches 1); the table is corrupt or "
+           "its g columns are something else: fix, flag or drop those rows")
 
 
 def _g_axes(table) -> str | None:
@@ -407,7 +462,11 @@ def _from_columns(table, de_columns, positions, pixel_scale, inputs) -> ShapeCha
             f"{table.label}: position column 1": pos1, f"{table.label}: position column 2": pos2}
     good = _finite_rows(cols, keep, what)
     names = _names(table)
-    ids = table.column("id", kind="integer")[good] if "id" in names else None
+    all_ids = table.column("id", kind="integer") if "id" in names else None
+    # De = g(A) - g(B) with |g| < 1 each: |De| < 2 (and the optional columns within their own ranges)
+    _refuse_beyond(table.label, f"|De| = |({c1}, {c2})|", np.hypot(de1, de2), 2.0, good, all_ids,
+                   "De is a difference of two shapes with |g| < 1, so |De| < 2; check the --de1/--de2 columns")
+    ids = all_ids[good] if all_ids is not None else None
     counts = {"rows_a": n, "rows_b": 0, "matched": n, "flagged": flagged,
               "nonfinite": int(keep.sum() - good.sum()), "used": int(good.sum())}
     params = {"DEMODE": ("columns", "De read from named columns"), "DE1COL": (c1, "column of De1"),
@@ -415,7 +474,14 @@ def _from_columns(table, de_columns, positions, pixel_scale, inputs) -> ShapeCha
     extra = {}
     for key, col in (("dabs", "dabs"), ("e1", "e1_true"), ("e2", "e2_true")):
         if col in names:
-            extra[key] = table.column(names[col]).astype(np.float64)[good]
+            extra[key] = table.column(names[col]).astype(np.float64)
+    if "dabs" in extra:
+        _refuse_beyond(table.label, "|dabs|", np.abs(extra["dabs"]), 1.0, good, all_ids,
+                       "dabs = |g(A)| - |g(B)| lies in (-1, 1); check the column")
+    if "e1" in extra and "e2" in extra:
+        _refuse_beyond(table.label, "|(e1_true, e2_true)|", np.hypot(extra["e1"], extra["e2"]), 1.0, good,
+                       all_ids, _G_HINT)
+    extra = {key: values[good] for key, values in extra.items()}
     return ShapeChanges(de1=de1[good], de2=de2[good], e1=extra.get("e1"), e2=extra.get("e2"), pos1=pos1[good],
                         pos2=pos2[good], coords=coords, pos_units=units, ids=ids, counts=counts, inputs=inputs,
                         params=params, source=f"De = ({c1}, {c2}) of {os.path.basename(table.label)}",
@@ -512,7 +578,14 @@ def _from_frames(tables, frames, common_ids, positions, pixel_scale, inputs, ori
                         counts={"rows_a": len(rows_a), "rows_b": len(rows_b), "matched": len(common),
                                 "flagged": len(common)})
     pos1, pos2, coords, units, pparams = _positions(tb, rows_b[ib], positions, pixel_scale)
+    if coords == "radec" and {"ra", "dec"} <= set(_names(ta)):
+        # A's positions are not correlated (B's are), but Dec 100 in A is as corrupt as in B
+        _check_sky(ta, rows_a[ia], ta.column("ra").astype(np.float64)[rows_a[ia]],
+                   ta.column("dec").astype(np.float64)[rows_a[ia]])
     g1a, g2a, g1b, g2b = a["g1"][ia], a["g2"][ia], b["g1"][ib], b["g2"][ib]
+    # |g| < 1 for any shape; hypot, not g1^2 + g2^2, so that 1e300 is refused without an overflow warning
+    _refuse_beyond(label_a, "|g| = |(g1, g2)|", np.hypot(g1a, g2a), 1.0, keep, common, _G_HINT)
+    _refuse_beyond(label_b, "|g| = |(g1, g2)|", np.hypot(g1b, g2b), 1.0, keep, common, _G_HINT)
     cols = {f"{label_a}: g1": g1a, f"{label_a}: g2": g2a, f"{label_b}: g1": g1b, f"{label_b}: g2": g2b,
             f"{label_b}: position column 1": pos1, f"{label_b}: position column 2": pos2}
     good = _finite_rows(cols, keep, "objects unflagged in both")
@@ -1048,23 +1121,90 @@ def _treecorr_logger():
     return logger
 
 
-def read_patch_centers(path: str, coords: str) -> np.ndarray:
-    """Patch centres from a file: TreeCorr's (x, y[, z]) columns or ra/dec in degrees.
+#: the largest text file of patch centres read (bytes): TreeCorr's text file of 10,000 centres is ~0.7 MB
+MAX_PATCH_TEXT = 16 << 20
 
-    Accepts the file TreeCorr's ``Catalog.write_patch_centers`` writes (FITS
-    or ASCII), a FITS table with ra/dec columns (degrees), or a
-    ``perscli correlate`` output (its PATCHES table).
+#: what --patch-centers takes, for messages
+_PATCH_FILE = ("TreeCorr's write_patch_centers file, a table of ra/dec or an earlier perscli correlate output "
+               "(--patch-centers)")
+
+
+def check_patch_centers_file(path: str) -> None:
+    """Refuse, before anything is read, a --patch-centers name that is not a regular file.
+
+    The checks every input of perscli makes before reading it
+    (:func:`perscli.io.fitsfile.open_source`), in one line each: missing, a
+    broken or looping symbolic link, a directory, a device (/dev/null,
+    /dev/zero: read for ever), a socket, an empty file.  A named pipe is
+    refused too, without waiting for a writer: a patch-centre file may be
+    FITS or text, which is told from its first bytes and then read again
+    from the start, and a pipe cannot be read twice (give the file, or
+    ``<(...)`` into a temporary file).
+
+    Raises
+    ------
+    PerscliError
+        One line naming the file and what to give instead.
+    """
+    import errno
+    import stat
+
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        if os.path.islink(path):
+            raise PerscliError(f"{path}: a broken symbolic link; point it at {_PATCH_FILE}") from None
+        raise PerscliError(f"{path}: no such file; give {_PATCH_FILE}") from None
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise PerscliError(f"{path}: a loop of symbolic links; point it at {_PATCH_FILE}") from None
+        raise PerscliError(f"{path}: cannot be read ({exc.strerror}); give {_PATCH_FILE}") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise PerscliError(f"{path}: is a directory, not a file of patch centres; give {_PATCH_FILE}")
+    if stat.S_ISFIFO(st.st_mode):
+        raise PerscliError(f"{path}: is a named pipe (FIFO), which cannot be read twice as a patch-centre file "
+                           f"is; write it to a file first and give {_PATCH_FILE}")
+    if not stat.S_ISREG(st.st_mode):
+        raise PerscliError(f"{path}: is not a regular file (a device or socket); give {_PATCH_FILE}")
+    if st.st_size == 0:
+        raise PerscliError(f"{path}: the file is empty; give {_PATCH_FILE}")
+    if not os.access(path, os.R_OK):
+        raise PerscliError(f"{path}: cannot be read (permission denied); give {_PATCH_FILE}")
+
+
+def read_patch_center_columns(path: str) -> dict:
+    """The columns of a patch-centre file, by lower-case name (see :func:`read_patch_centers`).
+
+    Checked as every input is (:func:`check_patch_centers_file`), then read
+    as FITS (through :func:`perscli.io.fitsfile.open_fits`: structure and
+    checksums verified) when it starts with a SIMPLE card (or is gzip
+    compressed), else as a whitespace-separated text table with a header
+    line of column names (at most :data:`MAX_PATCH_TEXT` bytes).
+
+    Parameters
+    ----------
+    path : str
+        The file (``--patch-centers``).
 
     Returns
     -------
-    ndarray
-        (npatch, 3) unit vectors for coords 'radec'; (npatch, 2) for 'xy'
-        (in TreeCorr's internal units, as TreeCorr writes them).
+    dict of str -> ndarray
+        Every column of the table, as float64.
+
+    Raises
+    ------
+    PerscliError
+        Not a regular file, unreadable, no table, a text file too large to
+        be one, or columns that are not numbers.
     """
-    if not os.path.exists(path):
-        raise PerscliError(f"{path}: no such file (--patch-centers)")
-    with open(path, "rb") as fh:
-        is_fits = fh.read(9) == b"SIMPLE  ="
+    check_patch_centers_file(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(9)
+        # FITS, plain or gzip-compressed (open_fits decompresses it): a text file starts otherwise
+        is_fits = head == b"SIMPLE  =" or head[:2] == b"\x1f\x8b"
+    except OSError as exc:
+        raise PerscliError(f"{path}: cannot be read ({exc.strerror}); give {_PATCH_FILE}") from None
     if is_fits:
         from ..io.fitsfile import open_fits
 
@@ -1075,21 +1215,75 @@ def read_patch_centers(path: str, coords: str) -> np.ndarray:
                 raise PerscliError(f"{path}: has no binary table of patch centres (--patch-centers)")
             hdu = (named or tables)[0]
             try:
-                data = {n.lower(): np.asarray(hdu.read_column(n), dtype=np.float64) for n in hdu.colnames}
+                return {n.lower(): np.asarray(hdu.read_column(n), dtype=np.float64) for n in hdu.colnames}
             except (TypeError, ValueError) as exc:
                 raise PerscliError(f"{path}: not a readable FITS table of patch centres ({exc})") from None
-    else:
-        try:
-            arr = np.genfromtxt(path, names=True, dtype=np.float64)
-        except (OSError, ValueError) as exc:
-            raise PerscliError(f"{path}: not a readable table of patch centres ({exc})") from None
-        if arr.dtype.names is None:
-            raise PerscliError(f"{path}: no column names: a patch-centre file has columns x y [z] or ra dec")
-        data = {n.lower(): np.atleast_1d(arr[n]) for n in arr.dtype.names}
+    import io
+
+    try:
+        with open(path, "rb") as fh:
+            # a text table of a few thousand centres is well under a megabyte: a file larger than the cap
+            # (a disk image given by mistake, say) is refused instead of being read into memory
+            raw = fh.read(MAX_PATCH_TEXT + 1)
+        if len(raw) > MAX_PATCH_TEXT:
+            raise PerscliError(f"{path}: over {MAX_PATCH_TEXT >> 20} MiB of text: not a file of patch centres; "
+                               f"give {_PATCH_FILE}")
+        text = raw.decode("utf-8")
+    except OSError as exc:
+        raise PerscliError(f"{path}: cannot be read ({exc.strerror}); give {_PATCH_FILE}") from None
+    except UnicodeDecodeError:
+        raise PerscliError(f"{path}: neither FITS nor text: not a file of patch centres; give {_PATCH_FILE}") \
+            from None
+    import warnings
+
+    try:
+        with warnings.catch_warnings():
+            # numpy warns (and returns nothing) for a file without data lines: the check below says it
+            warnings.simplefilter("ignore")
+            arr = np.genfromtxt(io.StringIO(text), names=True, dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise PerscliError(f"{path}: not a readable table of patch centres ({exc})") from None
+    if arr.dtype.names is None:
+        raise PerscliError(f"{path}: no column names: a patch-centre file has columns x y [z] or ra dec")
+    return {n.lower(): np.atleast_1d(arr[n]) for n in arr.dtype.names}
+
+
+def patch_center_vectors(data: dict, coords: str, path: str) -> np.ndarray:
+    """Patch centres in TreeCorr's units from the columns of a patch-centre file (see :func:`read_patch_centers`).
+
+    Parameters
+    ----------
+    data : dict of str -> ndarray
+        The file's columns (:func:`read_patch_center_columns`).
+    coords : {'radec', 'xy'}
+        The positions the centres are for.
+    path : str
+        The file, for the messages.
+
+    Returns
+    -------
+    ndarray
+        (npatch, 3) unit vectors for 'radec', (npatch, 2) for 'xy'.
+
+    Raises
+    ------
+    PerscliError
+        Columns that do not fit ``coords``, fewer than 2 centres, values
+        that are not finite, or ra/dec off the sky.
+    """
     if coords == "radec":
         if {"x", "y", "z"} <= set(data):
             centers = np.column_stack([data["x"], data["y"], data["z"]])
         elif {"ra", "dec"} <= set(data):
+            from ..scene import DEC_RANGE, RA_RANGE
+
+            # the ranges of every position perscli reads: refused, never wrapped (Dec 100 would fold over the
+            # pole into another centre without a word)
+            with np.errstate(invalid="ignore"):
+                off = (np.abs(data["dec"]) > DEC_RANGE[1]) | (data["ra"] < RA_RANGE[0]) | (data["ra"] > RA_RANGE[1])
+            if np.any(off):
+                raise PerscliError(f"{path}: {int(off.sum())} patch centre(s) with RA outside [0, 360] or Dec "
+                                   "outside [-90, 90] degrees: not positions on the sky")
             ra, dec = np.radians(data["ra"]), np.radians(data["dec"])
             centers = np.column_stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)])
         else:
@@ -1104,6 +1298,28 @@ def read_patch_centers(path: str, coords: str) -> np.ndarray:
     if not np.all(np.isfinite(centers)):
         raise PerscliError(f"{path}: patch centres that are not finite")
     return centers
+
+
+def read_patch_centers(path: str, coords: str) -> np.ndarray:
+    """Patch centres from a file: TreeCorr's (x, y[, z]) columns or ra/dec in degrees.
+
+    Accepts the file TreeCorr's ``Catalog.write_patch_centers`` writes (FITS
+    or ASCII), a FITS table with ra/dec columns (degrees), or a
+    ``perscli correlate`` output (its PATCHES table).  The name must be a
+    regular file (:func:`check_patch_centers_file`).
+
+    Returns
+    -------
+    ndarray
+        (npatch, 3) unit vectors for coords 'radec'; (npatch, 2) for 'xy'
+        (in TreeCorr's internal units, as TreeCorr writes them).
+
+    Raises
+    ------
+    PerscliError
+        See :func:`read_patch_center_columns` and :func:`patch_center_vectors`.
+    """
+    return patch_center_vectors(read_patch_center_columns(path), coords, path)
 
 
 @dataclass
@@ -1636,13 +1852,16 @@ def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=
         if dest != "-" and os.path.abspath(path) == os.path.abspath(dest):
             raise PerscliError(f"{path}: a figure and the -o output name the same file: choose another name")
 
+    # the patch centres are read first: a bad --patch-centers (a FIFO without a writer, /dev/zero, a folder)
+    # is one line before any table is read, never a hang or a traceback after it
+    centre_columns = read_patch_center_columns(patch_centers) if patch_centers is not None else None
     if pairs is not None:
         sc = load_pairs(pairs, frames=frames, common_ids=common_ids, positions=positions, pixel_scale=pixel_scale,
                         stdin=stdin, columns=columns)
     else:
         sc = load_shape_changes(catalogs, frames=frames, de_columns=de_columns, common_ids=common_ids,
                                 positions=positions, pixel_scale=pixel_scale, stdin=stdin, columns=columns)
-    centers = read_patch_centers(patch_centers, sc.coords) if patch_centers is not None else None
+    centers = patch_center_vectors(centre_columns, sc.coords, patch_centers) if patch_centers is not None else None
     log.info("%s: %d objects (%d matched, %d flagged, %d not finite)", sc.source, len(sc), sc.counts["matched"],
              sc.counts["flagged"], sc.counts["nonfinite"])
     gg, cat, errors = correlate_de(sc, min_sep=min_sep, max_sep=max_sep, nbins=nbins, sep_units=sep_units,

@@ -11,6 +11,7 @@ import copy
 import difflib
 import hashlib
 import json
+import math
 import os
 
 import yaml
@@ -164,10 +165,15 @@ def _coerce(path: str, default, value):
         if isinstance(value, bool):
             return value
         raise PerscliError(f"study setting {path!r} must be true or false, not {value!r}")
-    if isinstance(default, (int, float)) and not isinstance(value, bool):
-        if isinstance(value, (int, float)):
-            return type(default)(value) if not (isinstance(default, int) and value != int(value)) else value
-        raise PerscliError(f"study setting {path!r} must be a number, not {value!r}")
+    if isinstance(default, (int, float)):
+        # true/false are not 1/0 here, nor are NaN and infinity numbers a study can use
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise PerscliError(f"study setting {path!r} must be a finite number, not {value!r}")
+        if isinstance(default, int):
+            if value != int(value):
+                raise PerscliError(f"study setting {path!r} must be a whole number, not {value!r}")
+            return int(value)
+        return float(value)
     if isinstance(default, str):
         if isinstance(value, str):
             return value
@@ -337,6 +343,42 @@ def check(s: dict) -> None:
     c = s["correlate"]
     if not 0 < c["min_sep"] < c["max_sep"] or c["nbins"] < 1:
         raise PerscliError("correlate: need 0 < min_sep < max_sep and nbins >= 1")
+    _check_values(s)
+
+
+def _positive(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+
+
+def _check_values(s: dict) -> None:
+    """The settings every later step takes: checked before anything runs, so that a bad one fails the
+    dry run and not a task after hours of renders."""
+    p = s["persistence"]
+    for m in p["models"]:
+        if not isinstance(m, str):
+            raise PerscliError(f"persistence.models: {m!r} is not a model name (typical, pessimistic) or a file")
+    cat = s["catalog"]
+    if not (_positive(cat["galaxy_density"]) or cat["galaxy_density"] == 0):
+        raise PerscliError(f"catalog.galaxy_density {cat['galaxy_density']!r}: a number >= 0 per arcmin^2")
+    if not (cat["margin_arcsec"] >= 0):
+        raise PerscliError(f"catalog.margin_arcsec {cat['margin_arcsec']!r}: a number >= 0")
+    for path in cat["gaia"]:
+        if not isinstance(path, str) or not os.path.isfile(path):
+            raise PerscliError(f"catalog.gaia: {path!r} is not a file; give Gaia DR2 chunks (FITS) that exist")
+    m = s["measure"]
+    if not (isinstance(m["stamp"], int) and 16 <= m["stamp"] <= 512):
+        raise PerscliError(f"measure.stamp {m['stamp']!r}: a whole number of pixels from 16 to 512")
+    if m["min_snr"] is not None and not _positive(m["min_snr"]):
+        raise PerscliError(f"measure.min_snr {m['min_snr']!r}: a number > 0, or leave it out for measure's default")
+    c = s["correlate"]
+    if not (isinstance(c["npatch"], int) and c["npatch"] >= 1):
+        raise PerscliError(f"correlate.npatch {c['npatch']!r}: a whole number >= 1 (1: no jackknife)")
+    if not c["thresholds"] or not all(_positive(t) for t in c["thresholds"]):
+        raise PerscliError(f"correlate.thresholds {c['thresholds']!r}: a list of numbers > 0 (|De| thresholds)")
+    from ..stats.budget import _modes_factor, amplitudes
+
+    amplitudes(s["budget"]["bands"])
+    _modes_factor(s["budget"]["modes"])
 
 
 def _number_or_text(value):
