@@ -49,9 +49,10 @@ demo-diagnose: $(STAMP)
 	    --previous $(DIAG)/sim1.fits -o $(DIAG)/sim2.fits --overwrite
 	$(BIN)/perscli render $(DIAG)/truth.fits $(POINT) --mjd 61541.97 --seed 21 --set dark.current=0.3 -o $(DIAG)/meas0.fits --overwrite
 	$(BIN)/perscli render $(DIAG)/truth.fits $(POINT) --mjd 61541.97196528 --seed 22 --set dark.current=0.3 \
-	    --previous $(DIAG)/meas0.fits -o $(DIAG)/meas1.fits --overwrite
+	    --persistence-source all --previous $(DIAG)/meas0.fits -o $(DIAG)/meas1.fits --overwrite
 	$(BIN)/perscli render $(DIAG)/truth.fits $(POINT) --mjd 61541.97393056 --seed 23 --set dark.current=0.3 \
-	    --previous $(DIAG)/meas0.fits --previous $(DIAG)/meas1.fits -o $(DIAG)/meas2.fits --overwrite
+	    --persistence-source all --previous $(DIAG)/meas0.fits --previous $(DIAG)/meas1.fits -o $(DIAG)/meas2.fits \
+	    --overwrite
 	$(BIN)/perscli -v diagnose $(DIAG)/meas0.fits $(DIAG)/meas1.fits $(DIAG)/meas2.fits --simulated $(DIAG)/sim0.fits \
 	    --simulated $(DIAG)/sim1.fits --simulated $(DIAG)/sim2.fits -o demo_output/diagnose --overwrite
 

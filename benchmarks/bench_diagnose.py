@@ -61,7 +61,7 @@ HIDDEN_SET = [a for h in HIDDEN for a in ("--set", h[0])]
 CATALOG_SIZE = 12.0          # arcmin: the SCA is 7.5' on a side, 10.6' across its diagonal
 CATALOG_SEED = 1
 MEAS_SEED0, SIM_SEED0 = 100, 200
-RECIPE_VERSION = 3           # bump when the recipe changes in a way the fields below do not show
+RECIPE_VERSION = 4           # bump when the recipe changes in a way the fields below do not show
 LIMIT_S, LIMIT_RSS = 120.0, 6e9
 
 
@@ -89,6 +89,10 @@ def catalog_args(centre, out) -> list:
 def render_args(truth, k, seed, extra, workers, previous, out) -> list:
     args = ["render", str(truth), *POINTING, "--mjd", repr(MJD0 + k * CADENCE_S / 86400.0), "--seed", str(seed),
             "--workers", str(workers), *extra]
+    if previous:
+        # diagnose models a detector's persistence from every photon of the earlier exposures (a real
+        # detector's traps do not tell stars from sky): the "measured" frames persist all their light
+        args += ["--persistence-source", "all"]
     for p in previous[-MAX_PREVIOUS:]:
         args += ["--previous", str(p)]
     return args + ["-o", str(out), "--overwrite"]

@@ -180,7 +180,7 @@ def test_cli_one_bin_above_fails_check_but_writes_the_output(tmp_path):
     xi = xi_file(tmp_path / "xi.fits", THETA, xip, sigma)
     out = tmp_path / "cmp.fits"
     result = invoke(xi, "-o", out, "--check")
-    assert result.exit_code == 1, (result.output, result.stderr)
+    assert result.exit_code == 3, (result.output, result.stderr)      # a finding: not 1, an error
     # the verdict names the bin: its separation, xi+ against the budget plus N sigma, and the ratio
     line = result.stderr.strip()
     assert f"exceeds the budget at {THETA[5]:.3g} arcmin (xi+ = {xip[5]:.3g} > {BUDGET[5]:.3g} + 2 sigma" in line
@@ -258,7 +258,7 @@ def test_cli_above_but_within_errors_passes_check(tmp_path):
     assert "within 2 sigma of the budget" in result.stderr
     # a tighter --sigma makes it a finding: 1.5 - 0.4 > 1
     tight = invoke(xi, "-o", tmp_path / "cmp2.fits", "--check", "--sigma", "0.4")
-    assert tight.exit_code == 1 and "+ 0.4 sigma" in tight.stderr
+    assert tight.exit_code == 3 and "+ 0.4 sigma" in tight.stderr
     assert "12 of 12 bins exceed, at 0.5, 0.823, 1.35, 2.23, 3.67, ... arcmin" in tight.stderr
 
 

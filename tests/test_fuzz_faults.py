@@ -584,9 +584,11 @@ def test_an_interrupt_is_one_line_and_leaves_nothing(sig, code, line, tmp_path):
     assert listing(tmp_path) == []
 
 
-def test_an_interrupted_study_keeps_what_it_finished(tmp_path):
-    # Ctrl-C reaches the whole process group; the products finished stay for the resumed run
-    proc = subprocess.Popen([PERSCLI, "study", "--preset", "ci", "-o", "s", "--scheduler", "serial", "-q"],
+@pytest.mark.parametrize("scheduler", ["serial", pytest.param("local", marks=pytest.mark.slow)])
+def test_an_interrupted_study_keeps_what_it_finished(tmp_path, scheduler):
+    # Ctrl-C reaches the whole process group (Dask's worker processes too, which must leave it to perscli: no
+    # traceback of theirs); the products finished stay for the resumed run
+    proc = subprocess.Popen([PERSCLI, "study", "--preset", "ci", "-o", "s", "--scheduler", scheduler, "-q"],
                             cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             env=clean_env(), start_new_session=True)
     try:

@@ -8,7 +8,8 @@ from scipy import integrate
 
 from perscli import PerscliError, _kernels
 from perscli.detector.persistence import (GALSIM_LINEAR_COEFFICIENTS, PRESETS, PersistenceModel,
-                                          accumulate, load_model, ones_complement_add, time_factor)
+                                          accumulate, load_model, time_factor)
+from perscli.io.fitsfile import ones_complement_add
 
 
 def paper_F(x, A, x0, dx, alpha, half_well, **_):

@@ -7,6 +7,9 @@ import logging
 import click
 
 from .helpers import FILE, check_outputs, report_errors
+
+#: ``--check``'s exit status when a bin exceeds the budget (1 is an error, 2 a usage error)
+EXIT_OVER_BUDGET = 3
 from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
@@ -34,7 +37,8 @@ BAND_NAMES = ("dore2018", "troxel2021", "hirata")
 @columns_opt("XI", "meanr=theta,xip=xi_plus,sigma_xip=sigma")
 @no_checksum_opt
 @click.option("--check", is_flag=True, default=False,
-              help="Exit with status 1 (after writing the outputs) if any bin exceeds the budget.")
+              help="Exit with status 3 (after writing the outputs) if any bin exceeds the budget (1 stays an "
+                   "error).")
 @output_opt
 @overwrite_opt
 @verbosity_opts
@@ -69,7 +73,8 @@ def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, columns, ch
     Output: a FITS table 'BUDGET': theta, xip_budget, and with XI also xip,
     sigma_xip, ratio, sigma_ratio, exceeds; the bands, modes and --sigma in
     the header (BUDBANDS, BUDMODES, BUDSIGMA, BUDA1-4).  --check: exit status
-    1 if any bin exceeds the budget, after writing the outputs.
+    3 if any bin exceeds the budget, after writing the outputs (a finding,
+    not an error: errors exit 1).
 
     \b
     Examples:
@@ -77,7 +82,7 @@ def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, columns, ch
       perscli budget xi.fits -o cmp.fits --plot xi_vs_budget.png
       perscli budget xi.fits --bands hirata --modes EB --sigma 3 -o cmp_hirata.fits
       perscli correlate both.fits --frames 0 1 --min-sep 0.05 --max-sep 2 --nbins 5 -o - | perscli budget - -o cmp_pipe.fits
-      perscli budget xi.fits --check -o cmp_check.fits || echo "xi+ exceeds the budget"
+      perscli budget xi.fits --check -o cmp_check.fits || [ $? -eq 3 ]   # 3: xi+ exceeds the budget
     """
     if xi is not None and (theta_range is not None or nbins is not None):
         raise click.UsageError("--theta-range and --nbins are for the budget alone; with XI the separations "
@@ -103,4 +108,5 @@ def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, columns, ch
         # stderr: standard output may carry the FITS table (-o -)
         click.echo(f"{'stdin' if xi == '-' else xi}: {result.verdict}", err=True)
     if check and result.n_exceeding:
-        ctx.exit(1)
+        # a verdict, not a failure: scripts tell "over budget" (3) from "could not tell" (1)
+        ctx.exit(EXIT_OVER_BUDGET)

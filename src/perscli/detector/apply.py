@@ -36,10 +36,10 @@ import numpy as np
 
 from .. import PerscliError, _kernels
 from ..executor import thread_map
-from ..io.fitsfile import OutHDU, format_card
+from ..io.fitsfile import OutHDU, format_card, ones_complement_add
 from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, require_timing
 from ..io.output import add_provenance
-from .persistence import GALSIM_EXPTIME, PersistenceModel, accumulate, ones_complement_add, time_factor
+from .persistence import GALSIM_EXPTIME, PersistenceModel, accumulate, time_factor
 
 log = logging.getLogger(__name__)
 

@@ -452,14 +452,6 @@ def middle_time_factor(gap, ends, gamma: float) -> np.ndarray:
     return out
 
 
-def ones_complement_add(a: int, b: int) -> int:
-    """Add two 32-bit ones'-complement sums (how FITS DATASUMs of pieces combine)."""
-    s = a + b
-    while s >> 32:
-        s = (s & 0xFFFFFFFF) + (s >> 32)
-    return s
-
-
 def accumulate(fluence, acc, time_factors, model: PersistenceModel, *, scale: float = 1.0,
                combine: str = "sum", span=None):
     """Add ``T_k * F(scale * fluence)`` into ``acc[k]`` for every time factor, in one pass.

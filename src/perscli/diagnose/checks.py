@@ -87,9 +87,10 @@ class Check:
 
 
 def _chi2_p(chi2: float, dof: float) -> float:
-    from scipy.stats import chi2 as dist
+    from ..stats.correlate import chi2_sf
 
-    return float(dist.sf(chi2, max(dof, 1))) if dof > 0 else 1.0
+    # the one chi^2 survival function (exact for whole degrees of freedom); dof here are whole numbers
+    return chi2_sf(chi2, int(round(max(dof, 1)))) if dof > 0 else 1.0
 
 
 def _planes(problem, evaluation, variance: bool = False):

@@ -52,9 +52,9 @@ class Probe:
 
     @property
     def p_value(self) -> float:
-        from scipy.stats import chi2 as chi2_dist
+        from ..stats.correlate import chi2_sf
 
-        return float(chi2_dist.sf(self.chi2, max(self.dof, 1))) if self.dof else 1.0
+        return chi2_sf(self.chi2, int(max(self.dof, 1))) if self.dof else 1.0
 
     @property
     def flagged(self) -> bool:

@@ -84,10 +84,7 @@ def run_dask(tasks: list, study_dir: str, progress, *, scheduler: str = "local",
         return []
     cluster = None
     if scheduler == "local":
-        # one thread per worker process: GalSim, fitsio and perscli's kernels are not all
-        # thread-safe, and each task is a whole frame's work
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=":0", silence_logs=logging.ERROR)
+        cluster = _local_cluster(LocalCluster, workers)
         client = Client(cluster)
     else:
         try:
@@ -185,6 +182,31 @@ def remove_stale_parts(study_dir: str) -> int:
             except OSError:
                 pass
     return removed
+
+
+def _local_cluster(LocalCluster, workers: int):
+    """A LocalCluster of ``workers`` one-thread processes that leave Ctrl-C to this process.
+
+    Ctrl-C goes to the terminal's whole process group: worker processes that
+    took it would each print a traceback before this process says its one
+    line and shuts them down.  They start with SIGINT ignored (an ignored
+    signal is inherited through exec) and this process's handler is put
+    back at once.
+    """
+    import signal
+    import threading
+
+    # one thread per worker process: GalSim, fitsio and perscli's kernels are not all thread-safe, and each
+    # task is a whole frame's work
+    kwargs = dict(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                  silence_logs=logging.ERROR)
+    if threading.current_thread() is not threading.main_thread():
+        return LocalCluster(**kwargs)
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        return LocalCluster(**kwargs)
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def run(tasks: list, study_dir: str, *, scheduler: str = "local", workers: int = 2, quiet: bool = False) -> list:
