@@ -31,7 +31,7 @@ point sources from a Galactic structure model.  The thin disc, thick disc
 and halo of Chang, Ko & Peng (2011, ApJ 740, 34; a fit of the whole-sky
 2MASS counts), integrated along the line of sight at each position, times a
 luminosity function in M_J calibrated on the Gaia DR2 chunks of
-../shared/data/gaia (M_J < 8) and taken from Juric et al. (2008) and Covey
+the Gaia DR2 chunks 145649 and 145650 (M_J < 8) and taken from Juric et al. (2008) and Covey
 et al. (2008) for M dwarfs: the counts per J129 magnitude, and their change
 with Galactic latitude and longitude, follow the real sky (module
 :mod:`perscli.scene.starcounts` for the sources, constants and checks).  At
@@ -122,7 +122,7 @@ GAIA_TO_2MASS = {"J": ((-0.01883, 1.394, -0.07893), (-0.5, 5.5)),
 TWOMASS_AB_MINUS_VEGA = {"J": 0.91, "H": 1.39}
 
 #: BP-RP (Vega) for Gaia stars without BP/RP when no star read has both: the median of the DR2 stars
-#: of ../shared/data/gaia (RA 10, Dec -44, Galactic latitude -73)
+#: of the Gaia DR2 chunks 145649 and 145650 (RA 10, Dec -44, Galactic latitude -73)
 DEFAULT_BP_RP = 1.43
 
 #: AB magnitude of 1 nJy

@@ -104,7 +104,7 @@ COUNT_COLUMNS = {
     "n_galaxy": ("K", None, "catalogue galaxies whose centre lands on the SCA"),
 }
 
-#: Roman Wide Area Survey cadence (../shared/data/roman): exposure time and gap between exposures, s
+#: Roman Wide Area Survey cadence (the public WAS schedule, Roman_WAS_obseq_11_1_23.fits): exposure time and gap between exposures, s
 WAS_EXPTIME = ROMAN_EXPTIME
 WAS_GAP = ROMAN_WAS_GAP
 

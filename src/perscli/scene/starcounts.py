@@ -30,7 +30,7 @@ brighter than J = 24 at b = -73 grow by 0.9% to 200 kpc and 1.4% to 1 Mpc.
 
 - M_J < 8: calibrated on Gaia DR2 (Gaia Collaboration, Brown et al. 2018,
   A&A 616, A1): the 1151 stars with J129 < 18 of the two reference-catalogue
-  chunks of ../shared/data/gaia (HTM level-7 trixels 145649 and 145650 near
+  Gaia DR2 chunks (HTM level-7 trixels 145649 and 145650 near
   RA 10, Dec -44, b = -72 and -73, 0.42029 deg^2 each), by
   :func:`fit_luminosity_function`: the Poisson maximum likelihood (EM) of
   the LF in 11 bins given each star's J (perscli's conversion of G and
@@ -141,7 +141,7 @@ TAIL_LF = ((8.0, 8.5, 1.1565e-02), (8.5, 9.0, 8.6840e-03), (9.0, 9.5, 8.4649e-03
 
 #: The luminosity function: (M_J low, M_J high, Phi [stars pc^-3 mag^-1], (J-H)_AB mean, (J-H)_AB sigma),
 #: M_J absolute 2MASS J (Vega).  Rows with M_J < 8: :func:`fit_luminosity_function` on the Gaia DR2 chunks
-#: 145649 + 145650 (../shared/data/gaia) with the default model, 5000 iterations; the colours of the rows
+#: 145649 + 145650 (Gaia DR2 chunks) with the default model, 5000 iterations; the colours of the rows
 #: brighter than 4 from the same stars, NaN: from :data:`DWARF_JH`.  Rows with M_J >= 8: :data:`TAIL_LF`.
 LF_TABLE = (
     # M_J from, to, Phi, (J-H)_AB, sigma         expected Gaia stars of the fit in the bin
@@ -649,7 +649,7 @@ def trixel_centre(index: int) -> tuple:
 
 # -- the calibration of the bright luminosity function ------------------------------------------------
 
-#: [mag] the fit uses stars brighter than this J129 (AB): where the chunks of ../shared/data/gaia are complete
+#: [mag] the fit uses stars brighter than this J129 (AB): where the Gaia DR2 chunks are complete
 FIT_MAG_LIMIT = 18.0
 
 

@@ -15,7 +15,7 @@ import os
 
 import numpy as np
 
-#: ../shared/NOTES.md section 7 (Lin et al., Roman HLS, 0.9M galaxies on 6.25 deg^2)
+#: the paper's numbers (Lin et al., Roman HLS, 0.9M galaxies on 6.25 deg^2)
 PAPER = {
     "galaxies": 900_000,
     "area_deg2": 6.25,
