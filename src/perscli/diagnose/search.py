@@ -60,12 +60,24 @@ MIN_DELTA_BIC = 10.0
 
 def _sigma(delta_chi2: float, dof: int = 1) -> float:
     """The significance of a likelihood-ratio improvement, as a two-sided Gaussian number of sigma."""
-    from scipy.stats import chi2, norm
+    from scipy.special import ndtri_exp
+    from scipy.stats import chi2
 
     if not delta_chi2 > 0:
         return 0.0
-    p = max(float(chi2.sf(delta_chi2, dof)), 1e-300)
-    return float(norm.isf(p / 2.0))
+    if dof == 1:
+        return math.sqrt(delta_chi2)       # exact, and no underflow for the strong effects
+    # on the log scale: p underflows beyond ~37 sigma, its logarithm does not
+    log_p = float(chi2.logsf(delta_chi2, dof))
+    if not math.isfinite(log_p):
+        # scipy's logsf underflows too: the upper incomplete gamma's asymptotic series, Q(a, h) ~
+        # h^(a-1) e^-h / Gamma(a) (1 + (a-1)/h + (a-1)(a-2)/h^2), h = delta/2 >> a = dof/2
+        from scipy.special import gammaln
+
+        a, h = 0.5 * dof, 0.5 * delta_chi2
+        log_p = (a - 1.0) * math.log(h) - h - float(gammaln(a)) + math.log1p((a - 1.0) / h
+                                                                             + (a - 1.0) * (a - 2.0) / h ** 2)
+    return float(-ndtri_exp(log_p - math.log(2.0)))
 
 
 @dataclass
