@@ -224,3 +224,51 @@ def test_errors(scene, simulated, tmp_path):
     result = run("diagnose", *measured, "-o", os.path.dirname(measured[0]), "--overwrite", code=1)
     assert "holds the input" in result.stderr
     assert not [p for p in os.listdir(scene["dir"]) if p.startswith(".perscli-")]
+
+
+# -- what diagnose refuses before any fit: one line, exit 1 (2 for a bad option), nothing written -----------
+
+def _one_line(result, code):
+    assert result.exit_code == code, (result.exit_code, result.stderr)
+    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    return lines[0]
+
+
+def test_bad_options_outputs_and_models_are_refused_before_the_fit(scene, tmp_path):
+    sims = sequence(scene, "refusals", n=2)
+    args = ["diagnose", *sims, "--simulated", sims[0], "--simulated", sims[1]]
+    assert "--gain" in _one_line(invoke(*args, "--gain", "nan", "-o", tmp_path / "d"), 2)
+    assert "not a stream" in _one_line(invoke(*args, "-o", "-"), 1)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    assert "is a file" in _one_line(invoke(*args, "-o", a_file), 1)
+    assert "does not exist" in _one_line(invoke(*args, "-o", tmp_path / "no" / "such" / "d"), 1)
+    model = tmp_path / "m.yaml"
+    model.write_text("effects:\n  - dark: {current: 0.02}\nefects: []\n")
+    line = _one_line(invoke(*args, "--model", model, "-o", tmp_path / "d"), 1)
+    assert "efects" in line
+    assert a_file.read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "m.yaml"]
+
+
+def test_a_shell_glob_after_simulated_is_named_and_an_empty_simulation_refused(scene, tmp_path):
+    sims = sequence(scene, "refusals", n=2)
+    import shutil
+
+    from astropy.io import fits
+
+    measured = [tmp_path / "m0.fits", tmp_path / "m1.fits"]
+    for src, dst in zip(sims, measured):
+        shutil.copy(src, dst)
+    # `diagnose m*.fits --simulated sim*.fits`: the shell passes the second simulation as a measured frame
+    line = _one_line(invoke("diagnose", *measured, "--simulated", sims[0], sims[1], "-o", tmp_path / "d"), 1)
+    assert "--simulated per file" in line
+
+    empty = tmp_path / "empty_ideal.fits"
+    with fits.open(sims[1]) as hdul:
+        hdul["IDEAL"].data = np.full(hdul["IDEAL"].data.shape, np.nan, dtype=np.float32)
+        hdul.writeto(empty, checksum=True)
+    line = _one_line(invoke("diagnose", *measured, "--simulated", sims[0], "--simulated", empty,
+                            "-o", tmp_path / "d"), 1)
+    assert "IDEAL has no finite pixel" in line
+    assert not (tmp_path / "d").exists()
