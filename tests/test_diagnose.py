@@ -272,3 +272,16 @@ def test_a_shell_glob_after_simulated_is_named_and_an_empty_simulation_refused(s
                             "-o", tmp_path / "d"), 1)
     assert "IDEAL has no finite pixel" in line
     assert not (tmp_path / "d").exists()
+
+
+def test_a_ramp_whose_reads_share_one_time_is_refused(tmp_path):
+    from fits_factory import wfc3_ramp_file
+
+    rng = np.random.default_rng(5)
+    reads = [rng.normal(100.0 * k, 5.0, (32, 32)).astype(np.float32) for k in range(4)]
+    prim = {"EXPSTART": MJD1, "EXPEND": MJD1 + 100.0 / 86400.0, "EXPTIME": 100.0, "CCDGAIN": 2.5}
+    path = wfc3_ramp_file(tmp_path / "raw.fits", reads, [0.0, 0.0, 0.0, 0.0], {"BUNIT": "COUNTS"},
+                          primary_keywords=prim)
+    line = _one_line(invoke("diagnose", path, "-o", tmp_path / "d"), 1)
+    assert "SAMPTIME repeats" in line and "increasing times" in line, line
+    assert not (tmp_path / "d").exists()
