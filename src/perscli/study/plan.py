@@ -380,7 +380,7 @@ def _build_full(s: dict, ex: Exposures, seed: int, pre: str) -> list:
                           deps=[f"{pre}catalog"],
                           params=dict(truth=f"{pre}truth.fits", pointing=_pointing_dict(p), sca=sca,
                                       bounds=s["bounds"], seed=frame_seed(seed, sca, expid), previous=[], hdus=hdus,
-                                      model=model_settings("typical"), source="all", set=s["render"]["set"],
+                                      model=model_settings("typical"), source="stars", set=s["render"]["set"],
                                       compress=s["render"]["compress"], filter=p.filter)))
     variants = [(src, m) for src in sources for m in s["persistence"]["models"]]
     for sca, ps in sorted(ex.finals.items()):

@@ -198,8 +198,10 @@ def _local_cluster(LocalCluster, workers: int):
 
     # one thread per worker process: GalSim, fitsio and perscli's kernels are not all thread-safe, and each
     # task is a whole frame's work
+    # the workers' own log lines stay quiet: a task's failure reaches perscli through the client and is said in
+    # one line, and after Ctrl-C workers outliving the scheduler for a moment would log heartbeat tracebacks
     kwargs = dict(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                  silence_logs=logging.ERROR)
+                  silence_logs=logging.CRITICAL)
     if threading.current_thread() is not threading.main_thread():
         return LocalCluster(**kwargs)
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
