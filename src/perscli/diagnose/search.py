@@ -439,13 +439,20 @@ def _refit_named(problem, model, found: list, named: list, progress=None):
                 from .likelihood import with_effect
 
                 current = with_effect(current, cand.name, extra)
+    return _refit_jointly(problem, current, named, found, progress)
+
+
+def _refit_jointly(problem, current, named, found, progress=None):
+    """The named effects refitted together: each shares the disagreement as the data say; ``found``'s
+    values and marginal errors (scaled by each effect's noise-correlation dispersion) updated in place."""
     joint = [c for c in named if c.fit is None]
     if len(joint) > 1:
         current, values, cov = joint_fit(problem, current, joint, progress=progress)
         for k, (c, v) in enumerate(zip(joint, values)):
             e = next(x for x in found if x["effect"] == c.name)
             e["params"][c.param] = float(v)
-            e["errors"][c.param] = float(math.sqrt(cov[k, k])) if cov[k, k] > 0 else float("nan")
+            e["errors"][c.param] = (float(math.sqrt(cov[k, k] * e.get("dispersion", 1.0))) if cov[k, k] > 0
+                                    else float("nan"))
     return current
 
 
@@ -517,15 +524,7 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
         found.append(entry)
         named.append(best.candidate)
         current = best.model
-        joint = [c for c in named if c.fit is None]
-        if len(joint) > 1:
-            # the effects named so far refitted together: each shares the disagreement as the data say
-            current, values, cov = joint_fit(problem, current, joint, progress=progress)
-            for k, (c, v) in enumerate(zip(joint, values)):
-                e = next(x for x in found if x["effect"] == c.name)
-                e["params"][c.param] = float(v)
-                e["errors"][c.param] = (float(math.sqrt(cov[k, k] * e.get("dispersion", 1.0))) if cov[k, k] > 0
-                                        else float("nan"))
+        current = _refit_jointly(problem, current, named, found, progress)
         taken = {best.candidate.name, *entry["degenerate_with"]}
         remaining = [c for c in remaining if c.name not in taken]
         if not remaining:
