@@ -22,9 +22,10 @@ an exposure) and goes through :func:`imap` / :func:`run`::
   and the parent terminates them on any exception (an error in an item,
   KeyboardInterrupt, or :class:`Terminated` from SIGTERM/SIGHUP).
 
-Threads are used in one place only, through :func:`thread_map`: a compiled
-loop that releases the GIL over blocks of one frame (the persistence
-kernel), where processes would copy the frame for nothing.  OpenMP libraries
+Threads are used only through :func:`thread_map`, for compiled loops that
+release the GIL over parts of frames already in memory (the persistence
+kernel over blocks of one frame; diagnose's forward model over its
+exposures), where processes would copy the frames for nothing.  OpenMP libraries
 (TreeCorr) take :func:`threads` ``(workers)``, never all cores by default.
 
 :func:`install_signal_handlers` (called by the ``perscli`` entry point) turns

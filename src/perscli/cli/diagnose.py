@@ -6,13 +6,14 @@ import logging
 
 import click
 
-from .helpers import FILE, FOLDER, report_errors
-from .options import FiniteRange, model_opt, no_checksum_opt, overwrite_opt, verbosity_opts
+from .helpers import FILE, FOLDER, PerscliCommand, report_errors
+from .options import FiniteRange, model_opt, no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
 
 log = logging.getLogger("perscli")
 
 
-@click.command("diagnose", short_help="Find the detector effect a simulation lacks, fit it, show the gap shrink.")
+@click.command("diagnose", cls=PerscliCommand,
+               short_help="Find the detector effect a simulation lacks, fit it, show the gap shrink.")
 @click.argument("measured", nargs=-1, required=True, metavar="MEASURED...", type=FILE)
 @click.option("--simulated", "simulated", multiple=True, metavar="SIM.fits", type=FILE,
               help="The same exposures rendered by perscli render (SCI, IDEAL, FLUENCE, MODEL); repeatable. "
@@ -23,16 +24,18 @@ log = logging.getLogger("perscli")
 @click.option("-o", "--output", "outdir", required=True, metavar="OUTDIR", type=FOLDER,
               help="Folder to write: model.yaml, report.json, report.md and PNG figures.")
 @click.option("--fit-pixels", type=click.IntRange(min=1000), default=1_000_000, show_default=True, metavar="N",
-              help="Pixels per exposure used in the fits (evenly spaced stripes); the gaps use every pixel.")
+              help="About this many pixels, over all exposures, are used in the fits (a stripe of rows in each eighth "
+                   "of the frame, where the simulation is brightest); the gaps use every pixel.")
 @click.option("--gain", type=FiniteRange(min=1e-3, max=1e3), default=None, metavar="E_PER_DN",
               help="Gain of measured DN frames whose header has no GAIN or CCDGAIN.")
 @click.option("--exptime", type=FiniteRange(min=0, min_open=True, max=1e7), default=None, metavar="SECONDS",
               help="Exposure time of measured frames whose header has none.")
+@workers_opt("threads over the exposures of each likelihood evaluation (the same result with any number)")
 @no_checksum_opt
 @overwrite_opt
 @verbosity_opts
 @report_errors
-def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime, overwrite):
+def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime, workers, overwrite):
     """Find where MEASURED frames and their simulation disagree, and which detector effect is missing.
 
     The expectation and variance of every measured pixel come from the
@@ -100,7 +103,7 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
             log.info("diagnose: %s", text)
 
     outcome = run(measured, simulated=simulated, model_spec=model_spec, fit_pixels=fit_pixels, gain=gain,
-                  exptime=exptime, progress=progress)
+                  exptime=exptime, progress=progress, workers=workers)
     write_report(outcome, outdir, overwrite=overwrite)
     report = outcome["report"]
     click.echo(f"{report['verdict']}; gap {report['gap_before']:.4g} -> {report['gap_after']:.4g} "

@@ -14,7 +14,7 @@ option            meaning                                         used by
 --model           the model to apply: a name or a file            apply-persistence (render: its own, for now)
 --seed            random seed (same seed, same output)            catalog, pointings, correlate, render
 --workers         cores (processes, or threads for compiled       apply-persistence, render, measure,
-                  loops and TreeCorr), default 1                  correlate
+                  loops and TreeCorr), default 1                  correlate, diagnose
 --plot            also draw a figure into a PNG file              render, budget, correlate
 --units           override BUNIT of the inputs                    apply-persistence
 --gain            override GAIN/CCDGAIN (e-/DN)                   apply-persistence

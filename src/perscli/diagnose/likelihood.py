@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,12 +93,17 @@ class Problem:
         In time order, each with ``ideal`` (the simulation's noise-free electrons).
     fit_pixels : int
         About this many pixels, over all exposures, enter the fits and the
-        probes (rows in evenly spaced stripes, each with a row of margin for
-        IPC); the gaps before and after are computed on every pixel, a block
-        of rows at a time (:meth:`chi2_full`), so memory stays a few frames.
+        probes: rows in stripes, one in each eighth of the frame, each with a
+        row of margin for IPC, placed where the most pixels are bright in the
+        simulation or in the earlier exposures' fluence (:func:`_stripes`);
+        the gaps before and after are computed on every pixel, a block of
+        rows at a time (:meth:`chi2_full`), so memory stays a few frames.
+    workers : int
+        Threads over the exposures in each evaluation (the forward model's
+        compiled loops release the GIL); results do not depend on it.
     """
 
-    def __init__(self, exposures, *, fit_pixels: int = 1_000_000):
+    def __init__(self, exposures, *, fit_pixels: int = 1_000_000, workers: int = 1):
         self.exposures = exposures
         for exp in exposures:
             if exp.ideal is None:
@@ -105,7 +111,8 @@ class Problem:
                                    "every measured exposure (or diagnose a lone ramp, self-predicted)")
         ny, nx = exposures[0].data.shape[-2:]
         self.shape = (ny, nx)
-        self.stripes = _stripes(ny, nx, max(fit_pixels // len(exposures), 16 * nx))
+        self.workers = max(1, int(workers))
+        self.stripes = _stripes(ny, nx, max(fit_pixels // len(exposures), 16 * nx), _bright_rows(exposures))
         #: the rows the fit stripes compute, in order: each stripe's rows are contiguous in it
         self.fit_rows = np.concatenate([np.arange(r.start or 0, r.stop) for r, _, _ in self.stripes])
         self._stripe_start = {}
@@ -114,6 +121,7 @@ class Problem:
             self._stripe_start[(r.start, r.stop)] = pos
             pos += r.stop - (r.start or 0)
         self._charges = {}
+        self._lock = threading.Lock()
 
     # -- persistence history ----------------------------------------------------------------------
     def charge(self, index: int, pmodel, region: str = "full"):
@@ -129,12 +137,10 @@ class Problem:
             return None
         key = (region, index, pmodel.kind, pmodel.x0, pmodel.dx, pmodel.alpha, pmodel.gamma, pmodel.half_well,
                pmodel.coefficients, pmodel.time_model, pmodel.combine, pmodel.max_previous)
-        if key not in self._charges:
+        with self._lock:
+            have = self._charges.get(key)
+        if have is None:
             import dataclasses
-
-            # one set of Fermi shape parameters at a time for each region: when a fit frees gamma or x0,
-            # the charges of other values are dropped, not kept
-            self._charges = {k: v for k, v in self._charges.items() if k[0] != region or k[2:] == key[2:]}
 
             # the law is proportional to A: computed once for A = 1 and scaled
             unit = dataclasses.replace(pmodel, A=1.0) if pmodel.kind == "fermi" else pmodel
@@ -147,9 +153,14 @@ class Problem:
             fluences = [e.fluence if e.fluence is not None else measured_fluence(e) for e in earlier]
             if region == "fit":
                 fluences = [f[self.fit_rows] for f in fluences]
-            self._charges[key] = persistence_charge(fluences, ends, 0.0, window, unit)[0].astype(np.float32)
+            have = persistence_charge(fluences, ends, 0.0, window, unit)[0].astype(np.float32)
+            with self._lock:
+                # one set of Fermi shape parameters at a time for each region: when a fit frees gamma or x0,
+                # the charges of other values are dropped, not kept (the exposures' threads share the set)
+                self._charges = {k: v for k, v in self._charges.items() if k[0] != region or k[2:] == key[2:]}
+                self._charges[key] = have
         scale = pmodel.A if pmodel.kind == "fermi" else 1.0
-        return self._charges[key], scale
+        return have, scale
 
     def covariates(self, evaluation) -> list:
         return covariates_2d(self, evaluation)
@@ -205,11 +216,16 @@ class Problem:
     def evaluate(self, model: DetectorModel, *, full: bool = False) -> Evaluation:
         """Expectation and variance of the fit stripes of every exposure (every pixel with ``full``:
         small frames only; :meth:`chi2_full` streams large ones)."""
+        from ..executor import thread_map
+
         out = Evaluation([], [], [], [], [])
         out.pieces = []
         pieces = [(slice(0, self.shape[0]), 0, self.shape[0])] if full else self.stripes
-        for i in range(len(self.exposures)):
-            for rows, mean, var, data, mask in self._pieces(i, model, pieces, "full" if full else "fit"):
+        region = "full" if full else "fit"
+        per_exposure = thread_map(lambda i: list(self._pieces(i, model, pieces, region)),
+                                  range(len(self.exposures)), workers=self.workers)
+        for i, done in enumerate(per_exposure):
+            for rows, mean, var, data, mask in done:
                 out.mean.append(mean)
                 out.variance.append(var)
                 out.data.append(data)
@@ -225,12 +241,21 @@ class Problem:
             r1 = min(ny, r0 + block_rows)
             a, b = max(0, r0 - 1), min(ny, r1 + 1)     # a row of margin each side for IPC
             blocks.append((slice(a, b), r0 - a, r0 - a + (r1 - r0)))
-        total, n = 0.0, 0
-        for i in range(len(self.exposures)):
+        from ..executor import thread_map
+
+        def one(i):
+            sums = []
             for _, mean, var, data, mask in self._pieces(i, model, blocks):
                 r = data[mask] - mean[mask]
-                total += float(np.sum(r * r / var[mask]))
-                n += int(mask.sum())
+                sums.append((float(np.sum(r * r / var[mask])), int(mask.sum())))
+            return sums
+
+        total, n = 0.0, 0
+        # summed in the same order whatever the number of threads: the same bytes
+        for sums in thread_map(one, range(len(self.exposures)), workers=self.workers):
+            for t, k in sums:
+                total += t
+                n += k
         return total, n
 
 
@@ -258,15 +283,54 @@ def covariates_2d(problem, evaluation) -> list:
     return out
 
 
-def _stripes(ny: int, nx: int, fit_pixels: int) -> list:
-    """Row stripes covering about ``fit_pixels`` pixels: (rows to compute, first and last row kept)."""
+#: a pixel is bright, for the placing of the fit stripes, above this many electrons in the simulation of its
+#: exposure or in an earlier exposure's fluence: 10% of an H4RG's well, where nonlinearity, brighter-fatter
+#: and persistence (whose Fermi law turns on near half the well) carry most of their information
+BRIGHT_ELECTRONS = 1.0e4
+
+
+def _bright_rows(exposures) -> np.ndarray:
+    """Per row, how many pixels are bright (:data:`BRIGHT_ELECTRONS`) in each exposure's IDEAL or in the
+    FLUENCE it leaves for later ones, summed over the exposures.
+
+    The selection uses the simulation only (never the measured noise), so it
+    does not bias the fits; the fluence of the last exposure leaves no history
+    in the data and is not counted.
+    """
+    ny = exposures[0].data.shape[-2]
+    counts = np.zeros(ny, dtype=np.int64)
+    for k, exp in enumerate(exposures):
+        for image in (exp.ideal, exp.fluence if k < len(exposures) - 1 else None):
+            if image is not None and image.shape[-2:] == exposures[0].data.shape[-2:]:
+                counts += np.count_nonzero(np.asarray(image) > BRIGHT_ELECTRONS, axis=-1).reshape(-1, ny).sum(axis=0)
+    return counts
+
+
+def _stripes(ny: int, nx: int, fit_pixels: int, bright=None) -> list:
+    """Row stripes covering about ``fit_pixels`` pixels: (rows to compute, first and last row kept).
+
+    One stripe in each eighth of the frame (so that every part of the
+    detector is sampled, as the probes of position need), at the offset that
+    holds the most bright pixels (``bright``, per row: most of what
+    nonlinearity, brighter-fatter and persistence leave is in a few per cent
+    of the pixels, which evenly spaced stripes would mostly miss); evenly
+    spaced where no offset holds more.
+    """
     if ny * nx <= fit_pixels or ny < 64:
         return [(slice(0, ny), 0, ny)]
     nstripes = 8
     height = max(8, int(math.ceil(fit_pixels / nx / nstripes)))
+    cum = np.concatenate([[0], np.cumsum(bright)]) if bright is not None and np.any(bright) else None
     out = []
     for k in range(nstripes):
         r0 = int((ny - height) * k / (nstripes - 1)) if nstripes > 1 else 0
+        lo, hi = (ny * k) // nstripes, max((ny * (k + 1)) // nstripes - height, (ny * k) // nstripes)
+        r0 = min(max(r0, lo), hi)
+        if cum is not None:
+            starts = np.arange(lo, hi + 1)
+            held = cum[np.minimum(starts + height, ny)] - cum[starts]
+            if held.max() > held[r0 - lo]:
+                r0 = int(starts[np.argmax(held)])
         a, b = max(0, r0 - 1), min(ny, r0 + height + 1)
         out.append((slice(a, b), r0 - a, r0 - a + min(height, ny - r0)))
     return out

@@ -37,7 +37,7 @@ def _jsonable(value):
 
 
 def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000_000, gain=None, exptime=None,
-             progress=None) -> dict:
+             progress=None, workers: int = 1) -> dict:
     """Find the missing or mis-set detector effects of ``simulated`` against ``measured``.
 
     Parameters
@@ -51,11 +51,14 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
     model_spec : str, optional
         A detector model overriding the one stored in the simulated frames.
     fit_pixels : int
-        Pixels per exposure used in the fits (the gaps use every pixel).
+        About this many pixels, over all exposures, are used in the fits (the gaps use every pixel).
     gain, exptime : float, optional
         For measured frames whose headers lack GAIN or EXPTIME.
     progress : callable, optional
         ``progress(text)`` for messages on the way.
+    workers : int
+        Threads over the exposures of each likelihood evaluation (compared with
+        simulated frames); the result does not depend on it.
 
     Returns
     -------
@@ -80,7 +83,7 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
             if not stored:
                 raise PerscliError("the simulated frames carry no detector model (MODEL table); give --model")
             model = stored[-1]
-        problem = Problem(exposures, fit_pixels=fit_pixels)
+        problem = Problem(exposures, fit_pixels=fit_pixels, workers=workers)
         mode = "simulated"
     else:
         ramps = [e for e in exposures if e.is_ramp]
