@@ -121,7 +121,13 @@ def test_a_command_run_on_its_own_has_one_line_usage_errors(tmp_path, monkeypatc
 
 
 def test_other_click_programs_keep_clicks_display():
-    # perscli's display is installed on click's class: a program of someone else's in the same process
+    # nothing is patched at import: click's class keeps its own display, and a program of someone else's in
+    # the same process shows click's four lines
+    from perscli.cli import helpers
+
+    assert click.UsageError.show.__module__ == "click.exceptions"
+    assert helpers.PerscliGroup.__mro__[1] is helpers.OneLineUsage
+
     @click.command("other")
     @click.option("--n", type=int)
     def other(n):
@@ -134,21 +140,10 @@ def test_other_click_programs_keep_clicks_display():
     group = click.Group("theirs", commands={"budget": cli.commands["budget"]})
     result = click.testing.CliRunner().invoke(group, ["budget", "--frobnicate"])
     assert result.exit_code == 2 and result.stderr.startswith("Usage: theirs budget ")
-
-
-def test_importing_the_helpers_again_installs_the_display_once(monkeypatch):
-    # a second copy of the module (importlib.reload does this) replaces click's display, not the first copy's
-    import importlib.util
-
-    from perscli.cli import helpers
-
-    monkeypatch.setattr(click.UsageError, "show", click.UsageError.show)  # restored afterwards
-    spec = importlib.util.spec_from_file_location("perscli.cli._helpers_again", helpers.__file__)
-    again = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(again)
-    assert click.UsageError.show is again.show_usage_error is not helpers.show_usage_error
-    assert again.show_usage_error.replaces is helpers.show_usage_error.replaces
-    assert helpers.show_usage_error.replaces.__module__ == "click.exceptions"
+    # a perscli command on its own (as a Python caller runs it) speaks perscli
+    result = click.testing.CliRunner().invoke(cli.commands["budget"], ["--frobnicate"])
+    assert result.exit_code == 2 and result.stderr.startswith("budget: error: No such option '--frobnicate'")
+    assert len(result.stderr.splitlines()) == 1
 
 
 def test_usage_errors_keep_their_type_and_message_for_python_callers():

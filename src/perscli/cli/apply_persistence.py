@@ -6,7 +6,7 @@ import logging
 
 import click
 
-from .helpers import FILE, check_outputs, progress_reporter, report_errors
+from .helpers import FILE, PerscliCommand, check_outputs, progress_reporter, report_errors
 from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, model_opt, no_checksum_opt, output_opt,
                       overwrite_opt, units_opt, verbosity_opts, workers_opt)
 
@@ -24,7 +24,8 @@ def _power_of_two(ctx, param, value):
     return value
 
 
-@click.command("apply-persistence", short_help="Add, subtract or predict the persistence of earlier exposures.")
+@click.command("apply-persistence", cls=PerscliCommand,
+               short_help="Add, subtract or predict the persistence of earlier exposures.")
 @click.argument("current", metavar="CURRENT", type=FILE)
 @click.argument("previous", nargs=-1, required=True, metavar="PREVIOUS...", type=FILE)
 @output_opt

@@ -6,7 +6,7 @@ import logging
 
 import click
 
-from .helpers import FILE, check_outputs, report_errors
+from .helpers import FILE, PerscliCommand, check_outputs, report_errors
 
 #: ``--check``'s exit status when a bin exceeds the budget (1 is an error, 2 a usage error)
 EXIT_OVER_BUDGET = 3
@@ -18,7 +18,8 @@ log = logging.getLogger("perscli")
 BAND_NAMES = ("dore2018", "troxel2021", "hirata")
 
 
-@click.command("budget", short_help="Compare a measured xi+ with the Roman additive shear budget.")
+@click.command("budget", cls=PerscliCommand,
+               short_help="Compare a measured xi+ with the Roman additive shear budget.")
 @click.argument("xi", required=False, metavar="[XI.fits]", type=FILE)
 @click.option("--bands", type=click.Choice(BAND_NAMES), default="dore2018", show_default=True,
               help="Additive shear rms per multipole band: dore2018 (HLIS requirement, Dore et al. 2018), "

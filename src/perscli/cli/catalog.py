@@ -7,13 +7,14 @@ import logging
 import click
 
 from ..instrument import ROMAN_N_SCA, ROMAN_SCA_SIZE
-from .helpers import FILE, check_outputs, report_errors
+from .helpers import FILE, PerscliCommand, check_outputs, report_errors
 from .options import columns_opt, dec_opt, no_checksum_opt, output_opt, overwrite_opt, ra_opt, seed_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
 
 
-@click.command("catalog", short_help="Draw a truth catalog of galaxies and stars for a field.")
+@click.command("catalog", cls=PerscliCommand,
+               short_help="Draw a truth catalog of galaxies and stars for a field.")
 @ra_opt("Centre of the square field: right ascension")
 @dec_opt("Centre of the square field: declination")
 @click.option("--size", type=click.FloatRange(min=0, max=3600, min_open=True, max_open=True), default=None,

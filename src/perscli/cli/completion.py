@@ -6,7 +6,7 @@ import os
 
 import click
 
-from .helpers import FILE, report_errors
+from .helpers import FILE, PerscliCommand, report_errors
 from .options import overwrite_opt, verbosity_opts
 
 SHELLS = ("bash", "zsh", "fish")
@@ -23,7 +23,8 @@ def completion_script(shell: str) -> str:
     return get_completion_class(shell)(cli, {}, "perscli", COMPLETE_VAR).source()
 
 
-@click.command("completion", short_help="Print the script that makes the shell complete perscli's words.")
+@click.command("completion", cls=PerscliCommand,
+               short_help="Print the script that makes the shell complete perscli's words.")
 @click.argument("shell", type=click.Choice(SHELLS), metavar="bash|zsh|fish")
 @click.option("-o", "--output", "dest", type=FILE, metavar="PATH", default="-", show_default=True,
               help="Write the script to PATH (its folder is created if missing), or '-' for standard output.")

@@ -7,7 +7,8 @@ import logging
 import click
 from click.core import ParameterSource
 
-from .helpers import FILE, FOLDER, check_outputs, report_errors
+from ..instrument import ROMAN_PIXEL_SCALE
+from .helpers import FILE, FOLDER, PerscliCommand, check_outputs, report_errors
 from .options import (columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, seed_opt, verbosity_opts,
                       workers_opt)
 
@@ -27,7 +28,8 @@ def _numbers(ctx, param, value):
     return numbers
 
 
-@click.command("correlate", short_help="Correlation function xi+/- and statistics of shape changes De.")
+@click.command("correlate", cls=PerscliCommand,
+               short_help="Correlation function xi+/- and statistics of shape changes De.")
 @click.argument("shapes", nargs=-1, required=False, metavar="[SHAPES_A.fits [SHAPES_B.fits]]", type=FILE)
 @click.option("--pair", "pair_list", type=FILE, nargs=2, multiple=True, metavar="A B",
               help="One pair of SHAPES tables, A (with persistence) and B (its reference); repeat for many: the De "
@@ -44,8 +46,8 @@ def _numbers(ctx, param, value):
               help="Correlate the ids A and B share, instead of refusing tables whose ids differ.")
 @click.option("--positions", type=click.Choice(["auto", "radec", "xy"]), default="auto", show_default=True,
               help="ra/dec in degrees (auto when present), or x/y (flat) in pixels or in their TUNIT angle.")
-@click.option("--pixel-scale", type=click.FloatRange(min=0, min_open=True), default=0.11, show_default=True,
-              metavar="ARCSEC", help="Arcsec per pixel for x/y positions in pixels (Roman: 0.11).")
+@click.option("--pixel-scale", type=click.FloatRange(min=0, min_open=True), default=ROMAN_PIXEL_SCALE,
+              show_default=True, metavar="ARCSEC", help="Arcsec per pixel for x/y positions in pixels (Roman's).")
 @click.option("--min-sep", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
               metavar="SEP", help="Smallest separation, in --sep-units.")
 @click.option("--max-sep", type=click.FloatRange(min=0, min_open=True), default=100.0, show_default=True,

@@ -226,15 +226,6 @@ def usage_error_line(exc: click.UsageError) -> str:
     return f"{command_path}: error: {message}{hint}"
 
 
-class PerscliGroup(click.Group):
-    """A click group whose usage errors, its own and its commands', are one line on stderr.
-
-    The group itself changes nothing; being one marks the commands under it
-    as perscli's for :func:`show_usage_error` (a group of another program
-    that took in perscli's commands keeps click's display).
-    """
-
-
 def speaks_perscli(ctx: click.Context) -> bool:
     """True when ``ctx`` belongs to a perscli command line: one started at a PerscliGroup or a perscli command.
 
@@ -246,35 +237,55 @@ def speaks_perscli(ctx: click.Context) -> bool:
     return isinstance(root, PerscliGroup) or module == "perscli" or module.startswith("perscli.")
 
 
-# click's own, also when this module is reloaded (the class then holds the previous perscli one)
-_click_usage_error_show = getattr(click.UsageError.show, "replaces", click.UsageError.show)
+def _show_one_line(exc: click.UsageError, file=None) -> None:
+    click.echo(usage_error_line(exc), file=file, err=True)
 
 
-def show_usage_error(self: click.UsageError, file=None) -> None:
-    """``click.UsageError.show`` as perscli has it: one line (:func:`usage_error_line`) for its commands.
+def _one_line(exc: click.UsageError) -> click.UsageError:
+    """Give ``exc`` perscli's display (:func:`usage_error_line`) when it arose on a perscli command line.
+
+    Only this exception's ``show`` is replaced (an attribute of the instance;
+    click's class is untouched), so it keeps its type, message and context
+    for Python callers (``standalone_mode=False``), and errors of other
+    click programs in the same process, a perscli command taken into
+    another program's group among them, keep click's display.  Help shown
+    for a group called without a command (NoArgsIsHelpError) is still the
+    help.
+    """
+    if (not isinstance(exc, click.exceptions.NoArgsIsHelpError) and exc.ctx is not None
+            and speaks_perscli(exc.ctx)):
+        exc.show = functools.partial(_show_one_line, exc)
+    return exc
+
+
+class OneLineUsage:
+    """Mixin of perscli's click commands and group: a usage error is one line on stderr.
 
     click's own display is four lines (usage, a hint, a blank line, the
-    error), which in a pipeline or a log is mostly noise.  It is installed
-    in place of click's when this module is imported (every command module
-    imports it), rather than through a group or command class, because a
-    command run on its own (``CliRunner().invoke(correlate, ...)``) is a
-    plain click.Command with no perscli class around it.  The
-    exception keeps its type, message and context (callers with
-    ``standalone_mode=False`` see it unchanged); errors of other click
-    programs in the same process, and context-less ones (click attaches the
-    context to every UsageError raised under a command, so those come from
-    outside any), keep click's display.  Help shown for a group called
-    without a command (click's NoArgsIsHelpError has its own ``show``) is
-    still the help.
+    error), which in a pipeline or a log is mostly noise.  Usage errors come
+    from parsing (``make_context``) and from running (``invoke``: an unknown
+    subcommand, a check inside a command); both pass through here.
     """
-    if self.ctx is not None and speaks_perscli(self.ctx):
-        click.echo(usage_error_line(self), file=file, err=True)
-    else:
-        _click_usage_error_show(self, file)
+
+    def make_context(self, *args, **kwargs):
+        try:
+            return super().make_context(*args, **kwargs)
+        except click.UsageError as exc:
+            raise _one_line(exc)
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except click.UsageError as exc:
+            raise _one_line(exc)
 
 
-show_usage_error.replaces = _click_usage_error_show
-click.UsageError.show = show_usage_error
+class PerscliCommand(OneLineUsage, click.Command):
+    """A perscli command: usage errors in one line (:class:`OneLineUsage`), also when run on its own."""
+
+
+class PerscliGroup(OneLineUsage, click.Group):
+    """The perscli group: its usage errors and its commands' are one line on stderr (:class:`OneLineUsage`)."""
 
 
 # -- path parameters ----------------------------------------------------------------------------

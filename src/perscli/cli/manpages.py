@@ -20,7 +20,7 @@ import textwrap
 import click
 
 from .. import __version__
-from .helpers import FILE, report_errors
+from .helpers import FILE, PerscliCommand, report_errors
 from .options import overwrite_opt, verbosity_opts
 
 
@@ -263,7 +263,8 @@ def show_with_man(troff: str) -> bool:
         os.unlink(path)
 
 
-@click.command("man", short_help="Show the manual page of perscli or of one of its commands.")
+@click.command("man", cls=PerscliCommand,
+               short_help="Show the manual page of perscli or of one of its commands.")
 @click.argument("command_name", metavar="[COMMAND]", required=False, callback=_known_command,
                 shell_complete=_command_names)
 @click.option("--troff", is_flag=True, default=False,

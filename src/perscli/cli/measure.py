@@ -6,7 +6,7 @@ import logging
 
 import click
 
-from .helpers import FILE, check_outputs, file_or, progress_reporter, report_errors
+from .helpers import FILE, PerscliCommand, check_outputs, file_or, progress_reporter, report_errors
 from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, verbosity_opts, workers_opt
 
 #: perscli.measure.shapes.MIN_SNR_DEFAULT, written out so that --help does not import the fitter
@@ -15,7 +15,8 @@ MIN_SNR_DEFAULT = 5.0
 log = logging.getLogger("perscli")
 
 
-@click.command("measure", short_help="Measure galaxy shapes on frames by exponential-profile fits.")
+@click.command("measure", cls=PerscliCommand,
+               short_help="Measure galaxy shapes on frames by exponential-profile fits.")
 @click.argument("frames", nargs=-1, required=True, metavar="FRAME...", type=FILE)
 @click.option("--catalog", required=True, metavar="CAT.fits", type=FILE,
               help="Objects to measure: id and ra/dec (degrees) or x/y (FITS pixels); hlr and mag_<FILTER> "

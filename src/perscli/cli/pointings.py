@@ -8,7 +8,7 @@ import click
 from click.core import ParameterSource
 
 from ..instrument import ROMAN_EXPTIME, ROMAN_N_SCA, ROMAN_WAS_GAP
-from .helpers import FILE, check_outputs, report_errors
+from .helpers import FILE, PerscliCommand, check_outputs, report_errors
 from .options import (columns_opt, dec_opt, filter_opt, no_checksum_opt, mjd_opt, output_opt, overwrite_opt, pa_opt, ra_opt, seed_opt,
                       verbosity_opts)
 
@@ -30,7 +30,8 @@ sca_opt = click.option(
          "--radius: keep the exposures whose SCA N footprint overlaps the field circle.")
 
 
-@click.command("pointings", short_help="Select exposures of a field from a schedule, or plan dithered ones.")
+@click.command("pointings", cls=PerscliCommand,
+               short_help="Select exposures of a field from a schedule, or plan dithered ones.")
 @click.option("--schedule", metavar="FILE", default=None, type=FILE,
               help="Survey schedule (FITS table: date, exptime, ra, dec, pa, filter; '-' for standard input): "
                    "select its exposures of the field.")

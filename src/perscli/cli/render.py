@@ -8,7 +8,7 @@ import click
 
 from .. import PerscliError
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
-from .helpers import FILE, check_outputs, progress_reporter, report_errors
+from .helpers import FILE, PerscliCommand, check_outputs, progress_reporter, report_errors
 from .options import (columns_opt, compress_opt, dec_opt, mjd_opt, model_opt, no_checksum_opt, output_opt, overwrite_opt, pa_opt,
                       plot_opt, ra_opt, required_seed_opt, verbosity_opts, workers_opt)
 
@@ -27,7 +27,8 @@ def _list_effects(ctx, param, value):
     ctx.exit(0)
 
 
-@click.command("render", short_help="Draw a Roman SCA exposure of a truth catalogue through a detector model.")
+@click.command("render", cls=PerscliCommand,
+               short_help="Draw a Roman SCA exposure of a truth catalogue through a detector model.")
 @click.argument("truth", metavar="TRUTH.fits", type=FILE)
 @click.option("--pointings", "pointings_file", metavar="FILE", type=FILE,
               help="A pointings table (perscli pointings) or a survey schedule (date, exptime, ra, dec, pa, "

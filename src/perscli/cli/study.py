@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import click
 
-from .helpers import FILE, FOLDER, report_errors
+from .helpers import FILE, FOLDER, PerscliCommand, report_errors
 from .options import no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
 
 
-@click.command("study", short_help="Run a whole persistence study from one YAML description (Dask or serial).")
+@click.command("study", cls=PerscliCommand,
+               short_help="Run a whole persistence study from one YAML description (Dask or serial).")
 @click.argument("description", required=False, metavar="STUDY.yaml", type=FILE)
 @click.option("-o", "--output", "outdir", required=True, metavar="DIR", type=FOLDER,
               help="Study folder: every product is written here; a rerun skips what is already made.")
