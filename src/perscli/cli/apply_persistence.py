@@ -35,9 +35,13 @@ def _power_of_two(ctx, param, value):
            "--lookback 16), galsim-linear (GalSim's 8 coefficients), a YAML file (persistence parameters, or "
            "a detector model as render takes), or a frame perscli rendered (the persistence of the model that "
            "made it)", names=("typical", "pessimistic", "wfc3", "galsim-linear"))
-@click.option("--param", "params", multiple=True, metavar="KEY=VALUE",
+@click.option("--set", "settings", multiple=True, metavar="persistence.KEY=VALUE",
               help="Override a model parameter (A, x0, dx, alpha, gamma, half_well) or setting (time_model, "
-                   "combine, max_previous, lookback). Repeatable.")
+                   "combine, max_previous, lookback), as render's --set does: persistence.gamma=1.1. "
+                   "Repeatable.")
+@click.option("--param", "params", multiple=True, metavar="KEY=VALUE",
+              help="The same as --set persistence.KEY=VALUE (the older spelling, kept for the scripts that use "
+                   "it). Repeatable.")
 @click.option("--mode", type=click.Choice(["add", "subtract", "predict"]), default="add", show_default=True,
               help="Add persistence, subtract it (a correction), or write the persistence alone.")
 @click.option("--time-model", type=click.Choice(["exact", "middle", "galsim"]), default=None,
@@ -79,7 +83,7 @@ def _power_of_two(ctx, param, value):
 @workers_opt("threads over blocks of rows (the output does not depend on N)")
 @verbosity_opts
 @report_errors
-def apply_persistence(current, previous, output, model_spec, params, mode, time_model, combine,
+def apply_persistence(current, previous, output, model_spec, settings, params, mode, time_model, combine,
                       max_previous, lookback, model_error, flag_above, dq_bit, gap, units, gain, exptime, compress,
                       overwrite, workers):
     """Add, subtract or predict the persistence of earlier exposures on CURRENT.
@@ -115,7 +119,7 @@ def apply_persistence(current, previous, output, model_spec, params, mode, time_
     Examples:
       perscli apply-persistence exp4.fits exp1.fits exp2.fits exp3.fits -o exp4_pers.fits
       perscli apply-persistence exp4.fits exp3.fits --mode predict -o pers.fits
-      perscli apply-persistence exp4.fits exp3.fits --model pessimistic --param gamma=1.1 -o exp4_pess.fits
+      perscli apply-persistence exp4.fits exp3.fits --model pessimistic --set persistence.gamma=1.1 -o exp4_pess.fits
       perscli apply-persistence exp4_pers.fits exp1.fits exp2.fits exp3.fits --mode subtract --flag-above 0.01 -o exp4_corr.fits
       perscli apply-persistence exp4.fits exp1.fits exp2.fits exp3.fits --model wfc3 --mode predict -o pers_wfc3.fits
       perscli apply-persistence exp4.fits 'exp3.fits[SCI][65:192,65:192]' --mode predict -o pers_cutout.fits
@@ -126,8 +130,21 @@ def apply_persistence(current, previous, output, model_spec, params, mode, time_
 
     if dq_bit is not None and flag_above is None:
         raise click.UsageError("--dq-bit sets the bit --flag-above flags: give --flag-above E_PER_S too")
+    # one KEY=VALUE syntax with render and study: a dotted path; apply-persistence knows one effect
+    overrides = []
+    for text in settings:
+        key, eq, value = text.partition("=")
+        effect, dot, name = key.strip().partition(".")
+        if not eq or not dot or not name:
+            raise click.BadParameter(f"{text!r}: give persistence.KEY=VALUE, e.g. persistence.gamma=1.1",
+                                     param_hint="'--set'")
+        if effect != "persistence":
+            raise click.BadParameter(f"{text!r}: apply-persistence applies persistence only (give "
+                                     f"persistence.{name}=...); render's --set takes the other effects",
+                                     param_hint="'--set'")
+        overrides.append(f"{name}={value}")
     check_outputs(output, inputs=[current, *previous, model_spec], overwrite=overwrite)
-    model = load_model(model_spec, params)
+    model = load_model(model_spec, (*overrides, *params))
     result = apply_persistence_files(
         current, previous, output, model=model, mode=mode, time_model=time_model, combine=combine,
         max_previous=max_previous, lookback=lookback, model_error=model_error, flag_above=flag_above,
