@@ -1,4 +1,6 @@
-"""Small FITS files for the I/O and command-line tests, and helpers to check files on disk.
+"""Small FITS files for the I/O and command-line tests, helpers to check files on disk, and the
+command-line harness every test file uses: :func:`invoke`, :func:`run`, :func:`one_line_error` and
+:func:`expect_error`.
 
 Every writer takes the destination path first and returns it as a ``str``;
 header keywords are given as a dict (FITS keyword names such as ``MJD-BEG``
@@ -9,6 +11,7 @@ from __future__ import annotations
 
 import gc
 import os
+import re
 import warnings
 from pathlib import Path
 
@@ -116,13 +119,6 @@ def listing(folder):
     return sorted(os.listdir(folder))
 
 
-def invoke(*args, **kw):
-    """Run the perscli group with CliRunner; stdout and stderr are separate (click >= 8.2)."""
-    from perscli.cli.main import cli
-
-    return CliRunner().invoke(cli, [str(a) for a in args], **kw)
-
-
 def cards_except(path, skip=("DATE", "CHECKSUM")):
     """Every header card of every HDU as (hdu, keyword, value, comment), without the ``skip`` keywords."""
     out = []
@@ -162,21 +158,102 @@ def collect_leaked_files():
         gc.collect()
 
 
-def expect_one_line_error(tmp_path, command, args, *needles):
-    """Run ``perscli COMMAND ARGS -o tmp_path/out.fits`` expecting a data error.
+# -- running commands -----------------------------------------------------------------------------
+# One home for the command-line harness: every test runs perscli through these (issue "one home per concept").
 
-    Exit 1, exactly one 'Error:' line on stderr holding every needle, nothing
-    on stdout, no new file in ``tmp_path`` and the .fits inputs unchanged.
-    Returns the error line.
+def invoke(*args, **kw):
+    """Run the perscli group with CliRunner; stdout and stderr are separate (click >= 8.2)."""
+    from perscli.cli.main import cli
+
+    return CliRunner().invoke(cli, [str(a) for a in args], **kw)
+
+
+def run(*args, code=0, **kw):
+    """``perscli ARGS`` (:func:`invoke`), asserting its exit status ``code``; returns click's result.
+
+    ``code=None`` asserts nothing (the caller looks at the result).  A wrong
+    status shows stdout, stderr and the exception (with its traceback).
     """
-    inputs = [str(a) for a in args if str(a).endswith(".fits")]
-    before, files = snapshot(*inputs), listing(tmp_path)
-    result = invoke(*command, *args, "-o", tmp_path / "out.fits")
-    assert result.exit_code == 1, (result.exit_code, result.output)
+    result = invoke(*args, **kw)
+    if code is not None:
+        assert result.exit_code == code, _failure(result)
+    return result
+
+
+def _failure(result):
+    """What a command said (and raised, other than SystemExit), for an assertion's message."""
+    import traceback
+
+    said = f"exit status {result.exit_code}\n--- stdout:\n{result.stdout}\n--- stderr:\n{result.stderr}"
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        said += "\n--- exception:\n" + "".join(traceback.format_exception(*result.exc_info))
+    return said
+
+
+#: the start of the one line of a usage error (exit status 2): "perscli render: error: ..."
+USAGE_PREFIX = re.compile(r"perscli( [\w-]+)*: error: ")
+
+
+def one_line_error(result, *needles, code=1, out=None, allow_warnings=False):
+    """Assert that a command failed in one line; returns that line.
+
+    Exit status ``code``; nothing on stdout; exactly one line on stderr (with
+    ``allow_warnings``, lines starting 'perscli: warning' aside) and no traceback.
+    The line starts 'Error: ' (status 1) or 'perscli COMMAND: error: '
+    (status 2, a usage error), and holds every needle (``str(needle)``,
+    case-sensitive).  ``out``: an output that must not exist.
+    """
+    assert result.exit_code == code, _failure(result)
+    assert result.stdout == "", _failure(result)
+    assert "Traceback" not in result.stderr, _failure(result)
     lines = result.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
-    for needle in needles:
+    if allow_warnings:
+        lines = [line for line in lines if not line.startswith("perscli: warning")]
+    assert len(lines) == 1, _failure(result)
+    if code == 1:
+        assert lines[0].startswith("Error: "), lines[0]
+    elif code == 2:
+        assert USAGE_PREFIX.match(lines[0]), lines[0]
+    for needle in map(str, needles):
         assert needle in lines[0], (needle, lines[0])
-    assert result.stdout == ""
-    assert listing(tmp_path) == files and snapshot(*inputs) == before
+    if out is not None:
+        assert not os.path.lexists(out), f"{out} written"
     return lines[0]
+
+
+def expect_error(tmp_path, args, *needles, command=(), code=1, out="out.fits", inputs=None, any_of=(),
+                 fix_words=(), words_outside_paths=False, allow_warnings=False):
+    """Run ``perscli COMMAND ARGS -o OUT`` expecting a one-line error (:func:`one_line_error`); returns the line.
+
+    Besides the one line (exit status ``code``, nothing on stdout, every
+    needle): no file appears in or leaves ``tmp_path`` (no output, no
+    temporary file) and the inputs, and an existing OUT, are unchanged.
+
+    ``command``: words put before ``args`` (a string or a sequence), for a
+    module's ``functools.partial``.  ``out``: the output, relative to
+    ``tmp_path``.  ``inputs``: the files that must be left unchanged (by
+    default every argument naming a file).  ``any_of``: the line holds at
+    least one of these; ``fix_words``: at least one of these (words that say
+    what to do).  ``words_outside_paths``: the needles (other than paths in
+    ``tmp_path``), ``any_of`` and ``fix_words`` are looked for outside the
+    paths in ``tmp_path`` (pytest names it after the test: 'truncated', ...).
+    """
+    argv = [*((command,) if isinstance(command, str) else command), *args]
+    out = Path(tmp_path, out)
+    inputs = [str(a) for a in argv if os.path.isfile(str(a))] if inputs is None else inputs
+    before, files = snapshot(*inputs, out), listing(tmp_path)
+    result = invoke(*argv, "-o", out)
+    line = one_line_error(result, code=code, allow_warnings=allow_warnings)
+    if code == 2:
+        assert line.startswith(f"perscli {argv[0]}: error: "), line
+    tmp = str(tmp_path)
+    words = line.replace(tmp, "<tmp>") if words_outside_paths else line
+    for needle in map(str, needles):
+        assert needle in (line if needle.startswith(tmp) else words), (needle, line)
+    if any_of:
+        assert any(alt in words for alt in any_of), (any_of, line)
+    if fix_words:
+        assert any(w in words for w in fix_words), ("no fix suggested", line)
+    assert listing(tmp_path) == files          # no output, no temporary file
+    assert snapshot(*inputs, out) == before    # inputs (and an existing output) unchanged
+    return line

@@ -6,20 +6,15 @@ import math
 import numpy as np
 import pytest
 from astropy.io import fits
-from click.testing import CliRunner
 
+from fits_factory import invoke, one_line_error
 from perscli import PerscliError
-from perscli.cli.budget import BAND_NAMES, budget
+from perscli.cli.budget import BAND_NAMES
 from perscli.stats.budget import (BANDS, L_BANDS, LMAX, amplitudes, budget_at, compare, power_spectrum, read_xi,
                                   xi_plus)
 
 ARCMIN = math.pi / 180 / 60
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
-def invoke(*args):
-    """Run the (not yet registered) command object directly; stderr is kept apart from stdout."""
-    return CliRunner().invoke(budget, [str(a) for a in args])
 
 
 def xi_file(path, theta, xip, sigma, *, unit="arcmin", drop=(), weight=None, meanr=None, extname="XI"):
@@ -155,7 +150,7 @@ def test_empty_bins_are_skipped(tmp_path):
 def test_cli_below_budget_writes_the_table_and_says_so(tmp_path):
     xi = xi_file(tmp_path / "xi.fits", THETA, BUDGET * 0.01, BUDGET * 1e-3)
     out = tmp_path / "cmp.fits"
-    result = invoke(xi, "-o", out, "--check")
+    result = invoke("budget", xi, "-o", out, "--check")
     assert result.exit_code == 0, (result.output, result.stderr)
     assert result.stdout == ""
     assert "below budget by 2.0 orders of magnitude at worst" in result.stderr
@@ -179,7 +174,7 @@ def test_cli_one_bin_above_fails_check_but_writes_the_output(tmp_path):
     xip[5] = 3 * BUDGET[5]
     xi = xi_file(tmp_path / "xi.fits", THETA, xip, sigma)
     out = tmp_path / "cmp.fits"
-    result = invoke(xi, "-o", out, "--check")
+    result = invoke("budget", xi, "-o", out, "--check")
     assert result.exit_code == 3, (result.output, result.stderr)      # a finding: not 1, an error
     # the verdict names the bin: its separation, xi+ against the budget plus N sigma, and the ratio
     line = result.stderr.strip()
@@ -193,7 +188,7 @@ def test_cli_one_bin_above_fails_check_but_writes_the_output(tmp_path):
         assert header["BUDWSEP"] == pytest.approx(THETA[5]) and header["BUDWRAT"] == pytest.approx(3.0)
         assert header["VERDICT"] == line.split(": ", 1)[1]
     # without --check the finding is reported but the exit status is 0
-    again = invoke(xi, "-o", tmp_path / "cmp2.fits")
+    again = invoke("budget", xi, "-o", tmp_path / "cmp2.fits")
     assert again.exit_code == 0 and f"exceeds the budget at {THETA[5]:.3g} arcmin" in again.stderr
 
 
@@ -227,7 +222,7 @@ def test_verdict_says_when_errors_are_shot_noise(tmp_path):
     xi_file(path, THETA, BUDGET * 0.01, BUDGET * 1e-3)
     with fits.open(path, mode="update") as hdul:
         hdul["XI"].header["VAR_METH"] = "shot"
-    result = invoke(path, "-o", tmp_path / "cmp.fits")
+    result = invoke("budget", path, "-o", tmp_path / "cmp.fits")
     assert result.exit_code == 0, result.stderr
     assert result.stderr.strip().endswith("over 12 bins; errors are shot noise (no jackknife)")
     with fits.open(tmp_path / "cmp.fits") as hdul:
@@ -253,20 +248,20 @@ def test_verdict_says_when_the_named_bin_has_a_shot_noise_error(tmp_path):
 def test_cli_above_but_within_errors_passes_check(tmp_path):
     # 1.5 x the budget with an error of one budget: 1.5 - 2 x 1 < 1, not beyond the errors
     xi = xi_file(tmp_path / "xi.fits", THETA, 1.5 * BUDGET, BUDGET)
-    result = invoke(xi, "-o", tmp_path / "cmp.fits", "--check")
+    result = invoke("budget", xi, "-o", tmp_path / "cmp.fits", "--check")
     assert result.exit_code == 0, (result.output, result.stderr)
     assert "within 2 sigma of the budget" in result.stderr
     # a tighter --sigma makes it a finding: 1.5 - 0.4 > 1
-    tight = invoke(xi, "-o", tmp_path / "cmp2.fits", "--check", "--sigma", "0.4")
+    tight = invoke("budget", xi, "-o", tmp_path / "cmp2.fits", "--check", "--sigma", "0.4")
     assert tight.exit_code == 3 and "+ 0.4 sigma" in tight.stderr
     assert "12 of 12 bins exceed, at 0.5, 0.823, 1.35, 2.23, 3.67, ... arcmin" in tight.stderr
 
 
 def test_cli_budget_alone_on_a_grid_and_eb(tmp_path):
-    result = invoke("-o", tmp_path / "e.fits", "--theta-range", 1, 100, "--nbins", 3)
+    result = invoke("budget", "-o", tmp_path / "e.fits", "--theta-range", 1, 100, "--nbins", 3)
     assert result.exit_code == 0, result.stderr
     assert result.stderr == ""
-    eb = invoke("-o", tmp_path / "eb.fits", "--theta-range", 1, 100, "--nbins", 3, "--modes", "eb")
+    eb = invoke("budget", "-o", tmp_path / "eb.fits", "--theta-range", 1, 100, "--nbins", 3, "--modes", "eb")
     assert eb.exit_code == 0, eb.stderr
     with fits.open(tmp_path / "e.fits") as e, fits.open(tmp_path / "eb.fits") as b:
         np.testing.assert_allclose(e["BUDGET"].data["theta"], [1, 10, 100], rtol=1e-12)
@@ -274,7 +269,7 @@ def test_cli_budget_alone_on_a_grid_and_eb(tmp_path):
         np.testing.assert_allclose(b["BUDGET"].data["xip_budget"], 2 * e["BUDGET"].data["xip_budget"], rtol=1e-14)
         assert b["BUDGET"].header["BUDMODES"] == "EB"
         assert e["BUDGET"].columns.names == ["theta", "xip_budget"]
-    default = invoke("-o", tmp_path / "d.fits", "--bands", "hirata")
+    default = invoke("budget", "-o", tmp_path / "d.fits", "--bands", "hirata")
     assert default.exit_code == 0
     with fits.open(tmp_path / "d.fits") as d:
         theta = d["BUDGET"].data["theta"]
@@ -286,9 +281,9 @@ def test_cli_plots_are_png(tmp_path):
     xip, sigma = BUDGET * 0.01, BUDGET * 1e-2
     xip[2] = 5 * BUDGET[2]
     xi = xi_file(tmp_path / "xi.fits", THETA, xip, sigma)
-    result = invoke(xi, "-o", tmp_path / "cmp.fits", "--plot", tmp_path / "cmp.png")
+    result = invoke("budget", xi, "-o", tmp_path / "cmp.fits", "--plot", tmp_path / "cmp.png")
     assert result.exit_code == 0, result.stderr
-    alone = invoke("-o", tmp_path / "b.fits", "--plot", tmp_path / "b.png")
+    alone = invoke("budget", "-o", tmp_path / "b.fits", "--plot", tmp_path / "b.png")
     assert alone.exit_code == 0, alone.stderr
     for name in ("cmp.png", "b.png"):
         data = (tmp_path / name).read_bytes()
@@ -299,7 +294,7 @@ def test_cli_fits_on_stdout(tmp_path):
     import io
 
     xi = xi_file(tmp_path / "xi.fits", THETA, BUDGET * 0.01, BUDGET * 1e-3)
-    result = invoke(xi, "-o", "-")
+    result = invoke("budget", xi, "-o", "-")
     assert result.exit_code == 0, result.stderr
     with fits.open(io.BytesIO(result.stdout_bytes)) as hdul:
         assert len(hdul["BUDGET"].data) == THETA.size
@@ -307,18 +302,10 @@ def test_cli_fits_on_stdout(tmp_path):
 
 # -- errors --------------------------------------------------------------------------------------
 
-def one_line_error(result, *needles):
-    assert result.exit_code == 1, (result.exit_code, result.output, result.stderr)
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-
-
 def test_error_no_xip_column(tmp_path):
     xi = xi_file(tmp_path / "xi.fits", THETA, BUDGET, BUDGET, drop=("xip",))
     out = tmp_path / "cmp.fits"
-    one_line_error(invoke(xi, "-o", out, "--plot", tmp_path / "p.png"), "xi.fits", "no column 'xip'",
+    one_line_error(invoke("budget", xi, "-o", out, "--plot", tmp_path / "p.png"), "xi.fits", "no column 'xip'",
                    "perscli correlate")
     assert not out.exists() and not (tmp_path / "p.png").exists()
 
@@ -328,40 +315,40 @@ def test_error_nan_xip_in_a_bin_with_pairs(tmp_path):
     xip[4] = np.nan
     xi = xi_file(tmp_path / "xi.fits", THETA, xip, BUDGET * 1e-3)
     out = tmp_path / "cmp.fits"
-    one_line_error(invoke(xi, "-o", out), "column 'xip' is nan in bin 4")
+    one_line_error(invoke("budget", xi, "-o", out), "column 'xip' is nan in bin 4")
     assert not out.exists()
 
 
 def test_error_unknown_sep_unit(tmp_path):
     xi = xi_file(tmp_path / "xi.fits", THETA, BUDGET, BUDGET, unit="parsec")
-    one_line_error(invoke(xi, "-o", tmp_path / "cmp.fits"), "SEP_UNIT = 'parsec'", "arcmin")
+    one_line_error(invoke("budget", xi, "-o", tmp_path / "cmp.fits"), "SEP_UNIT = 'parsec'", "arcmin")
 
 
 def test_error_existing_output_without_overwrite(tmp_path):
     out = tmp_path / "cmp.fits"
     out.write_bytes(b"keep")
-    one_line_error(invoke("-o", out), "already exists", "--overwrite")
+    one_line_error(invoke("budget", "-o", out), "already exists", "--overwrite")
     assert out.read_bytes() == b"keep"
-    assert invoke("-o", out, "--overwrite").exit_code == 0
+    assert invoke("budget", "-o", out, "--overwrite").exit_code == 0
 
 
 def test_error_not_fits(tmp_path):
     bad = tmp_path / "xi.fits"
     bad.write_text("not a fits file\n")
-    one_line_error(invoke(bad, "-o", tmp_path / "cmp.fits"), "xi.fits")
+    one_line_error(invoke("budget", bad, "-o", tmp_path / "cmp.fits"), "xi.fits")
 
 
 @pytest.mark.parametrize("args", [["--bands", "dore"], ["--modes", "B"], ["--sigma", "-1"],
                                   ["--theta-range", "10", "1"], ["--plot", "-"]])
 def test_usage_errors_exit_2(tmp_path, args):
-    result = invoke(*args, "-o", tmp_path / "b.fits")
+    result = invoke("budget", *args, "-o", tmp_path / "b.fits")
     assert result.exit_code == 2, (result.exit_code, result.stderr)
     assert not (tmp_path / "b.fits").exists()
 
 
 def test_grid_options_need_no_xi(tmp_path):
     xi = xi_file(tmp_path / "xi.fits", THETA, BUDGET, BUDGET)
-    result = invoke(xi, "--nbins", 5, "-o", tmp_path / "b.fits")
+    result = invoke("budget", xi, "--nbins", 5, "-o", tmp_path / "b.fits")
     assert result.exit_code == 2 and "--nbins" in result.stderr
 
 

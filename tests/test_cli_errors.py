@@ -1,13 +1,14 @@
 """apply-persistence errors: exit 1, one line on stderr naming what is wrong and how to fix it,
 no output file, inputs untouched; usage errors exit 2; non-finite pixels are a warning."""
 
-import os
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import pytest
 from astropy.io import fits
 
+import fits_factory
 from fits_factory import DAY, SHAPE, T0, frame_file, invoke, listing, snapshot
 from fits_factory import collect_leaked_files  # noqa: F401  (fixture)
 
@@ -27,38 +28,12 @@ FIX_WORDS = ("use ", "give ", "add ", "check", "re-copy", "regenerate", "choose"
              "must", "valid are", "not the same pixels")
 
 
-def expect_error(tmp_path, args, *needles, out=None, inputs=None, any_of=(), fix=True):
-    """Run apply-persistence, expecting a one-line data error.
-
-    The line contains every needle, at least one of ``any_of`` (when given) and,
-    with ``fix``, one of :data:`FIX_WORDS`.  Inputs (and an existing output)
-    are unchanged, and no file appears in ``tmp_path``.
-    """
-    out = str(out if out is not None else tmp_path / "out.fits")
-    inputs = inputs if inputs is not None else [str(a) for a in args if os.path.exists(str(a))]
-    before_files = listing(tmp_path)
-    before = snapshot(*inputs, out)
-    result = invoke("apply-persistence", *args, "-o", out)
-    assert result.exit_code == 1, (result.exit_code, result.output, result.exception)
-    assert result.stdout == ""
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("Error: ")
-    assert "Traceback" not in result.stderr
-    # words are looked for outside the paths (pytest names tmp_path after the test: 'truncated', ...)
-    words = lines[0].replace(str(tmp_path), "<tmp>")
-    for needle in map(str, needles):
-        if needle.startswith(str(tmp_path)):
-            assert needle in lines[0], (needle, lines[0])
-        else:
-            assert needle in words, (needle, lines[0])
-    if any_of:
-        assert any(alt in words for alt in any_of), (any_of, lines[0])
-    if fix:
-        assert any(w in words for w in FIX_WORDS), ("no fix suggested", lines[0])
-    assert snapshot(*inputs, out) == before            # inputs (and an existing output) unchanged
-    assert listing(tmp_path) == before_files           # no output, no temporary file
-    return lines[0]
+#: ``expect_error(tmp_path, ARGS, *needles, out=, inputs=, any_of=, fix_words=)``: ``perscli apply-persistence
+#: ARGS -o OUT`` fails in one line holding every needle (words looked for outside the paths: pytest names
+#: tmp_path after the test, 'truncated', ...) and one of :data:`FIX_WORDS` (``fix_words=()``: none needed);
+#: inputs (and an existing output) unchanged, no file in ``tmp_path`` (:func:`fits_factory.expect_error`)
+expect_error = partial(fits_factory.expect_error, command="apply-persistence", fix_words=FIX_WORDS,
+                       words_outside_paths=True)
 
 
 def expect_usage_error(tmp_path, args, *needles):
@@ -129,14 +104,14 @@ def test_file_truncated_in_its_extension_header(tmp_path, good, collect_leaked_f
 @pytest.mark.parametrize("role", ["current", "previous"])
 def test_nonexistent_file(tmp_path, good, role):
     missing = str(tmp_path / "nope.fits")
-    expect_error(tmp_path, place(role, missing, good), missing, "no such file", fix=False)
+    expect_error(tmp_path, place(role, missing, good), missing, "no such file", fix_words=())
 
 
 @pytest.mark.parametrize("role", ["current", "previous"])
 def test_directory_as_input(tmp_path, good, role):
     folder = tmp_path / "adir"
     folder.mkdir()
-    expect_error(tmp_path, place(role, folder, good), str(folder), "is a directory", fix=False)
+    expect_error(tmp_path, place(role, folder, good), str(folder), "is a directory", fix_words=())
 
 
 @pytest.mark.parametrize("role", ["current", "previous"])
@@ -269,7 +244,7 @@ def test_param_that_is_not_key_value(tmp_path, good, text):
 
 
 def test_param_on_the_linear_model(tmp_path, good):
-    expect_error(tmp_path, [*good, "--model", "galsim-linear", "--param", "gamma=1"], "linear model", fix=False)
+    expect_error(tmp_path, [*good, "--model", "galsim-linear", "--param", "gamma=1"], "linear model", fix_words=())
 
 
 # -- outputs -----------------------------------------------------------------------------------
@@ -302,7 +277,7 @@ def test_output_equal_to_an_input(tmp_path, good, which, overwrite):
 
 def test_output_in_a_missing_folder(tmp_path, good):
     out = tmp_path / "missing" / "out.fits"
-    expect_error(tmp_path, list(good), "does not exist", str(tmp_path / "missing"), out=out, fix=False)
+    expect_error(tmp_path, list(good), "does not exist", str(tmp_path / "missing"), out=out, fix_words=())
 
 
 @pytest.mark.parametrize("overwrite", [False, True])

@@ -4,17 +4,12 @@ import numpy as np
 import pytest
 from astropy.io import fits
 from astropy.table import Table
-from click.testing import CliRunner
 
+from fits_factory import invoke
 from perscli import PerscliError
-from perscli.cli.main import cli
 from perscli.io.tables import parse_column_mapping, read_table
 
 from test_correlate import SETTINGS, split, shapes_frames, write_table
-
-
-def invoke(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args])
 
 
 def test_parse_column_mapping():

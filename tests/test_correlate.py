@@ -1,24 +1,19 @@
 """perscli correlate: xi+/- of De against TreeCorr, the jackknife covariance, the De statistics, bad input."""
 
 import os
+from functools import partial
 
 import numpy as np
 import pytest
 from astropy.io import fits
-from click.testing import CliRunner
 
-from perscli.cli.correlate import correlate
+import fits_factory
+from fits_factory import invoke, run
 from perscli.stats.correlate import de_histogram, de_statistics, theta_distribution
 
 treecorr = pytest.importorskip("treecorr")
 
 RA0, DEC0 = 10.0, -44.0
-
-
-def run(*args, code=0):
-    result = CliRunner().invoke(correlate, [str(a) for a in args])
-    assert result.exit_code == code, (result.output, result.exception)
-    return result
 
 
 def sky(n, rng, size=1.0):
@@ -95,7 +90,7 @@ def direct_treecorr(ra, dec, de1, de2, *, npatch=4, seed=3, min_sep=1.0, max_sep
 def test_xi_equals_direct_treecorr(two_frames):
     t = two_frames
     out = t["tmp"] / "xi_frames.fits"
-    run(t["both"], "--frames", 0, 1, *SETTINGS, "-o", out)
+    run("correlate", t["both"], "--frames", 0, 1, *SETTINGS, "-o", out)
     gg = direct_treecorr(t["ra"], t["dec"], (t["g1b"] + t["de1"]) - t["g1b"], (t["g2b"] + t["de2"]) - t["g2b"])
     with fits.open(out) as hdul:
         xi = hdul["XI"].data
@@ -111,7 +106,7 @@ def test_xi_equals_direct_treecorr(two_frames):
     # the same De given as columns, or as two files, gives the same xi
     for args in ([t["de"], "--de1", "de1", "--de2", "de2"], [t["a"], t["b"]]):
         out2 = t["tmp"] / f"xi_{len(args)}.fits"
-        run(*args, *SETTINGS, "-o", out2)
+        run("correlate", *args, *SETTINGS, "-o", out2)
         with fits.open(out) as h1, fits.open(out2) as h2:
             np.testing.assert_allclose(h2["XI"].data["xip"], h1["XI"].data["xip"], rtol=1e-9, atol=1e-22)
             np.testing.assert_allclose(h2["XI"].data["xim"], h1["XI"].data["xim"], rtol=1e-9, atol=1e-22)
@@ -120,7 +115,7 @@ def test_xi_equals_direct_treecorr(two_frames):
 def test_output_layout_covariance_and_provenance(two_frames):
     t = two_frames
     out = t["tmp"] / "layout.fits"
-    run(t["both"], "--frames", 0, 1, *SETTINGS, "-o", out)
+    run("correlate", t["both"], "--frames", 0, 1, *SETTINGS, "-o", out)
     with fits.open(out, checksum=True) as hdul:
         assert [h.name for h in hdul] == ["PRIMARY", "XI", "COV", "STATS", "HIST_DE", "THETA_DE", "PATCHES"]
         cov = hdul["COV"].data
@@ -139,7 +134,7 @@ def test_output_layout_covariance_and_provenance(two_frames):
         assert len(hdul["PATCHES"].data) == 4 and hdul["PATCHES"].data["nobj"].sum() == 2000
     # the patch centres can be reused: the same patches, the same pairs
     out2 = t["tmp"] / "reuse.fits"
-    run(t["both"], "--frames", 0, 1, "--patch-centers", out, "--seed", 3, "--min-sep", 1, "--max-sep", 30,
+    run("correlate", t["both"], "--frames", 0, 1, "--patch-centers", out, "--seed", 3, "--min-sep", 1, "--max-sep", 30,
         "--nbins", 8, "-o", out2)
     with fits.open(out) as h1, fits.open(out2) as h2:
         np.testing.assert_allclose(h2["COV"].data, h1["COV"].data, rtol=1e-10)
@@ -149,7 +144,7 @@ def test_output_layout_covariance_and_provenance(two_frames):
 def test_stats_tables(two_frames):
     t = two_frames
     out = t["tmp"] / "stats.fits"
-    run(t["both"], "--frames", 0, 1, *SETTINGS, "--thresholds", "1e-8,1e-5,1e-4", "-o", out)
+    run("correlate", t["both"], "--frames", 0, 1, *SETTINGS, "--thresholds", "1e-8,1e-5,1e-4", "-o", out)
     absde = np.hypot(t["de1"], t["de2"])
     with fits.open(out) as hdul:
         s = hdul["STATS"].data[0]
@@ -236,8 +231,8 @@ def test_coherent_pattern_is_significant_and_shuffled_is_not(tmp_path):
     for shuffle in (False, True):
         cat = coherent_catalog(tmp_path / f"cat{shuffle}.fits", shuffle=shuffle)
         out = tmp_path / f"xi{shuffle}.fits"
-        run(cat, "--de1", "de1", "--de2", "de2", "--npatch", 10, "--min-sep", 1, "--max-sep", 10, "--nbins", 6,
-            "-o", out)
+        run("correlate", cat, "--de1", "de1", "--de2", "de2", "--npatch", 10, "--min-sep", 1, "--max-sep", 10,
+            "--nbins", 6, "-o", out)
         with fits.open(out) as hdul:
             xi = hdul["XI"].data
             z[shuffle] = xi["xip"] / xi["sigma_xip"]
@@ -250,7 +245,7 @@ def test_coherent_pattern_is_significant_and_shuffled_is_not(tmp_path):
 def test_xy_positions_and_figures(two_frames, tmp_path):
     t = two_frames
     out = tmp_path / "xy.fits"
-    run(t["both"], "--frames", 0, 1, "--positions", "xy", "--npatch", 4, "--min-sep", 0.5, "--max-sep", 5,
+    run("correlate", t["both"], "--frames", 0, 1, "--positions", "xy", "--npatch", 4, "--min-sep", 0.5, "--max-sep", 5,
         "--nbins", 5, "--plots", tmp_path / "figs", "--plot", tmp_path / "xi_alone.png", "-o", out)
     with fits.open(out) as hdul:
         assert hdul[0].header["COORDS"] == "xy" and hdul[0].header["PIXSCALE"] == 0.11
@@ -260,13 +255,14 @@ def test_xy_positions_and_figures(two_frames, tmp_path):
     assert (tmp_path / "xi_alone.png").stat().st_size > 1000
     assert not [p for p in os.listdir(tmp_path / "figs") if p.startswith(".")]
     # figures are outputs too: not replaced without --overwrite
-    result = run(t["both"], "--frames", 0, 1, "--plots", tmp_path / "figs", "-o", tmp_path / "other.fits", code=1)
+    result = run("correlate", t["both"], "--frames", 0, 1, "--plots", tmp_path / "figs", "-o", tmp_path / "other.fits",
+                 code=1)
     assert "--overwrite" in result.output and not (tmp_path / "other.fits").exists()
 
 
 def test_fits_to_stdout(two_frames):
     t = two_frames
-    result = CliRunner().invoke(correlate, [t["de"], "--de1", "de1", "--de2", "de2", *map(str, SETTINGS), "-o", "-"])
+    result = invoke("correlate", t["de"], "--de1", "de1", "--de2", "de2", *SETTINGS, "-o", "-")
     assert result.exit_code == 0, result.output
     assert result.stdout_bytes[:9] == b"SIMPLE  ="
 
@@ -274,26 +270,19 @@ def test_fits_to_stdout(two_frames):
 # ---- bad input: one line, exit 1, no output ------------------------------------------------------
 
 
-def one_line_error(tmp_path, args, *expected):
-    out = tmp_path / "xi.fits"
-    result = run(*args, "--npatch", 4, "-o", out, code=1)
-    lines = [line for line in result.output.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("Error: "), result.output
-    for text in expected:
-        assert text in lines[0], lines[0]
-    assert not out.exists()
-    assert not [p for p in os.listdir(tmp_path) if p.startswith(".xi.fits")]
-    return lines[0]
+#: ``expect_error(tmp_path, ARGS, *needles)``: ``perscli correlate --npatch 4 ARGS -o OUT`` fails in one line
+#: holding every needle, and writes nothing (:func:`fits_factory.expect_error`)
+expect_error = partial(fits_factory.expect_error, command=("correlate", "--npatch", 4))
 
 
 def test_mismatched_ids(tmp_path):
     table, *_ = shapes_frames(n=200, ids_b=np.arange(101, 301))
     a = write_table(tmp_path / "a.fits", split(table, 0))
     b = write_table(tmp_path / "b.fits", split(table, 1))
-    one_line_error(tmp_path, [a, b], "ids do not match", "100 of", "--common-ids")
+    expect_error(tmp_path, [a, b], "ids do not match", "100 of", "--common-ids")
     # --common-ids correlates the 100 shared ids
     out = tmp_path / "common.fits"
-    run(a, b, "--common-ids", "--npatch", 4, "--min-sep", 1, "--max-sep", 30, "--nbins", 4, "-o", out)
+    run("correlate", a, b, "--common-ids", "--npatch", 4, "--min-sep", 1, "--max-sep", 30, "--nbins", 4, "-o", out)
     with fits.open(out) as hdul:
         assert hdul["STATS"].data["n"][0] == 100 and hdul["STATS"].data["matched"][0] == 100
 
@@ -302,7 +291,7 @@ def test_no_overlap(tmp_path):
     table, *_ = shapes_frames(n=100, ids_b=np.arange(1001, 1101))
     a = write_table(tmp_path / "a.fits", split(table, 0))
     b = write_table(tmp_path / "b.fits", split(table, 1))
-    one_line_error(tmp_path, [a, b], "no id in common")
+    expect_error(tmp_path, [a, b], "no id in common")
 
 
 def test_duplicate_ids(tmp_path):
@@ -310,14 +299,14 @@ def test_duplicate_ids(tmp_path):
     ids[5] = 3
     table, *_ = shapes_frames(n=100, ids_b=ids)
     both = write_table(tmp_path / "both.fits", table)
-    one_line_error(tmp_path, [both, "--frames", 0, 1], "id 3 appears more than once")
+    expect_error(tmp_path, [both, "--frames", 0, 1], "id 3 appears more than once")
 
 
 def test_all_flagged(tmp_path):
     table, *_ = shapes_frames(n=100, flags_a=np.r_[np.ones(50, int), np.zeros(50, int)],
                               flags_b=np.r_[np.zeros(50, int), np.full(50, 512)])
     both = write_table(tmp_path / "both.fits", table)
-    one_line_error(tmp_path, [both, "--frames", 0, 1], "all 100 matched objects are flagged")
+    expect_error(tmp_path, [both, "--frames", 0, 1], "all 100 matched objects are flagged")
 
 
 def test_nan_column(tmp_path):
@@ -325,13 +314,13 @@ def test_nan_column(tmp_path):
     ra, dec = sky(100, rng)
     cat = write_table(tmp_path / "de.fits", dict(id=np.arange(100), ra=ra, dec=dec, de1=np.full(100, np.nan),
                                                  de2=rng.normal(0, 1e-5, 100)))
-    one_line_error(tmp_path, [cat, "--de1", "de1", "--de2", "de2"], "column 'de1' is NaN")
+    expect_error(tmp_path, [cat, "--de1", "de1", "--de2", "de2"], "column 'de1' is NaN")
     # a few NaN values are dropped with a warning, not an error
     table, *_ = shapes_frames(n=200)
     table["g1"][3] = np.nan
     both = write_table(tmp_path / "some_nan.fits", table)
     out = tmp_path / "ok.fits"
-    run(both, "--frames", 0, 1, "--npatch", 4, "-o", out)
+    run("correlate", both, "--frames", 0, 1, "--npatch", 4, "-o", out)
     with fits.open(out) as hdul:
         assert hdul["STATS"].data["n"][0] == 199 and hdul["STATS"].data["nonfinite"][0] == 1
 
@@ -340,16 +329,16 @@ def test_too_few_objects_for_patches(tmp_path):
     # asking for the jackknife insists on it (by default, shot noise takes over: test_correlate_few.py)
     table, *_ = shapes_frames(n=30)
     both = write_table(tmp_path / "both.fits", table)
-    one_line_error(tmp_path, [both, "--frames", 0, 1, "--var-method", "jackknife"],
-                   "only 30 objects for 4 jackknife patches", "--npatch 3")
+    expect_error(tmp_path, [both, "--frames", 0, 1, "--var-method", "jackknife"],
+                 "only 30 objects for 4 jackknife patches", "--npatch 3")
 
 
 def test_missing_column_and_frame(tmp_path, two_frames):
-    one_line_error(tmp_path, [two_frames["de"], "--de1", "e1", "--de2", "de2"], "no column 'e1'")
-    one_line_error(tmp_path, [two_frames["both"], "--frames", 0, 2], "no rows of frame 2")
-    one_line_error(tmp_path, [two_frames["both"], two_frames["b"]], "holds frames 0, 1", "--frames")
+    expect_error(tmp_path, [two_frames["de"], "--de1", "e1", "--de2", "de2"], "no column 'e1'")
+    expect_error(tmp_path, [two_frames["both"], "--frames", 0, 2], "no rows of frame 2")
+    expect_error(tmp_path, [two_frames["both"], two_frames["b"]], "holds frames 0, 1", "--frames")
     (tmp_path / "junk.fits").write_bytes(b"not a fits file at all\n" * 200)
-    one_line_error(tmp_path, [tmp_path / "junk.fits", "--de1", "a", "--de2", "b"], "junk.fits")
+    expect_error(tmp_path, [tmp_path / "junk.fits", "--de1", "a", "--de2", "b"], "junk.fits")
 
 
 def test_usage_errors(two_frames, tmp_path):
@@ -358,14 +347,14 @@ def test_usage_errors(two_frames, tmp_path):
                  [two_frames["a"], two_frames["b"], "--de1", "a", "--de2", "b"],
                  [two_frames["both"], "--frames", 0, 1, "--min-sep", 10, "--max-sep", 5],
                  [two_frames["both"], "--frames", 0, 1, "--patch-centers", "p.fits", "--npatch", 5]):
-        run(*args, "-o", out, code=2)
+        run("correlate", *args, "-o", out, code=2)
     assert not out.exists()
 
 
 def test_existing_output_needs_overwrite(two_frames, tmp_path):
     out = tmp_path / "xi.fits"
     out.write_bytes(b"keep")
-    result = run(two_frames["de"], "--de1", "de1", "--de2", "de2", "-o", out, code=1)
+    result = run("correlate", two_frames["de"], "--de1", "de1", "--de2", "de2", "-o", out, code=1)
     assert "--overwrite" in result.output and out.read_bytes() == b"keep"
 
 
@@ -377,13 +366,13 @@ def test_corrupt_table_and_stdin(two_frames, tmp_path):
     raw = bytearray(path.read_bytes())
     raw[2880 * 3 + 100] ^= 0x40
     path.write_bytes(bytes(raw))
-    one_line_error(tmp_path, [path, "--de1", "de1", "--de2", "de2"], "do not match their DATASUM")
+    expect_error(tmp_path, [path, "--de1", "de1", "--de2", "de2"], "do not match their DATASUM")
     # standard input gives what the file gives
     ref_path = tmp_path / "file.fits"
-    run(two_frames["de"], "--de1", "de1", "--de2", "de2", *SETTINGS, "-o", ref_path)
+    run("correlate", two_frames["de"], "--de1", "de1", "--de2", "de2", *SETTINGS, "-o", ref_path)
     out = tmp_path / "stdin.fits"
-    result = CliRunner().invoke(correlate, ["-", "--de1", "de1", "--de2", "de2", *map(str, SETTINGS), "-o", str(out)],
-                                input=open(two_frames["de"], "rb").read())
+    result = invoke("correlate", "-", "--de1", "de1", "--de2", "de2", *SETTINGS, "-o", out,
+                    input=open(two_frames["de"], "rb").read())
     assert result.exit_code == 0, result.output
     with fits.open(out) as hdul, fits.open(ref_path) as ref:
         assert hdul[0].header["SHAPES"] == "stdin"
@@ -404,8 +393,8 @@ def test_xi_plus_does_not_depend_on_the_axes_of_de(tmp_path):
         cat = write_table(tmp_path / f"{name}.fits", dict(id=np.arange(n), ra=ra, dec=dec, de1=values.real,
                                                           de2=values.imag))
         out = tmp_path / f"xi_{name}.fits"
-        run(cat, "--de1", "de1", "--de2", "de2", "--npatch", 4, "--min-sep", 1, "--max-sep", 20, "--nbins", 5,
-            "-o", out)
+        run("correlate", cat, "--de1", "de1", "--de2", "de2", "--npatch", 4, "--min-sep", 1, "--max-sep", 20,
+            "--nbins", 5, "-o", out)
         with fits.open(out) as hdul:
             xi[name] = {k: np.array(hdul["XI"].data[k]) for k in ("xip", "xim", "xim_im")}
     # a rotation: to 1e-6 (TreeCorr's cell approximations leave ~1e-8); a reflection: only to the

@@ -3,22 +3,14 @@
 import numpy as np
 import pytest
 from astropy.io import fits
-from click.testing import CliRunner
 
+from fits_factory import invoke, one_line_error, run
 from perscli import PerscliError
-from perscli.cli.budget import budget
-from perscli.cli.correlate import correlate
 from perscli.stats.correlate import ShapeChanges, correlate_de
 
 treecorr = pytest.importorskip("treecorr")
 
 RA0, DEC0 = 10.0, -44.0
-
-
-def run(command, *args, code=0):
-    result = CliRunner().invoke(command, [str(a) for a in args])
-    assert result.exit_code == code, (result.output, result.exception)
-    return result
 
 
 def pair(folder, n, seed=1, size=1.0):
@@ -44,10 +36,10 @@ def pair(folder, n, seed=1, size=1.0):
 
 
 @pytest.mark.parametrize("n, method", [(1, "shot"), (3, "shot"), (10, "shot"), (50, "shot"), (200, "jackknife")])
-def test_few_objects_with_20_patches_never_fail(tmp_path, caplog, n, method):
+def test_few_objects_with_20_patches_never_fail(tmp_path, n, method):
     a, b, ra, dec, de1, de2 = pair(tmp_path, n)
     out = tmp_path / "xi.fits"
-    run(correlate, a, b, "--npatch", 20, "--plots", tmp_path / "figs", "-o", out)
+    said = run("correlate", a, b, "--npatch", 20, "--plots", tmp_path / "figs", "-o", out)
     for name in ("xi.png", "hist_de.png", "bin_theta.png"):
         assert (tmp_path / "figs" / name).read_bytes()[:4] == b"\x89PNG"
     with fits.open(out, checksum=True) as hdul:
@@ -59,7 +51,7 @@ def test_few_objects_with_20_patches_never_fail(tmp_path, caplog, n, method):
             assert ("too few for a jackknife" in head["VARWHY"] if n < 20
                     else "only 50 objects for 20 jackknife patches" in head["VARWHY"])
             # warned once, saying why
-            warned = [r.getMessage() for r in caplog.records if "shot-noise errors" in r.getMessage()]
+            warned = [line for line in said.stderr.splitlines() if "shot-noise errors" in line]
             assert len(warned) == 1 and head["VARWHY"] in warned[0]
             cov = hdul["COV"].data
             assert np.count_nonzero(cov - np.diag(np.diag(cov))) == 0
@@ -69,7 +61,7 @@ def test_few_objects_with_20_patches_never_fail(tmp_path, caplog, n, method):
         assert np.all(np.isfinite(xi["xip"])) and np.all(np.isfinite(xi["sigma_xip"]))
         assert np.all(xi["sigma_xip"][xi["npairs"] > 0] > 0)
     # budget reads the result, and says when its errors are shot noise
-    result = run(budget, out, "-o", tmp_path / "b.fits", "--plot", tmp_path / "b.png", "--check")
+    result = run("budget", out, "-o", tmp_path / "b.fits", "--plot", tmp_path / "b.png", "--check")
     assert ("errors are shot noise" in result.stderr) == (method == "shot" and n > 1), result.stderr
     if n == 1:
         assert "no bin with pairs" in result.stderr
@@ -78,7 +70,7 @@ def test_few_objects_with_20_patches_never_fail(tmp_path, caplog, n, method):
 def test_shot_noise_is_treecorrs(tmp_path):
     a, b, ra, dec, de1, de2 = pair(tmp_path, 40)
     out = tmp_path / "xi.fits"
-    run(correlate, a, b, "--min-sep", 1, "--max-sep", 60, "--nbins", 6, "-o", out)
+    run("correlate", a, b, "--min-sep", 1, "--max-sep", 60, "--nbins", 6, "-o", out)
     cat = treecorr.Catalog(ra=ra, dec=dec, ra_units="deg", dec_units="deg", g1=de1, g2=de2)
     gg = treecorr.GGCorrelation(min_sep=1, max_sep=60, nbins=6, sep_units="arcmin", var_method="shot")
     gg.process(cat)
@@ -88,20 +80,18 @@ def test_shot_noise_is_treecorrs(tmp_path):
         np.testing.assert_allclose(hdul["COV"].data, gg.cov, rtol=1e-10, atol=0)
 
 
-def test_shot_noise_asked_for_and_jackknife_insisted_on(tmp_path, caplog):
+def test_shot_noise_asked_for_and_jackknife_insisted_on(tmp_path):
     a, b, *_ = pair(tmp_path, 400)
     out = tmp_path / "shot.fits"
-    run(correlate, a, b, "--var-method", "shot", "--npatch", 4, "-o", out)
+    result = run("correlate", a, b, "--var-method", "shot", "--npatch", 4, "-o", out)
     with fits.open(out) as hdul:
         assert hdul[0].header["VARMETHD"] == "shot" and hdul[0].header["VARASKED"] == "shot"
         assert hdul[0].header["VARWHY"].startswith("shot noise asked for")
-    assert "instead of a jackknife" not in caplog.text          # asked for: no warning
+    assert "instead of a jackknife" not in result.stderr        # asked for: no warning
     # the jackknife insisted on, with too few objects: one line, exit 1, no output
     few_a, few_b, *_ = pair(tmp_path, 30)
-    result = run(correlate, few_a, few_b, "--var-method", "jackknife", "-o", tmp_path / "no.fits", code=1)
-    lines = [line for line in result.output.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("Error: ") and "only 30 objects for 20 jackknife patches" in lines[0]
-    assert "--npatch 3 or fewer" in lines[0] and not (tmp_path / "no.fits").exists()
+    one_line_error(invoke("correlate", few_a, few_b, "--var-method", "jackknife", "-o", tmp_path / "no.fits"),
+                   "only 30 objects for 20 jackknife patches", "--npatch 3 or fewer", out=tmp_path / "no.fits")
 
 
 def test_a_bin_the_jackknife_cannot_estimate_gets_shot_noise(tmp_path):
@@ -137,7 +127,7 @@ def test_a_single_pair_at_the_edge_of_the_range_is_repaired_in_the_output(tmp_pa
     # 200 objects, 20 patches: the last bin holds one pair, its jackknife variance ~1e-30 of shot noise
     a, b, *_ = pair(tmp_path, 200)
     out = tmp_path / "xi.fits"
-    run(correlate, a, b, "--npatch", 20, "-o", out)
+    run("correlate", a, b, "--npatch", 20, "-o", out)
     with fits.open(out) as hdul:
         xi, head = hdul["XI"].data, hdul[0].header
         assert head["VARMETHD"] == "jackknife" and xi["npairs"][-1] == 1
@@ -150,9 +140,9 @@ def test_a_single_pair_at_the_edge_of_the_range_is_repaired_in_the_output(tmp_pa
 def test_patch_centres_from_a_shot_noise_output_are_refused_clearly(tmp_path):
     a, b, *_ = pair(tmp_path, 15)
     first = tmp_path / "first.fits"
-    run(correlate, a, b, "-o", first)
+    run("correlate", a, b, "-o", first)
     big_a, big_b, *_ = pair(tmp_path, 300, seed=2)
-    result = run(correlate, big_a, big_b, "--patch-centers", first, "-o", tmp_path / "x.fits", code=1)
+    result = run("correlate", big_a, big_b, "--patch-centers", first, "-o", tmp_path / "x.fits", code=1)
     assert "0 patch centre(s)" in result.output
 
 

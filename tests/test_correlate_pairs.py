@@ -6,31 +6,15 @@ import time
 import numpy as np
 import pytest
 from astropy.io import fits
-from click.testing import CliRunner
 
+from fits_factory import invoke, one_line_error, run
 from perscli import PerscliError
-from perscli.cli.correlate import correlate
 from perscli.stats.correlate import correlate_files, load_pairs, read_pairs_file
 
 treecorr = pytest.importorskip("treecorr")
 
 RA0, DEC0 = 10.0, -44.0
 SETTINGS = ["--npatch", 4, "--seed", 3, "--min-sep", 1, "--max-sep", 30, "--nbins", 8]
-
-
-def run(*args, code=0):
-    result = CliRunner().invoke(correlate, [str(a) for a in args])
-    assert result.exit_code == code, (result.output, result.exception)
-    return result
-
-
-def one_line_error(result, *needles):
-    assert result.exit_code == 1, (result.exit_code, result.output)
-    lines = [line for line in result.output.splitlines() if line.strip() and not line.startswith("perscli: warn")]
-    assert len(lines) == 1 and lines[0].startswith("Error: "), result.output
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
 
 
 def shapes_table(path, ids, ra, dec, g1, g2, *, flags=None, x=None, y=None, header=None, frame=None):
@@ -89,7 +73,7 @@ def test_pooled_pairs_equal_treecorr_on_the_concatenated_catalogue(three):
     folder, pairs = three
     out = folder / "pooled.fits"
     args = [a for p in pairs for a in ("--pair", p[0], p[1])]
-    run(*args, *SETTINGS, "-o", out)
+    run("correlate", *args, *SETTINGS, "-o", out)
     # De and positions concatenated in pair order: TreeCorr on the same arrays, same seed, same patches
     cat = treecorr.Catalog(ra=np.concatenate([p[4] for p in pairs]), dec=np.concatenate([p[5] for p in pairs]),
                            ra_units="deg", dec_units="deg", g1=np.concatenate([(p[6] + p[2]) - p[6] for p in pairs]),
@@ -127,13 +111,13 @@ def test_pairs_file_is_the_same_as_pair_options(three, tmp_path, monkeypatch):
         f"{os.path.basename(p[0])} {os.path.basename(p[1])}  # exposure {k}\n\n" for k, p in enumerate(pairs)))
     assert read_pairs_file(str(listing)) == [(p[0], p[1]) for p in pairs]
     monkeypatch.chdir(tmp_path)                     # elsewhere: names still found beside the list
-    run("--pairs", listing, *SETTINGS, "-o", tmp_path / "file.fits")
+    run("correlate", "--pairs", listing, *SETTINGS, "-o", tmp_path / "file.fits")
     args = [a for p in pairs for a in ("--pair", p[0], p[1])]
-    run(*args, *SETTINGS, "-o", tmp_path / "options.fits")
+    run("correlate", *args, *SETTINGS, "-o", tmp_path / "options.fits")
     # --pair and --pairs add up: two from the options, one from a file
     part = tmp_path / "one.txt"
     part.write_text(f"{pairs[2][0]} {pairs[2][1]}\n")
-    run("--pair", pairs[0][0], pairs[0][1], "--pair", pairs[1][0], pairs[1][1], "--pairs", part, *SETTINGS,
+    run("correlate", "--pair", pairs[0][0], pairs[0][1], "--pair", pairs[1][0], pairs[1][1], "--pairs", part, *SETTINGS,
         "-o", tmp_path / "both.fits")
     with fits.open(tmp_path / "file.fits") as f1, fits.open(tmp_path / "options.fits") as f2, \
             fits.open(tmp_path / "both.fits") as f3:
@@ -168,8 +152,8 @@ def test_library_call_with_pairs_and_a_pairs_file(three, tmp_path):
 
 def test_one_pair_equals_two_positional_tables(three, tmp_path):
     _, pairs = three
-    run(pairs[0][0], pairs[0][1], *SETTINGS, "-o", tmp_path / "positional.fits")
-    run("--pair", pairs[0][0], pairs[0][1], *SETTINGS, "-o", tmp_path / "pair.fits")
+    run("correlate", pairs[0][0], pairs[0][1], *SETTINGS, "-o", tmp_path / "positional.fits")
+    run("correlate", "--pair", pairs[0][0], pairs[0][1], *SETTINGS, "-o", tmp_path / "pair.fits")
     with fits.open(tmp_path / "positional.fits") as h1, fits.open(tmp_path / "pair.fits") as h2:
         np.testing.assert_allclose(h2["XI"].data["xip"], h1["XI"].data["xip"], rtol=1e-10, atol=0)
         np.testing.assert_allclose(h2["COV"].data, h1["COV"].data, rtol=1e-10, atol=0)
@@ -185,7 +169,7 @@ def test_an_object_in_several_pairs_appears_once_per_pair(tmp_path):
     p1 = make_pair(tmp_path, 1, ra=ra, dec=dec, seed=1)
     p2 = make_pair(tmp_path, 2, ra=ra, dec=dec, seed=2)
     out = tmp_path / "xi.fits"
-    run("--pair", p1[0], p1[1], "--pair", p2[0], p2[1], *SETTINGS, "-o", out)
+    run("correlate", "--pair", p1[0], p1[1], "--pair", p2[0], p2[1], *SETTINGS, "-o", out)
     with fits.open(out) as hdul:
         assert hdul[0].header["NOBJ"] == 2 * n and hdul[0].header["NIDS"] == n
         assert hdul["STATS"].data["n"][0] == 2 * n
@@ -199,7 +183,7 @@ def test_joint_fit_tables_in_sky_axes(tmp_path):
     sky = {"GAXES": "sky"}
     pairs = [make_pair(tmp_path, k, n=400, header=sky) for k in range(2)]
     out = tmp_path / "joint.fits"
-    run("--pair", pairs[0][0], pairs[0][1], "--pair", pairs[1][0], pairs[1][1], *SETTINGS, "-o", out)
+    run("correlate", "--pair", pairs[0][0], pairs[0][1], "--pair", pairs[1][0], pairs[1][1], *SETTINGS, "-o", out)
     with fits.open(out) as hdul:
         assert hdul[0].header["GFRAME"] == "sky" and hdul["PAIRS"].header["GFRAME"] == "sky"
         assert any("sky axes" in str(c) for c in hdul[0].header["COMMENT"])
@@ -214,40 +198,42 @@ def test_joint_fit_tables_in_sky_axes(tmp_path):
                 del hdul[1].header["GAXES"]
                 hdul[0].header[key] = value
                 hdul.writeto(moved[-1])
-        run("--pair", *moved, *SETTINGS, "-o", tmp_path / f"primary_{key}_{axes}.fits")
+        run("correlate", "--pair", *moved, *SETTINGS, "-o", tmp_path / f"primary_{key}_{axes}.fits")
         with fits.open(tmp_path / f"primary_{key}_{axes}.fits") as hdul:
             assert hdul[0].header["GFRAME"] == axes
     # A in sky axes, B in pixel axes: refused
     plain = make_pair(tmp_path, 7, n=400)
-    one_line_error(run(pairs[0][0], plain[1], "--common-ids", *SETTINGS, "-o", tmp_path / "x.fits", code=1),
+    one_line_error(invoke("correlate", pairs[0][0], plain[1], "--common-ids", *SETTINGS, "-o", tmp_path / "x.fits"),
                    "sky axes", "pixel axes", "same axes")
     # pairs in sky axes and pairs in pixel axes: refused
-    one_line_error(run("--pair", pairs[0][0], pairs[0][1], "--pair", plain[0], plain[1], *SETTINGS, "-o",
-                       tmp_path / "x.fits", code=1), "pairs mix g in sky axes (e.g. pair 1)", "pair 2")
+    one_line_error(invoke("correlate", "--pair", pairs[0][0], pairs[0][1], "--pair", plain[0], plain[1], *SETTINGS,
+                          "-o", tmp_path / "x.fits"), "pairs mix g in sky axes (e.g. pair 1)", "pair 2")
     assert not (tmp_path / "x.fits").exists()
 
 
 def test_joint_tables_with_a_frame_column_of_one_value(tmp_path):
     pairs = [make_pair(tmp_path, k, n=300, frame=-1, header={"GAXES": "sky"}) for k in range(2)]
-    run("--pair", pairs[0][0], pairs[0][1], "--pair", pairs[1][0], pairs[1][1], *SETTINGS, "-o",
+    run("correlate", "--pair", pairs[0][0], pairs[0][1], "--pair", pairs[1][0], pairs[1][1], *SETTINGS, "-o",
         tmp_path / "xi.fits")
 
 
-def test_orientation_of_pixel_axes_is_checked(tmp_path, caplog):
+def test_orientation_of_pixel_axes_is_checked(tmp_path):
     same = [make_pair(tmp_path, k, n=300, xy_angle=30.0) for k in range(2)]
-    run("--pair", same[0][0], same[0][1], "--pair", same[1][0], same[1][1], *SETTINGS, "-o",
+    run("correlate", "--pair", same[0][0], same[0][1], "--pair", same[1][0], same[1][1], *SETTINGS, "-o",
         tmp_path / "same.fits")
     # a half turn is the same orientation for a spin-2 quantity
     half = make_pair(tmp_path, 5, n=300, xy_angle=210.0)
-    run("--pair", same[0][0], same[0][1], "--pair", half[0], half[1], *SETTINGS, "-o", tmp_path / "half.fits")
-    assert "orientation" not in caplog.text
+    result = run("correlate", "--pair", same[0][0], same[0][1], "--pair", half[0], half[1], *SETTINGS, "-o",
+                 tmp_path / "half.fits")
+    assert "orientation" not in result.stderr
     turned = make_pair(tmp_path, 6, n=300, xy_angle=45.0)
-    run("--pair", same[0][0], same[0][1], "--pair", turned[0], turned[1], *SETTINGS, "-o", tmp_path / "turned.fits")
-    assert "differ in orientation on the sky by up to 15 deg" in caplog.text
-    caplog.clear()
+    result = run("correlate", "--pair", same[0][0], same[0][1], "--pair", turned[0], turned[1], *SETTINGS, "-o",
+                 tmp_path / "turned.fits")
+    assert "differ in orientation on the sky by up to 15 deg" in result.stderr
     flipped = make_pair(tmp_path, 8, n=300, xy_angle=30.0, mirror=True)
-    run("--pair", same[0][0], same[0][1], "--pair", flipped[0], flipped[1], *SETTINGS, "-o", tmp_path / "flip.fits")
-    assert "are mirrored with respect to pair 1 (pair 2)" in caplog.text
+    result = run("correlate", "--pair", same[0][0], same[0][1], "--pair", flipped[0], flipped[1], *SETTINGS, "-o",
+                 tmp_path / "flip.fits")
+    assert "are mirrored with respect to pair 1 (pair 2)" in result.stderr
     sc = load_pairs([(same[0][0], same[0][1]), (turned[0], turned[1])])
     assert sc.pairs[1]["used"] == 300 and len(sc) == 600 and list(np.unique(sc.pair)) == [0, 1]
 
@@ -259,10 +245,10 @@ def test_pair_errors_are_one_line(three, tmp_path):
     # a broken table in the second pair: the message says which pair
     junk = tmp_path / "junk.fits"
     junk.write_bytes(b"not a fits file at all\n" * 200)
-    one_line_error(run(*p0, "--pair", junk, pairs[1][1], "-o", out, code=1), "pair 2 of 2", "junk.fits")
-    one_line_error(run(*p0, *p0, "-o", out, code=1), "pair 2 repeats pair 1")
-    one_line_error(run("--pair", pairs[0][0], pairs[0][0], "-o", out, code=1), "A and B are the same file")
-    one_line_error(run(*p0, "--pair", pairs[1][0], pairs[1][1], "--positions", "xy", "-o", out, code=1),
+    one_line_error(invoke("correlate", *p0, "--pair", junk, pairs[1][1], "-o", out), "pair 2 of 2", "junk.fits")
+    one_line_error(invoke("correlate", *p0, *p0, "-o", out), "pair 2 repeats pair 1")
+    one_line_error(invoke("correlate", "--pair", pairs[0][0], pairs[0][0], "-o", out), "A and B are the same file")
+    one_line_error(invoke("correlate", *p0, "--pair", pairs[1][0], pairs[1][1], "--positions", "xy", "-o", out),
                    "--positions xy with 2 pairs")
     # pooled pairs need ra/dec
     rng = np.random.default_rng(1)
@@ -274,27 +260,27 @@ def test_pair_errors_are_one_line(three, tmp_path):
             cols += [fits.Column("x", "D", array=rng.uniform(0, 4000, 50)),
                      fits.Column("y", "D", array=rng.uniform(0, 4000, 50))]
             fits.BinTableHDU.from_columns(cols, name="SHAPES").writeto(tmp_path / f"xyonly{k}.fits")
-    one_line_error(run(*p0, "--pair", tmp_path / "xyonly0.fits", tmp_path / "xyonly1.fits", "-o", out, code=1),
+    one_line_error(invoke("correlate", *p0, "--pair", tmp_path / "xyonly0.fits", tmp_path / "xyonly1.fits", "-o", out),
                    "pair 2 of 2", "no ra/dec columns", "pooled pairs are placed by ra/dec")
     # pairs files
-    one_line_error(run("--pairs", tmp_path / "absent.txt", "-o", out, code=1), "absent.txt", "no such file")
+    one_line_error(invoke("correlate", "--pairs", tmp_path / "absent.txt", "-o", out), "absent.txt", "no such file")
     bad = tmp_path / "three.txt"
     bad.write_text(f"{pairs[0][0]} {pairs[0][1]}\n{pairs[1][0]} {pairs[1][1]} extra.fits\n")
-    one_line_error(run("--pairs", bad, "-o", out, code=1), "three.txt: line 2 has 3 name(s)")
+    one_line_error(invoke("correlate", "--pairs", bad, "-o", out), "three.txt: line 2 has 3 name(s)")
     empty = tmp_path / "empty.txt"
     empty.write_text("# nothing\n\n")
-    one_line_error(run("--pairs", empty, "-o", out, code=1), "lists no pair")
-    one_line_error(run("--pairs", pairs[0][0], "-o", out, code=1), "is a FITS file, not a list of pairs")
+    one_line_error(invoke("correlate", "--pairs", empty, "-o", out), "lists no pair")
+    one_line_error(invoke("correlate", "--pairs", pairs[0][0], "-o", out), "is a FITS file, not a list of pairs")
     # an output may not replace an input of any pair, nor the pairs file
     listing = tmp_path / "list.txt"
     listing.write_text(f"{pairs[0][0]} {pairs[0][1]}\n")
-    one_line_error(run(*p0, "--pair", pairs[1][0], pairs[1][1], "-o", pairs[1][1], "--overwrite", code=1))
-    one_line_error(run("--pairs", listing, "-o", listing, "--overwrite", code=1))
+    one_line_error(invoke("correlate", *p0, "--pair", pairs[1][0], pairs[1][1], "-o", pairs[1][1], "--overwrite"))
+    one_line_error(invoke("correlate", "--pairs", listing, "-o", listing, "--overwrite"))
     assert listing.read_text().startswith(pairs[0][0])
     assert not out.exists() and not [p for p in os.listdir(tmp_path) if p.startswith(".xi.fits")]
 
 
-def test_a_pair_without_usable_objects_is_a_warning_among_many(three, tmp_path, caplog):
+def test_a_pair_without_usable_objects_is_a_warning_among_many(three, tmp_path):
     _, pairs = three
     rng = np.random.default_rng(3)
     n = 200
@@ -304,9 +290,9 @@ def test_a_pair_without_usable_objects_is_a_warning_among_many(three, tmp_path, 
     flagged = [shapes_table(tmp_path / f"flagged_{k}.fits", np.arange(n), ra, dec, g, g, flags=np.full(n, 2048))
                for k in "ab"]
     out = tmp_path / "xi.fits"
-    run("--pair", pairs[0][0], pairs[0][1], "--pair", *flagged, "--pair", pairs[1][0], pairs[1][1], *SETTINGS,
-        "-o", out)
-    assert "pair 2 of 3 adds no object: all 200 matched objects are flagged" in caplog.text
+    result = run("correlate", "--pair", pairs[0][0], pairs[0][1], "--pair", *flagged, "--pair", pairs[1][0],
+                 pairs[1][1], *SETTINGS, "-o", out)
+    assert "pair 2 of 3 adds no object: all 200 matched objects are flagged" in result.stderr
     with fits.open(out) as hdul:
         table = hdul["PAIRS"].data
         assert list(table["used"]) == [600, 0, 600] and list(table["flagged"]) == [0, 200, 0]
@@ -314,11 +300,11 @@ def test_a_pair_without_usable_objects_is_a_warning_among_many(three, tmp_path, 
         assert hdul[0].header["A002"] == "flagged_a.fits" and hdul[0].header["NOBJ"] == 1200
         assert hdul["STATS"].data["flagged"][0] == 200 and hdul["STATS"].data["n"][0] == 1200
     # alone, or when no pair has an object, it is an error
-    one_line_error(run("--pair", *flagged, "-o", tmp_path / "x.fits", code=1), "pair 1 of 1", "flagged")
+    one_line_error(invoke("correlate", "--pair", *flagged, "-o", tmp_path / "x.fits"), "pair 1 of 1", "flagged")
     other = [shapes_table(tmp_path / f"flagged2_{k}.fits", np.arange(n), ra, dec, g, g, flags=np.ones(n, int))
              for k in "ab"]
-    one_line_error(run("--pair", *flagged, "--pair", *other, "-o", tmp_path / "x.fits", code=1),
-                   "none of the 2 pairs has an object to correlate")
+    one_line_error(invoke("correlate", "--pair", *flagged, "--pair", *other, "-o", tmp_path / "x.fits"),
+                   "none of the 2 pairs has an object to correlate", allow_warnings=True)
 
 
 def test_pair_usage_errors(three, tmp_path):
@@ -328,7 +314,7 @@ def test_pair_usage_errors(three, tmp_path):
                  ["--pair", pairs[0][0], pairs[0][1], "--de1", "a", "--de2", "b"],
                  [],
                  [pairs[0][0], pairs[0][1], pairs[1][0]]):
-        result = run(*args, "-o", out, code=2)
+        result = run("correlate", *args, "-o", out, code=2)
         assert "pair" in result.output.splitlines()[-1], result.output
     assert not out.exists()
 
@@ -356,7 +342,7 @@ def test_figures_are_readable_by_others_like_every_output(three, tmp_path):
     args = sum([["--pair", p[0], p[1]] for p in three[1]], [])
     old = os.umask(0o022)
     try:
-        run(*args, "--plots", tmp_path / "figs", "--plot", tmp_path / "xi.png", "-o", out)
+        run("correlate", *args, "--plots", tmp_path / "figs", "--plot", tmp_path / "xi.png", "-o", out)
     finally:
         os.umask(old)
     for png in [tmp_path / "xi.png", *(tmp_path / "figs").glob("*.png")]:

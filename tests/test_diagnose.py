@@ -16,18 +16,13 @@ import numpy as np
 import pytest
 from astropy.table import Table
 
-from fits_factory import invoke
+from fits_factory import invoke, one_line_error, run
 
 RA, DEC, PA, SCA, FILTER = 10.0, -44.0, 30.0, 7, "J129"
 MJD1 = 61541.97
 STEP = (139.8 + 30.0) / 86400.0
 BOUNDS = (1001, 1128, 2001, 2128)
 
-
-def run(*args, code=0):
-    result = invoke(*[str(a) for a in args])
-    assert result.exit_code == code, (result.exit_code, result.stderr, result.exception)
-    return result
 
 
 @pytest.fixture(scope="module")
@@ -228,25 +223,18 @@ def test_errors(scene, simulated, tmp_path):
 
 # -- what diagnose refuses before any fit: one line, exit 1 (2 for a bad option), nothing written -----------
 
-def _one_line(result, code):
-    assert result.exit_code == code, (result.exit_code, result.stderr)
-    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
-    return lines[0]
-
-
 def test_bad_options_outputs_and_models_are_refused_before_the_fit(scene, tmp_path):
     sims = sequence(scene, "refusals", n=2)
     args = ["diagnose", *sims, "--simulated", sims[0], "--simulated", sims[1]]
-    assert "--gain" in _one_line(invoke(*args, "--gain", "nan", "-o", tmp_path / "d"), 2)
-    assert "not a stream" in _one_line(invoke(*args, "-o", "-"), 1)
+    assert "--gain" in one_line_error(invoke(*args, "--gain", "nan", "-o", tmp_path / "d"), code=2)
+    assert "not a stream" in one_line_error(invoke(*args, "-o", "-"), code=1)
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
-    assert "is a file" in _one_line(invoke(*args, "-o", a_file), 1)
-    assert "does not exist" in _one_line(invoke(*args, "-o", tmp_path / "no" / "such" / "d"), 1)
+    assert "is a file" in one_line_error(invoke(*args, "-o", a_file), code=1)
+    assert "does not exist" in one_line_error(invoke(*args, "-o", tmp_path / "no" / "such" / "d"), code=1)
     model = tmp_path / "m.yaml"
     model.write_text("effects:\n  - dark: {current: 0.02}\nefects: []\n")
-    line = _one_line(invoke(*args, "--model", model, "-o", tmp_path / "d"), 1)
+    line = one_line_error(invoke(*args, "--model", model, "-o", tmp_path / "d"), code=1)
     assert "efects" in line
     assert a_file.read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "m.yaml"]
 
@@ -261,15 +249,16 @@ def test_a_shell_glob_after_simulated_is_named_and_an_empty_simulation_refused(s
     for src, dst in zip(sims, measured):
         shutil.copy(src, dst)
     # `diagnose m*.fits --simulated sim*.fits`: the shell passes the second simulation as a measured frame
-    line = _one_line(invoke("diagnose", *measured, "--simulated", sims[0], sims[1], "-o", tmp_path / "d"), 1)
+    line = one_line_error(invoke("diagnose", *measured, "--simulated", sims[0], sims[1], "-o", tmp_path / "d"),
+                          code=1)
     assert "--simulated per file" in line
 
     empty = tmp_path / "empty_ideal.fits"
     with fits.open(sims[1]) as hdul:
         hdul["IDEAL"].data = np.full(hdul["IDEAL"].data.shape, np.nan, dtype=np.float32)
         hdul.writeto(empty, checksum=True)
-    line = _one_line(invoke("diagnose", *measured, "--simulated", sims[0], "--simulated", empty,
-                            "-o", tmp_path / "d"), 1)
+    line = one_line_error(invoke("diagnose", *measured, "--simulated", sims[0], "--simulated", empty,
+                                 "-o", tmp_path / "d"), code=1)
     assert "IDEAL has no finite pixel" in line
     assert not (tmp_path / "d").exists()
 
@@ -282,7 +271,7 @@ def test_a_ramp_whose_reads_share_one_time_is_refused(tmp_path):
     prim = {"EXPSTART": MJD1, "EXPEND": MJD1 + 100.0 / 86400.0, "EXPTIME": 100.0, "CCDGAIN": 2.5}
     path = wfc3_ramp_file(tmp_path / "raw.fits", reads, [0.0, 0.0, 0.0, 0.0], {"BUNIT": "COUNTS"},
                           primary_keywords=prim)
-    line = _one_line(invoke("diagnose", path, "-o", tmp_path / "d"), 1)
+    line = one_line_error(invoke("diagnose", path, "-o", tmp_path / "d"), code=1)
     assert "SAMPTIME repeats" in line and "increasing times" in line, line
     assert not (tmp_path / "d").exists()
 

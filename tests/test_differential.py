@@ -5,16 +5,9 @@ import json
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from perscli.cli.main import cli
+from fits_factory import run
 from perscli.detector.effects import NOISE_BLOCK, block_grid, default_model, run_chain, run_chains
-
-
-def run(*args):
-    result = CliRunner().invoke(cli, [str(a) for a in args])
-    assert result.exit_code == 0, result.output + str(result.exception)
-    return result
 
 
 def _sources(shape, seed=3):

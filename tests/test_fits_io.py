@@ -15,17 +15,11 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from fits_factory import invoke
+from fits_factory import run
 from test_render import DEC, FILTER, MJD1, MJD2, PA, RA, SCA, grid_objects, write_catalog
 
 PERSCLI = shutil.which("perscli", path=os.path.dirname(sys.executable)) or shutil.which("perscli")
 BOUNDS = (1001, 1096, 2001, 2096)
-
-
-def run(*args, code=0):
-    result = invoke(*[str(a) for a in args])
-    assert result.exit_code == code, (result.exit_code, result.stderr, result.exception)
-    return result
 
 
 def render(truth, out, mjd, *extra, seed=1):

@@ -4,21 +4,14 @@ import numpy as np
 import pytest
 from astropy.io import fits
 from astropy.table import Table
-from click.testing import CliRunner
 
-from perscli.cli.main import cli
+from fits_factory import run
 
 galsim = pytest.importorskip("galsim")
 
 BOUNDS = ["--bounds", "1", "160", "1", "160"]
 POINTING = ["--ra", "10", "--dec", "-44", "--pa", "30", "--filter", "J129", "--sca", "7"]
 MJD = 61541.97
-
-
-def run(*args, code=0):
-    result = CliRunner().invoke(cli, [str(a) for a in args])
-    assert result.exit_code == code, (result.output, result.exception)
-    return result
 
 
 @pytest.fixture(scope="module")

@@ -20,9 +20,8 @@ import pytest
 from astropy.io import fits
 from astropy.table import Table
 from astropy.wcs import WCS
-from click.testing import CliRunner
 
-from perscli.cli.main import cli
+from fits_factory import one_line_error, run
 
 galsim = pytest.importorskip("galsim")
 import galsim.roman as roman  # noqa: E402
@@ -108,12 +107,6 @@ def write_catalog(path, ids, x, y, flux=None, *, radec=False):
         cols["mag_J129"] = mag(np.asarray(flux, float))
     Table(cols).write(path, overwrite=True)
     return path
-
-
-def run(*args, code=0):
-    result = CliRunner().invoke(cli, [str(a) for a in args])
-    assert result.exit_code == code, (result.output, result.stderr, result.exception)
-    return result
 
 
 def measure(frames, catalog, out, *extra, code=0):
@@ -547,29 +540,18 @@ def small(tmp_path_factory):
     return tmp, data, cat
 
 
-def assert_error(result, *needles, out=None):
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("Error:")
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    assert result.stdout == ""
-    if out is not None:
-        assert not out.exists()
-
-
 def test_error_rate_unit_frame(small):
     tmp, data, cat = small
     frame = write_frame(tmp / "rate.fits", data / EXPTIME, BUNIT="electron/s")
     out = tmp / "o_rate.fits"
-    assert_error(measure(frame, cat, out, code=1), "rate", "electron/s", out=out)
+    one_line_error(measure(frame, cat, out, code=1), "rate", "electron/s", out=out)
 
 
 def test_error_no_skyrate_no_weights_needs_sky(small):
     tmp, data, cat = small
     frame = write_frame(tmp / "nosky.fits", data, drop=("SKYRATE",))
     out = tmp / "o_nosky.fits"
-    assert_error(measure(frame, cat, out, code=1), "--sky", "SKYRATE", out=out)
+    one_line_error(measure(frame, cat, out, code=1), "--sky", "SKYRATE", out=out)
     # with --sky it runs
     measure(frame, cat, out, "--sky", BKG)
     assert fits.getheader(out)["BKG01"] == pytest.approx(BKG) and len(shapes(out)) == 1
@@ -580,7 +562,7 @@ def test_error_catalogue_without_id(small):
     frame = write_frame(tmp / "ok.fits", data)
     Table(dict(x=[20.0], y=[20.0])).write(tmp / "noid.fits", overwrite=True)
     out = tmp / "o_noid.fits"
-    assert_error(measure(frame, tmp / "noid.fits", out, code=1), "'id'", out=out)
+    one_line_error(measure(frame, tmp / "noid.fits", out, code=1), "'id'", out=out)
 
 
 def test_error_psf_image_without_pixscale(small, psf):
@@ -589,10 +571,10 @@ def test_error_psf_image_without_pixscale(small, psf):
     image = psf.drawImage(nx=64, ny=64, scale=roman.pixel_scale / 4, method="no_pixel").array
     fits.PrimaryHDU(image, fits.Header({"BUNIT": "electron"})).writeto(tmp / "psf.fits", overwrite=True)
     out = tmp / "o_psf.fits"
-    assert_error(measure(frame, cat, out, "--psf", tmp / "psf.fits", code=1), "PIXSCALE", "psf.fits", out=out)
+    one_line_error(measure(frame, cat, out, "--psf", tmp / "psf.fits", code=1), "PIXSCALE", "psf.fits", out=out)
 
 
 def test_error_nonexistent_frame(small):
     tmp, data, cat = small
     out = tmp / "o_missing.fits"
-    assert_error(measure(tmp / "missing.fits", cat, out, code=1), "missing.fits", "no such file", out=out)
+    one_line_error(measure(tmp / "missing.fits", cat, out, code=1), "missing.fits", "no such file", out=out)

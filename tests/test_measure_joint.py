@@ -13,9 +13,8 @@ import pytest
 from astropy.io import fits
 from astropy.table import Table
 from astropy.wcs import WCS
-from click.testing import CliRunner
 
-from perscli.cli.main import cli
+from fits_factory import one_line_error, run
 
 galsim = pytest.importorskip("galsim")
 import galsim.roman as roman  # noqa: E402
@@ -204,12 +203,6 @@ def write_truth(path, *, kind=True, extra_star=True):
     return path
 
 
-def run(*args, code=0):
-    result = CliRunner().invoke(cli, [str(a) for a in args])
-    assert result.exit_code == code, (result.output, result.stderr, result.exception)
-    return result
-
-
 @pytest.fixture(scope="module")
 def joint_scene(psf, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("joint")
@@ -301,29 +294,19 @@ def _single(frames, tmp_path):
 # -- errors: one line on stderr, exit 1, no output -------------------------------------------------------
 
 
-def assert_error(result, *needles, out=None):
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("Error:")
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    if out is not None:
-        assert not out.exists()
-
-
 def test_error_joint_frames_of_different_filters(psf, tmp_path):
     frames = write_frames(tmp_path, psf, filters=("J129", "H158", "J129"))
     out = tmp_path / "o.fits"
     r = run("measure", *frames, "--catalog", write_truth(tmp_path / "t.fits"), "--joint", "-o", out, code=1)
-    assert_error(r, "--joint", "J129", "H158", "filter", out=out)
+    one_line_error(r, "--joint", "J129", "H158", "filter", out=out)
 
 
 def test_error_kinds_without_a_kind_column(joint_scene, tmp_path):
     _, frames, _ = joint_scene
     cat = write_truth(tmp_path / "nokind.fits", kind=False)
     out = tmp_path / "o.fits"
-    assert_error(run("measure", frames[0], "--catalog", cat, "--kinds", "galaxy", "-o", out, code=1),
-                 "no kind column", "--kinds all", out=out)
+    one_line_error(run("measure", frames[0], "--catalog", cat, "--kinds", "galaxy", "-o", out, code=1),
+                   "no kind column", "--kinds all", out=out)
     # without --kinds every row is measured; --kinds all is fine too
     run("measure", frames[0], "--catalog", cat, "-o", tmp_path / "ok.fits")
     assert fits.getheader(tmp_path / "ok.fits")["KINDS"] == "all (no kind column)"
@@ -333,24 +316,24 @@ def test_error_kinds_without_a_kind_column(joint_scene, tmp_path):
 def test_error_unknown_kind(joint_scene, tmp_path):
     _, frames, truth = joint_scene
     out = tmp_path / "o.fits"
-    assert_error(run("measure", frames[0], "--catalog", truth, "--kinds", "galxy", "-o", out, code=1),
-                 "galxy", "galaxy, star", out=out)
+    one_line_error(run("measure", frames[0], "--catalog", truth, "--kinds", "galxy", "-o", out, code=1),
+                   "galxy", "galaxy, star", out=out)
 
 
 @pytest.mark.parametrize("value", ["-1", "nan", "inf"])
 def test_error_min_snr_negative_or_not_finite(joint_scene, tmp_path, value):
     _, frames, truth = joint_scene
     out = tmp_path / "o.fits"
-    assert_error(run("measure", frames[0], "--catalog", truth, "--min-snr", value, "-o", out, code=1),
-                 "--min-snr", out=out)
+    one_line_error(run("measure", frames[0], "--catalog", truth, "--min-snr", value, "-o", out, code=1),
+                   "--min-snr", out=out)
 
 
 def test_error_joint_with_hsm_or_xy_catalogue(joint_scene, tmp_path):
     _, frames, _ = joint_scene
     out = tmp_path / "o.fits"
     truth = write_truth(tmp_path / "t.fits")
-    assert_error(run("measure", *frames, "--catalog", truth, "--joint", "--method", "hsm", "-o", out, code=1),
-                 "--joint", "hsm", out=out)
+    one_line_error(run("measure", *frames, "--catalog", truth, "--joint", "--method", "hsm", "-o", out, code=1),
+                   "--joint", "hsm", out=out)
     Table(dict(id=[1], x=[40.0], y=[40.0])).write(tmp_path / "xy.fits")
-    assert_error(run("measure", *frames, "--catalog", tmp_path / "xy.fits", "--joint", "-o", out, code=1),
-                 "--joint", "ra/dec", out=out)
+    one_line_error(run("measure", *frames, "--catalog", tmp_path / "xy.fits", "--joint", "-o", out, code=1),
+                   "--joint", "ra/dec", out=out)

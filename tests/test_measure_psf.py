@@ -25,7 +25,8 @@ from astropy.table import Table
 galsim = pytest.importorskip("galsim")
 import galsim.roman as roman  # noqa: E402
 
-from test_measure_failures import BKG, assert_error, frame_wcs, mag, measure, run, shapes, write_frame  # noqa: E402
+from fits_factory import one_line_error, run  # noqa: E402
+from test_measure_failures import BKG, frame_wcs, mag, measure, shapes, write_frame  # noqa: E402
 
 from perscli.measure import psf as psfmod  # noqa: E402
 
@@ -226,15 +227,15 @@ def test_oversampling_option_overrides_the_header(scene, images, tmp_path):
     wrong = write_psf(tmp_path / "wrong_scale.fits", fits.getdata(images["eff4"]), PIXSCALE=P, PSFPIXEL=True)
     out = tmp_path / "o.fits"
     r = measure(frame, cat, out, "--psf", wrong, code=1)
-    assert_error(r, "wrong_scale.fits", "undersampled", out=out)
+    one_line_error(r, "wrong_scale.fits", "undersampled", out=out)
     # ... corrected on the command line
     measure(frame, cat, out, "--psf", wrong, "--psf-oversampling", 4)
     assert_accurate(out, truth)
     assert fits.getheader(out)["PSFOVERS"] == pytest.approx(4.0)
     # and the option can refuse what the header would accept
     out2 = tmp_path / "o2.fits"
-    assert_error(measure(frame, cat, out2, "--psf", images["eff4"], "--psf-oversampling", 1, code=1),
-                 "undersampled", "--psf-oversampling 1", out=out2)
+    one_line_error(measure(frame, cat, out2, "--psf", images["eff4"], "--psf-oversampling", 1, code=1),
+                   "undersampled", "--psf-oversampling 1", out=out2)
 
 
 def test_stpsf_layout(scene, images, tmp_path):
@@ -248,15 +249,15 @@ def test_stpsf_layout(scene, images, tmp_path):
                                 name="DET_SAMP")]).writeto(path)
     out = tmp_path / "o.fits"
     # two images and no SCA/FILTER to choose by: the user picks
-    assert_error(measure(frame, cat, out, "--psf", path, code=1), "select one", "OVERSAMP", out=out)
+    one_line_error(measure(frame, cat, out, "--psf", path, code=1), "select one", "OVERSAMP", out=out)
     r = measure(frame, cat, out, "--psf", f"{path}[OVERSAMP]")
     said = warnings_of(r)
     assert len(said) == 1 and "optical" in said[0]
     assert_accurate(out, truth)
     # the detector-sampled extension: taken to include the pixel, and refused as undersampled (one line)
     out2 = tmp_path / "o2.fits"
-    assert_error(measure(frame, cat, out2, "--psf", f"{path}[DET_SAMP]", code=1), "undersampled for J129",
-                 "--psf roman", out=out2)
+    one_line_error(measure(frame, cat, out2, "--psf", f"{path}[DET_SAMP]", code=1), "undersampled for J129",
+                   "--psf roman", out=out2)
 
 
 # -- undersampled images -------------------------------------------------------------------------------
@@ -274,7 +275,7 @@ def test_undersampled_image_is_refused(scene, images, name, needles):
     (never exit 0 with shapes off by ~2e-3) -- from the declared sampling, or from the image itself."""
     tmp, frame, cat, _ = scene
     out = tmp / f"{name}_refused.fits"
-    assert_error(measure(frame, cat, out, "--psf", images[name], code=1), *needles, out=out)
+    one_line_error(measure(frame, cat, out, "--psf", images[name], code=1), *needles, out=out)
 
 
 def test_undersampled_image_refused_for_any_filter(scene, images, tmp_path):
@@ -284,8 +285,8 @@ def test_undersampled_image_refused_for_any_filter(scene, images, tmp_path):
         hdul[1].header["FILTER"] = "F125W"
         hdul.writeto(tmp_path / "hst.fits")
     out = tmp_path / "o.fits"
-    assert_error(measure(tmp_path / "hst.fits", cat, out, "--psf", images["native"], code=1), "Fourier power",
-                 out=out)
+    one_line_error(measure(tmp_path / "hst.fits", cat, out, "--psf", images["native"], code=1), "Fourier power",
+                   out=out)
 
 
 def test_allow_undersampled_warns_with_the_expected_error(scene, images):
@@ -357,12 +358,12 @@ def test_write_psf_refuses_to_replace_an_input_or_the_output(scene, tmp_path):
     tmp, frame, cat, _ = scene
     out = tmp_path / "o.fits"
     before = cat.read_bytes()
-    assert_error(measure(frame, cat, out, "--write-psf", cat, code=1), "also an input", out=out)
+    one_line_error(measure(frame, cat, out, "--write-psf", cat, code=1), "also an input", out=out)
     assert cat.read_bytes() == before
-    assert_error(measure(frame, cat, out, "--write-psf", out, code=1), str(out), out=out)
+    one_line_error(measure(frame, cat, out, "--write-psf", out, code=1), str(out), out=out)
     existing = tmp_path / "psf.fits"
     existing.write_bytes(b"not yet a PSF")
-    assert_error(measure(frame, cat, out, "--write-psf", existing, code=1), "already exists", "--overwrite", out=out)
+    one_line_error(measure(frame, cat, out, "--write-psf", existing, code=1), "already exists", "--overwrite", out=out)
     assert existing.read_bytes() == b"not yet a PSF"
     measure(frame, cat, out, "--write-psf", existing, "--overwrite")
     assert fits.getheader(existing, 1)["OVERSAMP"] == 4
@@ -393,7 +394,7 @@ def test_psf_file_of_several_detectors_gives_each_frame_its_own(scene, images, t
                   fits.ImageHDU(wrong, fits.Header({"SCA": 4, "FILTER": "J129", "OVERSAMP": 4}), name="PSF", ver=2)]
                  ).writeto(other)
     out2 = tmp_path / "o2.fits"
-    assert_error(measure(frame, cat, out2, "--psf", other, code=1), "SCA 7", "SCA 3", out=out2)
+    one_line_error(measure(frame, cat, out2, "--psf", other, code=1), "SCA 7", "SCA 3", out=out2)
 
 
 # -- the pieces ----------------------------------------------------------------------------------------
@@ -439,10 +440,10 @@ def test_bad_psf_options(scene, images, tmp_path):
     assert "--psf-oversampling" in run("measure", frame, "--catalog", cat, "--psf-oversampling", 0, "-o", out,
                                        code=2).stderr
     # the image options describe an image: with --psf roman they are a mistake, not ignored
-    assert_error(measure(frame, cat, out, "--psf-oversampling", 4, code=1), "--psf-oversampling", "--psf roman",
-                 out=out)
+    one_line_error(measure(frame, cat, out, "--psf-oversampling", 4, code=1), "--psf-oversampling", "--psf roman",
+                   out=out)
     bad = write_psf(tmp_path / "bad_pixel.fits", fits.getdata(images["opt4"]), OVERSAMP=4, PSFPIXEL="maybe")
-    assert_error(measure(frame, cat, out, "--psf", bad, code=1), "PSFPIXEL", "--psf-pixel", out=out)
+    one_line_error(measure(frame, cat, out, "--psf", bad, code=1), "PSFPIXEL", "--psf-pixel", out=out)
     assert not out.exists()
 
 

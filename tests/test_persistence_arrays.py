@@ -7,19 +7,13 @@ import pytest
 from astropy.io import fits
 
 from conftest import SAMPLE_DATA, fluence_grid
-from fits_factory import invoke
+from fits_factory import run
 from perscli import PerscliError
 from perscli.detector.persistence import (PRESETS, PersistenceModel, load_model, persistence_charge,
                                           time_factor)
 from perscli.io.frames import SECONDS_PER_DAY, open_frame
 
 EXP = [str(SAMPLE_DATA / f"exp{k}.fits") for k in (1, 2, 3, 4)]
-
-
-def run(*args, code=0):
-    result = invoke(*[str(a) for a in args])
-    assert result.exit_code == code, (result.stderr, result.exception)
-    return result
 
 
 def arrays(names):

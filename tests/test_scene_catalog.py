@@ -2,6 +2,7 @@
 Gaia stars and their colours, reproducibility, errors."""
 
 import math
+from functools import partial
 
 import numpy as np
 import pytest
@@ -14,7 +15,8 @@ from perscli.scene.catalog import (Field, GalaxyModel, cumulative_fraction, draw
                                    make_truth_catalog, power_law_magnitudes, truncated_ellipticities,
                                    truncated_sigma)
 
-from fits_factory import expect_one_line_error, invoke, listing, raw_cards_masked
+import fits_factory
+from fits_factory import invoke, listing, raw_cards_masked
 
 RA, DEC = 10.0, -44.0
 
@@ -429,9 +431,9 @@ def test_real_gaia_chunks(shared_data, tmp_path):
 
 # -- command-line errors -----------------------------------------------------------------------
 
-def expect_error(tmp_path, args, *needles):
-    """A one-line data error (exit 1), no output file, inputs unchanged."""
-    return expect_one_line_error(tmp_path, ("catalog", "--ra", RA, "--dec", DEC), args, *needles)
+#: ``expect_error(tmp_path, ARGS, *needles)``: ``perscli catalog --ra RA --dec DEC ARGS -o OUT`` fails in one
+#: line holding every needle, no output file, inputs unchanged (:func:`fits_factory.expect_error`)
+expect_error = partial(fits_factory.expect_error, command=("catalog", "--ra", RA, "--dec", DEC))
 
 
 def expect_usage_error(tmp_path, args, *needles):
@@ -747,7 +749,7 @@ def test_cli_footprints_errors(tmp_path):
     assert invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--start", 61541.97,
                   "-o", ptg).exit_code == 0
     # rows without an SCA and no --sca: one line
-    expect_one_line_error(tmp_path, ["catalog"], ["--footprints", ptg], "--sca")
+    expect_error(tmp_path, ["--footprints", ptg], "--sca", command="catalog")
     for args, needle in ((["--footprints", ptg, "--ra", RA], "--ra is for a square field"),
                          (["--footprints", ptg, "--size", 3], "--size is for a square field"),
                          (["--ra", RA, "--dec", DEC, "--margin", 5], "--margin is for --footprints"),

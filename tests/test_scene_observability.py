@@ -17,7 +17,7 @@ from perscli import PerscliError
 from perscli.scene.pointings import (PLAN_REFERENCE_MJD, best_pa, first_observable_start, observable, plan_dithers,
                                      sun_angle)
 
-from fits_factory import expect_one_line_error, invoke, listing
+from fits_factory import expect_error, invoke, listing
 
 RA, DEC = 10.0, -44.0
 DAY = 86400.0
@@ -175,15 +175,14 @@ def test_cli_plan_given_start_and_pa_are_recorded(tmp_path):
 
 
 def test_cli_plan_unobservable_start_is_one_line_naming_the_fix(tmp_path):
-    line = expect_one_line_error(tmp_path, ["pointings"], ["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7,
-                                                           "--start", 60000], "Roman cannot take", "the Sun is",
-                                 "--start 60048", "best --pa")
+    args = ["pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "--start", 60000]
+    line = expect_error(tmp_path, args, "Roman cannot take", "the Sun is", "--start 60048", "best --pa")
     assert "Traceback" not in line
 
 
 def test_cli_plan_never_observable_is_one_line(tmp_path):
-    expect_one_line_error(tmp_path, ["pointings"], ["--plan", "--ra", RA, "--dec", DEC, "--n", 150, "--gap", DAY,
-                                                    "--dither", 0], "shorten it (--n, --exptime, --gap)")
+    expect_error(tmp_path, ["pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 150, "--gap", DAY, "--dither", 0],
+                 "shorten it (--n, --exptime, --gap)")
 
 
 def test_default_plan_then_render_works_end_to_end(tmp_path):

@@ -6,6 +6,7 @@ import os
 import shutil
 import subprocess
 import sys
+from functools import partial
 
 import numpy as np
 import pytest
@@ -16,7 +17,8 @@ from perscli.scene.pointings import (Pointing, Schedule, plan_dithers, previous_
                                      read_schedule, sca_footprint, schedule_pointing, select_covering,
                                      write_pointings)
 
-from fits_factory import expect_one_line_error, invoke, listing, raw_cards_masked
+import fits_factory
+from fits_factory import invoke, listing, raw_cards_masked
 
 RA, DEC = 10.0, -44.0
 DAY = 86400.0
@@ -231,9 +233,9 @@ def test_schedule_from_stdin(tmp_path):
 
 # -- command-line errors -----------------------------------------------------------------------
 
-def expect_error(tmp_path, args, *needles):
-    """A one-line data error (exit 1), no output file, inputs unchanged."""
-    return expect_one_line_error(tmp_path, ("pointings",), args, *needles)
+#: ``expect_error(tmp_path, ARGS, *needles)``: ``perscli pointings ARGS -o OUT`` fails in one line holding
+#: every needle, no output file, inputs unchanged (:func:`fits_factory.expect_error`)
+expect_error = partial(fits_factory.expect_error, command="pointings")
 
 
 @pytest.mark.parametrize("column", ["date", "exptime", "ra", "dec", "pa", "filter"])
@@ -586,8 +588,8 @@ def test_usage_errors_of_before_and_footprints(tmp_path, args, needle):
 
 def test_plan_on_a_date_roman_cannot_observe_is_one_line(tmp_path):
     # MJD 60000 is too close to the Sun for RA 10, Dec -44: the plan says so before any footprint is asked for
-    expect_one_line_error(tmp_path, ["pointings"], ["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7,
-                                                    "--start", 60000, "--footprints"], "Roman cannot take", "--start")
+    expect_error(tmp_path, ["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "--start", 60000, "--footprints"],
+                 "Roman cannot take", "--start")
 
 
 def test_plan_with_footprints_at_the_default_start(tmp_path):

@@ -13,7 +13,7 @@ from perscli.scene import starcounts as sc
 from perscli.scene.catalog import Field, StarModel, gaia_roman_jh, make_truth_catalog
 from perscli.scene.regions import FootprintUnion
 
-from fits_factory import expect_one_line_error, invoke, listing
+from fits_factory import expect_error, invoke, listing
 
 RA, DEC = 10.0, -44.0
 CHUNKS = ("145649.fits", "145650.fits")
@@ -316,10 +316,9 @@ def test_cli_star_parameters(tmp_path):
         hdr, data = hdul["TRUTH"].header, hdul["TRUTH"].data
         assert hdr["STARMOD"] == "galactic" and hdr["SGH1"] == 300.0 and hdr["SMAGMAX"] == 20.0
         assert data["mag_J129"][np.char.strip(data["kind"]) == "star"].max() <= 20.0
-    expect_one_line_error(tmp_path, ("catalog", "--ra", RA, "--dec", DEC), ["--star-param", "thin_hight=3"],
-                          "unknown star-model parameter 'thin_hight'", "valid are")
-    expect_one_line_error(tmp_path, ("catalog", "--ra", RA, "--dec", DEC), ["--star-param", "mag_min=abc"],
-                          "mag_min='abc'")
+    expect_error(tmp_path, ["catalog", "--ra", RA, "--dec", DEC, "--star-param", "thin_hight=3"],
+                 "unknown star-model parameter 'thin_hight'", "valid are")
+    expect_error(tmp_path, ["catalog", "--ra", RA, "--dec", DEC, "--star-param", "mag_min=abc"], "mag_min='abc'")
     for args, needle in ((["--star-param", "thin_height=300", "--star-density", "2"], "--star-density"),
                          (["--star-param", "thin_height=300", "--gaia", out], "--gaia")):
         files = listing(tmp_path)

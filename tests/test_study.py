@@ -9,10 +9,9 @@ import time
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
+from fits_factory import invoke, one_line_error, run
 from perscli import PerscliError
-from perscli.cli.main import cli
 from perscli.study.config import load_study
 from perscli.study.plan import build, frame_seed, select_exposures, variant_name
 from perscli.study.runner import task_dicts
@@ -25,13 +24,6 @@ needs_schedule = pytest.mark.skipif(not os.path.exists(SCHEDULE), reason="../sha
 CI = ["exposures.source=plan", "persistence.models=[typical]"]
 
 
-def run(*args, ok=True):
-    result = CliRunner().invoke(cli, [str(a) for a in args])
-    if ok:
-        assert result.exit_code == 0, result.output + str(result.exception)
-    return result
-
-
 # -- the description -------------------------------------------------------------------------
 
 def test_typos_are_named_with_the_closest_key(tmp_path):
@@ -41,8 +33,8 @@ def test_typos_are_named_with_the_closest_key(tmp_path):
     path.write_text("feild: {ra: 10}\n")
     with pytest.raises(PerscliError, match="did you mean field"):
         load_study(str(path))
-    result = run("study", path, "-o", tmp_path / "out", ok=False)
-    assert result.exit_code == 1 and "did you mean field" in result.output
+    result = run("study", path, "-o", tmp_path / "out", code=1)
+    assert "did you mean field" in result.output
 
 
 def test_types_and_values_are_checked():
@@ -163,27 +155,19 @@ def test_dry_run_reports_the_graph(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
-def _one_line(result, code):
-    assert result.exit_code == code, result.output
-    lines = [ln for ln in result.output.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "Traceback" not in result.output, result.output
-    return lines[0]
-
-
 def test_bad_scheduler_cost_file_and_output_are_one_line_before_anything_runs(tmp_path):
     args = ["study", "--preset", "ci", "--dry-run"]
-    line = _one_line(run(*args, "-o", tmp_path / "o", "--scheduler", "bogus", ok=False), 2)
-    assert "--scheduler" in line and "tcp://HOST:8786" in line
+    one_line_error(invoke(*args, "-o", tmp_path / "o", "--scheduler", "bogus"), "--scheduler", "tcp://HOST:8786",
+                   code=2)
     for text, message in (("{\n", "not JSON at line 2"), ("[]", "not a study's cost.json"),
                           ('{"final": {"tasks": 1}}', "entry 'final' lacks")):
         bad = tmp_path / "cost.json"
         bad.write_text(text)
-        line = _one_line(run(*args, "-o", tmp_path / "o", "--cost-from", bad, ok=False), 1)
-        assert message in line and str(bad) in line
+        one_line_error(invoke(*args, "-o", tmp_path / "o", "--cost-from", bad), message, bad)
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
-    assert "is a file" in _one_line(run(*args, "-o", a_file, ok=False), 1)
-    assert "not a stream" in _one_line(run(*args, "-o", "-", ok=False), 1)
+    one_line_error(invoke(*args, "-o", a_file), "is a file")
+    one_line_error(invoke(*args, "-o", "-"), "not a stream")
     assert a_file.read_text() == "x" and not (tmp_path / "o").exists()
 
 

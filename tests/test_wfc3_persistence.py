@@ -11,10 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from astropy.io import fits
-from click.testing import CliRunner
 
-from fits_factory import listing, snapshot
-from perscli.cli.main import cli
+from fits_factory import expect_error, one_line_error, run, snapshot
 
 DAY = 86400.0
 GAIN = 2.5
@@ -35,21 +33,6 @@ def long_F(x):
 def middle_factor(gap, window):
     """The WFC3 convention: the current at the middle of the window, times the window (gamma = 1)."""
     return 0.0 if window == 0 else window * 1000.0 / (gap + window / 2.0)
-
-
-def run(*args, code=0):
-    result = CliRunner().invoke(cli, [str(a) for a in args])
-    assert result.exit_code == code, (result.output, result.exception)
-    return result
-
-
-def one_line_error(result, *needles):
-    assert result.exit_code == 1, result.output
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
 
 
 # -- the real ramps ------------------------------------------------------------------------------------
@@ -407,10 +390,7 @@ def test_frames_with_no_pixel_in_common_or_of_another_detector_are_refused(tmp_p
          ("INSTRUME=ACS", "same detector")),
     ]
     for earlier, needles in cases:
-        out = tmp_path / "out.fits"
-        before = listing(tmp_path)
-        one_line_error(run("apply-persistence", current, earlier, "-o", out, code=1), Path(earlier).name, *needles)
-        assert listing(tmp_path) == before
+        expect_error(tmp_path, ["apply-persistence", current, earlier], Path(earlier).name, *needles)
     # side by side with one detector column in common (x 501): only that column receives persistence
     touching = flt(tmp_path / "touch_flt.fits", np.full((64, 64), 3000.0), start=T0, ltv=(-437.0, -500.0))
     run("apply-persistence", current, touching, "--mode", "predict", "-o", tmp_path / "touch.fits")
