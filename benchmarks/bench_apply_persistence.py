@@ -226,7 +226,7 @@ finally:
 PHASES = [
     ("imports (after interpreter start)", "_find_and_load", "<frozen importlib._bootstrap>"),
     ("open_frame x11 (headers only)", "open_frame", "frames.py"),
-    ("reading row blocks of the frames (pread)", "pread", "fitsfile.py"),
+    ("reading row blocks of the frames (pread)", "pread", "io/sources.py"),
     ("persistence kernel, DATASUM folded in (_kernels.accumulate)",
      "<built-in method perscli._kernels.accumulate>", "~"),
     ("other DATASUMs (_kernels.datasum: current, output)", "<built-in method perscli._kernels.datasum>", "~"),

@@ -187,15 +187,15 @@ finally:
 PHASES = [
     ("imports left inside the command (first use)", [("_find_and_load", "<frozen importlib._bootstrap>")]),
     ("opening the catalogue (scan, DATASUM, memory map)", [("open_table", "tables.py")]),
-    ("De, positions, flags (rest of load_shape_changes)", [("load_shape_changes", "correlate.py"),
+    ("De, positions, flags (rest of load_shape_changes)", [("load_shape_changes", "stats/shape_changes.py"),
                                                            ("-open_table", "tables.py")]),
     ("k-means patches (TreeCorr run_kmeans)", [("run_kmeans", "field.py")]),
     ("TreeCorr process (patch trees, all pairs of patches)", [("process", "corr2base.py")]),
     ("jackknife covariance (gg.cov)", [("estimate_cov", "corr2base.py")]),
-    ("De statistics, histogram of abs(De), angle bootstrap", [("de_statistics", "correlate.py"),
-                                                        ("de_histogram", "correlate.py"),
-                                                        ("theta_distribution", "correlate.py")]),
-    ("building the output HDUs", [("build_hdus", "correlate.py")]),
+    ("De statistics, histogram of abs(De), angle bootstrap", [("de_statistics", "stats/de_stats.py"),
+                                                        ("de_histogram", "stats/de_stats.py"),
+                                                        ("theta_distribution", "stats/de_stats.py")]),
+    ("building the output HDUs", [("build_hdus", "stats/correlate_hdus.py")]),
     ("writing (checksums, atomic rename)", [("write_fits", "output.py")]),
 ]
 

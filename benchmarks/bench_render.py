@@ -421,7 +421,7 @@ RENDER_PHASES = [
     ("- StampDrawer.stamp x objects", "stamp", "draw.py"),
     ("-- PSF x pixel transfer tables (once per stamp size)", "table", "draw.py"),
     ("-- GSObject.drawKImage (galaxies; the PSF for the tables)", "drawKImage", "galsim/gsobject.py"),
-    ("run_chain (detector effects)", "run_chain", "effects.py"),
+    ("run_chain (detector effects)", "run_chain", "detector/chain.py"),
     ("- IPC (3x3 convolution)", "apply_ipc", "effects.py"),
     ("write_hdus (SCI, IDEAL, FLUENCE; checksums)", "write_hdus", "output.py"),
 ]

@@ -1,0 +1,148 @@
+"""Parameter schemas of the detector effects: :class:`Param`, one parameter's type, unit, default and range.
+
+Each effect of :mod:`perscli.detector.effects` declares its parameters as a
+tuple of :class:`Param`; the model loader (:mod:`perscli.detector.model`)
+checks and converts values with :meth:`Param.check`.  The YAML model format
+is documented in :mod:`perscli.detector.effects`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import PerscliError
+
+# -- parameter schemas ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter of an effect: what it is and which values it may take.
+
+    Attributes
+    ----------
+    name : str
+    kind : {'float', 'int', 'choice', 'kernel', 'floats'}
+        'float': a finite number; 'int': a whole number; 'choice': one of
+        ``choices``; 'kernel': 'roman' or a 3x3 list of numbers; 'floats': a
+        non-empty list of finite numbers.
+    default
+        The value when not given; None for a value taken from another
+        parameter (``derived``).
+    unit : str
+    description : str
+    lo, hi : float, optional
+        Bounds (None: unbounded).
+    lo_open, hi_open : bool
+        The bound itself is excluded.
+    choices : tuple of str
+        Allowed words ('choice'), or words accepted besides numbers (e.g.
+        'auto' for the sky level).
+    derived : str
+        For ``default=None``: where the value comes from (e.g. 'from base').
+    """
+
+    name: str
+    kind: str
+    default: object
+    unit: str = ""
+    description: str = ""
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple = ()
+    derived: str = ""
+
+    def allowed(self, unit: bool = False) -> str:
+        """The allowed values as text, e.g. '(0, inf)' or 'typical | pessimistic' (with the unit if asked)."""
+        if self.kind == "choice":
+            return " | ".join(self.choices)
+        if self.kind == "kernel":
+            return "roman | 3x3 list"
+        lo = "-inf" if self.lo is None else f"{self.lo:g}"
+        hi = "inf" if self.hi is None else f"{self.hi:g}"
+        left = "(" if self.lo_open or self.lo is None else "["
+        right = ")" if self.hi_open or self.hi is None else "]"
+        text = f"{left}{lo}, {hi}{right}"
+        if self.kind == "int":
+            text = f"integer {text}"
+        if self.kind == "floats":
+            text = f"list, each {text}"
+        if unit and self.unit:
+            text += f" {self.unit}"
+        if self.choices:
+            text += " | " + " | ".join(self.choices)
+        return text
+
+    def _requirement(self) -> str:
+        if self.kind == "choice":
+            return f"must be one of {', '.join(self.choices)}"
+        if self.kind == "kernel":
+            return "must be 'roman' or a 3x3 list of finite numbers"
+        if self.lo == 0 and self.hi is None:
+            return "must be positive" if self.lo_open else "must not be negative"
+        if self.lo is None and self.hi is None:
+            return "must be a finite number"
+        return f"must be in {self.allowed()}"
+
+    def check(self, effect: str, value, where: str):
+        """``value`` converted to this parameter's type, or a PerscliError naming effect.param, value and range."""
+        def fail(requirement):
+            allowed = "" if self.kind in ("choice", "kernel") else f" (allowed: {self.allowed(unit=True)})"
+            return PerscliError(f"{where}: {effect}.{self.name} {requirement}{allowed}, not {value!r}")
+
+        if value is None and self.default is None:
+            return None
+        if self.kind == "choice":
+            if not isinstance(value, str) or value not in self.choices:
+                raise fail(self._requirement())
+            return value
+        if self.kind == "kernel":
+            if value == "roman":
+                return value
+            arr = np.asarray(value, dtype=float) if isinstance(value, (list, tuple)) and _numbers(value) else None
+            if arr is None or arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
+                raise fail(self._requirement())
+            return [[float(v) for v in row] for row in value]
+        if isinstance(value, str) and value in self.choices:
+            return value
+        if self.kind == "floats":
+            if not isinstance(value, (list, tuple)) or not value:
+                raise fail("must be a non-empty list of finite numbers")
+            return [self._number(effect, v, where, fail) for v in value]
+        return self._number(effect, value, where, fail)
+
+    def _number(self, effect, value, where, fail):
+        number = value
+        if isinstance(number, str):
+            # YAML 1.1 reads '-6e-7' (no decimal point) as text: accept any number Python can parse
+            try:
+                number = float(number)
+            except ValueError:
+                pass
+        if isinstance(number, bool) or not isinstance(number, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(number):
+            raise fail("must be a whole number" if self.kind == "int" else "must be a finite number")
+        if self.kind == "int":
+            if number != int(number):
+                raise fail("must be a whole number")
+            number = int(number)
+        else:
+            number = float(number)
+        if self.lo is not None and (number < self.lo or (self.lo_open and number == self.lo)):
+            raise fail(self._requirement())
+        if self.hi is not None and (number > self.hi or (self.hi_open and number == self.hi)):
+            raise fail(self._requirement())
+        return number
+
+
+def _numbers(rows) -> bool:
+    try:
+        return all(not isinstance(v, (bool, str)) and isinstance(v, (int, float))
+                   for row in rows for v in row)
+    except TypeError:
+        return False
