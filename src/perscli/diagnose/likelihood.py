@@ -178,12 +178,22 @@ class Problem:
             out = with_effect(out, "gain", {"gain": float(exp.gain)})
         return out
 
-    def _pieces(self, i, model, pieces, region: str = "full"):
+    def _prepared(self, model: DetectorModel) -> dict:
+        """:meth:`_model_for` of ``model`` for each kind of exposure (counts, gain): one copy of the model for
+        all the exposures that share it, made before the exposures' threads start."""
+        out = {}
+        for exp in self.exposures:
+            key = (exp.counts, exp.gain)
+            if key not in out:
+                out[key] = self._model_for(model, exp)
+        return out
+
+    def _pieces(self, i, model, pieces, region: str = "full", prepared=None):
         """(rows kept, mean, variance, data, mask) of exposure ``i`` for each (rows, keep0, keep1); ``region``
-        'fit' when ``pieces`` are the fit stripes."""
+        'fit' when ``pieces`` are the fit stripes; ``prepared`` from :meth:`_prepared`."""
         exp = self.exposures[i]
         pmodel = model.persistence_model() if model.enabled("persistence") else None
-        m = self._model_for(model, exp)
+        m = prepared[(exp.counts, exp.gain)] if prepared is not None else self._model_for(model, exp)
         charge = self.charge(i, pmodel, region) if pmodel is not None else None
         well = model.value("saturation", "full_well", off=None)
         # a measured ramp is compared by its last read minus its first: the part of the exposure
@@ -222,7 +232,8 @@ class Problem:
         out.pieces = []
         pieces = [(slice(0, self.shape[0]), 0, self.shape[0])] if full else self.stripes
         region = "full" if full else "fit"
-        per_exposure = thread_map(lambda i: list(self._pieces(i, model, pieces, region)),
+        prepared = self._prepared(model)
+        per_exposure = thread_map(lambda i: list(self._pieces(i, model, pieces, region, prepared)),
                                   range(len(self.exposures)), workers=self.workers)
         for i, done in enumerate(per_exposure):
             for rows, mean, var, data, mask in done:
@@ -243,9 +254,11 @@ class Problem:
             blocks.append((slice(a, b), r0 - a, r0 - a + (r1 - r0)))
         from ..executor import thread_map
 
+        prepared = self._prepared(model)
+
         def one(i):
             sums = []
-            for _, mean, var, data, mask in self._pieces(i, model, blocks):
+            for _, mean, var, data, mask in self._pieces(i, model, blocks, prepared=prepared):
                 r = data[mask] - mean[mask]
                 sums.append((float(np.sum(r * r / var[mask])), int(mask.sum())))
             return sums

@@ -144,7 +144,16 @@ def fit_candidate(problem, model, candidate: Candidate, m2lnl_base: float, npix:
     k = int(np.argmin(values))
     a, b = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
     tol = candidate.scale * 1e-4
-    if b > a:
+    at_bound = grid[k] in (lo, hi)
+    if at_bound:
+        # the best grid point is a bound of the range: when the cost rises a step inside it, the minimum is
+        # the bound itself (a value never named: see _unphysical), and Brent's method would only creep
+        # towards it in some 25 golden-section steps
+        inside = grid[k] + (tol * 10 if grid[k] == lo else -tol * 10)
+        at_bound = lo < inside < hi and cost(inside) >= values[k]
+    if at_bound:
+        best = float(grid[k])
+    elif b > a:
         res = minimize_scalar(cost, bounds=(a, b), method="bounded", options={"xatol": tol, "maxiter": 60})
         best = float(res.x) if res.fun <= values[k] else float(grid[k])
     else:
