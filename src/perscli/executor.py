@@ -22,6 +22,10 @@ an exposure) and goes through :func:`imap` / :func:`run`::
   and the parent terminates them on any exception (an error in an item,
   KeyboardInterrupt, or :class:`Terminated` from SIGTERM/SIGHUP).
 
+A study's task graph goes to Dask through :func:`dask_client` (a
+LocalCluster of ``workers`` processes, or a running scheduler), the one place
+perscli starts a cluster or a client.
+
 Threads are used only through :func:`thread_map`, for compiled loops that
 release the GIL over parts of frames already in memory (the persistence
 kernel over blocks of one frame; diagnose's forward model over its
@@ -36,6 +40,8 @@ temporary files and worker processes are ended.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import os
 import pickle
@@ -45,7 +51,9 @@ import traceback
 
 from . import PerscliError
 
-__all__ = ["Lazy", "Terminated", "imap", "run", "thread_map", "threads", "install_signal_handlers"]
+__all__ = ["Lazy", "Terminated", "imap", "run", "thread_map", "threads", "dask_client", "install_signal_handlers"]
+
+log = logging.getLogger(__name__)
 
 
 class Lazy:
@@ -369,6 +377,80 @@ def thread_map(func, items, *, workers: int = 1, progress=None) -> list:
         for future in futures:
             future.cancel()
         pool.shutdown(wait=True)
+
+
+# -- Dask ---------------------------------------------------------------------------------------------
+
+@contextlib.contextmanager
+def dask_client(scheduler: str, workers: int):
+    """A dask.distributed Client: on a LocalCluster of ``workers`` processes ('local'), or on the scheduler at
+    address ``scheduler``; closed (with its local cluster) on the way out, however it is left.
+
+    The study's runner submits its task graph to it; this is the one place
+    perscli starts a Dask cluster or client.
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:  # pragma: no cover - a dependency
+        raise PerscliError("dask.distributed is not installed: pip install distributed, "
+                           "or run with --scheduler serial") from None
+    cluster = None
+    if scheduler == "local":
+        cluster = _local_cluster(LocalCluster, workers)
+        client = Client(cluster)
+    else:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except OSError as exc:
+            raise PerscliError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there ({exc}); "
+                               "start one (dask scheduler) or use --scheduler local") from None
+    try:
+        yield client
+    finally:
+        _shut_down(client, cluster)
+
+
+def _shut_down(client, cluster) -> None:
+    """Close the client and any local cluster without hiding the error that got us here.
+
+    A worker busy in compiled code may not die within Dask's close timeout;
+    the resulting TimeoutError would replace a failed task's message, so
+    shutdown problems are logged, never raised.
+    """
+    for closer in (client.close, getattr(cluster, "close", None)):
+        if closer is None:
+            continue
+        try:
+            closer(timeout=30)
+        except Exception as exc:  # noqa: BLE001 - shutdown is best effort
+            log.debug("dask shutdown: %r", exc)
+
+
+def _local_cluster(LocalCluster, workers: int):
+    """A LocalCluster of ``workers`` one-thread processes that leave Ctrl-C to this process.
+
+    Ctrl-C goes to the terminal's whole process group: worker processes that
+    took it would each print a traceback before this process says its one
+    line and shuts them down.  They start with SIGINT ignored (an ignored
+    signal is inherited through exec) and this process's handler is put
+    back at once.
+    """
+    import signal
+    import threading
+
+    # one thread per worker process: GalSim, fitsio and perscli's kernels are not all thread-safe, and each
+    # task is a whole frame's work
+    # the workers' own log lines stay quiet: a task's failure reaches perscli through the client and is said in
+    # one line, and after Ctrl-C workers outliving the scheduler for a moment would log heartbeat tracebacks
+    kwargs = dict(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                  silence_logs=logging.CRITICAL)
+    if threading.current_thread() is not threading.main_thread():
+        return LocalCluster(**kwargs)
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        return LocalCluster(**kwargs)
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 # -- signals ---------------------------------------------------------------------------------------

@@ -69,11 +69,8 @@ def run_dask(tasks: list, study_dir: str, progress, *, scheduler: str = "local",
     whose arguments are its dependencies' futures, so Dask runs it after
     them; ``retries`` covers a worker lost mid-task.
     """
-    try:
-        from distributed import Client, LocalCluster, as_completed
-    except ImportError:  # pragma: no cover - a dependency
-        raise PerscliError("dask.distributed is not installed: pip install distributed, "
-                           "or run with --scheduler serial") from None
+    from ..executor import dask_client
+
     todo = [t for t in tasks if not is_done(study_dir, t)]
     for t in tasks:
         if t not in todo:
@@ -82,17 +79,9 @@ def run_dask(tasks: list, study_dir: str, progress, *, scheduler: str = "local",
             progress(rec)
     if not todo:
         return []
-    cluster = None
-    if scheduler == "local":
-        cluster = _local_cluster(LocalCluster, workers)
-        client = Client(cluster)
-    else:
-        try:
-            client = Client(scheduler, timeout="20s")
-        except OSError as exc:
-            raise PerscliError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there ({exc}); "
-                               "start one (dask scheduler) or use --scheduler local") from None
-    try:
+    with dask_client(scheduler, workers) as client:
+        from distributed import as_completed
+
         if not quiet:
             link = getattr(client, "dashboard_link", None)
             print(f"study: {len(todo)} tasks on Dask ({scheduler}, "
@@ -114,24 +103,6 @@ def run_dask(tasks: list, study_dir: str, progress, *, scheduler: str = "local",
             progress(rec)
             recs.append(rec)
         return recs
-    finally:
-        _shut_down(client, cluster)
-
-
-def _shut_down(client, cluster) -> None:
-    """Close the client and any local cluster without hiding the error that got us here.
-
-    A worker busy in compiled code may not die within Dask's close timeout;
-    the resulting TimeoutError would replace a failed task's message, so
-    shutdown problems are logged, never raised.
-    """
-    for closer in (client.close, getattr(cluster, "close", None)):
-        if closer is None:
-            continue
-        try:
-            closer(timeout=30)
-        except Exception as exc:  # noqa: BLE001 - shutdown is best effort
-            log.debug("dask shutdown: %r", exc)
 
 
 def _dask_key(t: dict) -> str:
@@ -182,33 +153,6 @@ def remove_stale_parts(study_dir: str) -> int:
             except OSError:
                 pass
     return removed
-
-
-def _local_cluster(LocalCluster, workers: int):
-    """A LocalCluster of ``workers`` one-thread processes that leave Ctrl-C to this process.
-
-    Ctrl-C goes to the terminal's whole process group: worker processes that
-    took it would each print a traceback before this process says its one
-    line and shuts them down.  They start with SIGINT ignored (an ignored
-    signal is inherited through exec) and this process's handler is put
-    back at once.
-    """
-    import signal
-    import threading
-
-    # one thread per worker process: GalSim, fitsio and perscli's kernels are not all thread-safe, and each
-    # task is a whole frame's work
-    # the workers' own log lines stay quiet: a task's failure reaches perscli through the client and is said in
-    # one line, and after Ctrl-C workers outliving the scheduler for a moment would log heartbeat tracebacks
-    kwargs = dict(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                  silence_logs=logging.CRITICAL)
-    if threading.current_thread() is not threading.main_thread():
-        return LocalCluster(**kwargs)
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        return LocalCluster(**kwargs)
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 def run(tasks: list, study_dir: str, *, scheduler: str = "local", workers: int = 2, quiet: bool = False) -> list:
