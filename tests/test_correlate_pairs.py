@@ -9,7 +9,7 @@ from astropy.io import fits
 
 from fits_factory import invoke, one_line_error, run
 from perscli import PerscliError
-from perscli.stats.correlate import correlate_files, load_pairs, read_pairs_file
+from perscli.stats.correlate import CorrelateOptions, correlate_files, load_pairs, read_pairs_file
 
 treecorr = pytest.importorskip("treecorr")
 
@@ -128,15 +128,14 @@ def test_pairs_file_is_the_same_as_pair_options(three, tmp_path, monkeypatch):
 
 def test_library_call_with_pairs_and_a_pairs_file(three, tmp_path):
     folder, pairs = three
-    summary = correlate_files([], str(tmp_path / "lib.fits"), pairs=[(p[0], p[1]) for p in pairs], npatch=4,
-                              seed=3, min_sep=1, max_sep=30, nbins=8)
+    options = CorrelateOptions(npatch=4, seed=3, min_sep=1, max_sep=30, nbins=8)
+    summary = correlate_files([], str(tmp_path / "lib.fits"), options, pairs=[(p[0], p[1]) for p in pairs])
     assert summary["n"] == 1800 and summary["npairs"] == 3 and summary["var_method"] == "jackknife"
     assert summary["var_reason"] == "" and summary["npatch"] == 4
     assert [row["dof"] for row in summary["theta"]] == [17] * 4
     listing = tmp_path / "pairs.txt"
     listing.write_text("".join(f"{p[0]} {p[1]}\n" for p in pairs))          # absolute names
-    again = correlate_files([], str(tmp_path / "lib2.fits"), pairs=str(listing), npatch=4, seed=3, min_sep=1,
-                            max_sep=30, nbins=8)
+    again = correlate_files([], str(tmp_path / "lib2.fits"), options, pairs=str(listing))
     np.testing.assert_allclose(again["xi"]["xip"], summary["xi"]["xip"], rtol=1e-10, atol=0)
     with pytest.raises(PerscliError, match="not both"):
         correlate_files([pairs[0][0]], str(tmp_path / "x.fits"), pairs=[(pairs[1][0], pairs[1][1])])
@@ -325,7 +324,7 @@ def test_twenty_pairs_of_2000_stay_fast(tmp_path):
         a, b, *_ = make_pair(tmp_path, k, n=2000)
         pairs.append((a, b))
     start = time.perf_counter()
-    summary = correlate_files([], str(tmp_path / "xi.fits"), pairs=pairs, seed=1)
+    summary = correlate_files([], str(tmp_path / "xi.fits"), CorrelateOptions(seed=1), pairs=pairs)
     elapsed = time.perf_counter() - start
     assert summary["n"] == 40_000 and summary["npatch"] == 20 and summary["var_method"] == "jackknife"
     # ~0.5 s on a 2-core VM (reading 40 tables, TreeCorr on 40k objects, the angle bootstrap)

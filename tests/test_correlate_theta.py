@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from perscli.stats.correlate import MIN_EXPECTED, N_ANGLE, chi2_sf, correlate_files, theta_distribution
+from perscli.stats.correlate import (MIN_EXPECTED, N_ANGLE, CorrelateOptions, chi2_sf, correlate_files,
+                                    theta_distribution)
 
 K = N_ANGLE
 P0 = 1.0 / K
@@ -117,8 +118,8 @@ def test_output_columns_header_and_summary(tmp_path):
             fits.Column("dec", "D", array=dec), fits.Column("de1", "D", array=d1), fits.Column("de2", "D", array=d2)]
     path = tmp_path / "de.fits"
     fits.HDUList([fits.PrimaryHDU(), fits.BinTableHDU.from_columns(cols, name="DE")]).writeto(path)
-    summary = correlate_files([str(path)], str(tmp_path / "xi.fits"), de_columns=("de1", "de2"), npatch=4,
-                              nbins=5)
+    summary = correlate_files([str(path)], str(tmp_path / "xi.fits"),
+                              CorrelateOptions(de_columns=("de1", "de2"), npatch=4, nbins=5))
     with fits.open(tmp_path / "xi.fits") as hdul:
         table, header = hdul["THETA_DE"].data, hdul["THETA_DE"].header
         for name in ("n_eff", "frac_err_null", "chi2_uniform", "dof_uniform", "p_uniform"):

@@ -7,12 +7,15 @@ import logging
 import click
 from click.core import ParameterSource
 
-from ..instrument import ROMAN_PIXEL_SCALE
+from ..stats.settings import CorrelateOptions, default_text
 from .helpers import FILE, FOLDER, PerscliCommand, check_outputs, report_errors
 from .options import (columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, seed_opt, verbosity_opts,
                       workers_opt)
 
 log = logging.getLogger("perscli")
+
+#: the defaults, written once (perscli.stats.settings)
+D = CorrelateOptions()
 
 
 def _numbers(ctx, param, value):
@@ -44,40 +47,41 @@ def _numbers(ctx, param, value):
 @click.option("--de2", metavar="COL", default=None, help="One table: the column holding De2.")
 @click.option("--common-ids", is_flag=True, default=False,
               help="Correlate the ids A and B share, instead of refusing tables whose ids differ.")
-@click.option("--positions", type=click.Choice(["auto", "radec", "xy"]), default="auto", show_default=True,
+@click.option("--positions", type=click.Choice(["auto", "radec", "xy"]), default=D.positions, show_default=True,
               help="ra/dec in degrees (auto when present), or x/y (flat) in pixels or in their TUNIT angle.")
-@click.option("--pixel-scale", type=click.FloatRange(min=0, min_open=True), default=ROMAN_PIXEL_SCALE,
+@click.option("--pixel-scale", type=click.FloatRange(min=0, min_open=True), default=D.pixel_scale,
               show_default=True, metavar="ARCSEC", help="Arcsec per pixel for x/y positions in pixels (Roman's).")
-@click.option("--min-sep", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+@click.option("--min-sep", type=click.FloatRange(min=0, min_open=True), default=D.min_sep, show_default=True,
               metavar="SEP", help="Smallest separation, in --sep-units.")
-@click.option("--max-sep", type=click.FloatRange(min=0, min_open=True), default=100.0, show_default=True,
+@click.option("--max-sep", type=click.FloatRange(min=0, min_open=True), default=D.max_sep, show_default=True,
               metavar="SEP", help="Largest separation, in --sep-units.")
-@click.option("--nbins", type=click.IntRange(min=1), default=20, show_default=True, metavar="N",
+@click.option("--nbins", type=click.IntRange(min=1), default=D.nbins, show_default=True, metavar="N",
               help="Logarithmic separation bins.")
-@click.option("--sep-units", type=click.Choice(["arcsec", "arcmin", "deg", "rad"]), default="arcmin",
+@click.option("--sep-units", type=click.Choice(["arcsec", "arcmin", "deg", "rad"]), default=D.sep_units,
               show_default=True, help="Units of --min-sep, --max-sep and of the output separations.")
 @click.option("--bin-slop", type=click.FloatRange(min=0), default=None, metavar="X",
               help="TreeCorr's bin_slop [default: TreeCorr's, min(1, 0.1/bin size)]; 0 is exact but slow on "
                    "large catalogues.")
-@click.option("--npatch", type=click.IntRange(min=2), default=20, show_default=True, metavar="N",
+@click.option("--npatch", type=click.IntRange(min=2), default=D.npatch, show_default=True, metavar="N",
               help="Jackknife patches, found by k-means on the positions (seeded by --seed).")
 @click.option("--patch-centers", metavar="FILE", default=None, type=FILE,
               help="Jackknife patch centres instead of k-means: TreeCorr's write_patch_centers file, a table "
                    "of ra/dec (degrees), or an earlier perscli correlate output (its PATCHES table).")
-@click.option("--var-method", type=click.Choice(["auto", "jackknife", "shot"]), default="auto", show_default=True,
+@click.option("--var-method", type=click.Choice(["auto", "jackknife", "shot"]), default=D.var_method, show_default=True,
               help="Errors of xi: the jackknife over patches, or shot noise; auto is the jackknife unless it is "
                    "impossible (fewer than 10 objects per patch, fewer than 2 patches with objects), then shot "
                    "noise with a warning; a bin whose jackknife variance is zero though it has pairs gets its shot "
                    "noise (header SHOTBINS).")
-@click.option("--cross-patch-weight", type=click.Choice(["match", "simple", "mean"]), default="match",
+@click.option("--cross-patch-weight", type=click.Choice(["match", "simple", "mean"]), default=D.cross_patch_weight,
               show_default=True,
               help="TreeCorr's weight of pairs across a removed and a kept patch (match: Mohammad & Percival "
                    "2022, recommended for the jackknife).")
-@click.option("--thresholds", callback=_numbers, default="1e-8,1e-4", show_default=True, metavar="T1,T2,...",
+@click.option("--thresholds", callback=_numbers, default=default_text(D.thresholds), show_default=True,
+              metavar="T1,T2,...",
               help="|De| thresholds: STATS gives the number and fraction of objects at or above each.")
-@click.option("--theta-bins", "theta_bins", callback=_numbers, default="1e-8,1e-6,1e-4,1e-2,2",
+@click.option("--theta-bins", "theta_bins", callback=_numbers, default=default_text(D.theta_edges),
               show_default=True, metavar="E0,E1,...", help="|De| bin edges of the position-angle distribution.")
-@click.option("--nboot", type=click.IntRange(min=2), default=200, show_default=True, metavar="N",
+@click.option("--nboot", type=click.IntRange(min=2), default=D.nboot, show_default=True, metavar="N",
               help="Bootstrap resamples for the errors of the position-angle distribution.")
 @columns_opt("the SHAPES tables", "ra=ALPHA_J2000,dec=DELTA_J2000,g1=E1,g2=E2")
 @no_checksum_opt
@@ -196,13 +200,13 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
         pairs = [*pair_list, *(read_pairs_file(pairs_file) if pairs_file is not None else [])]
     inputs = [*shapes, *(name for pair in pairs or () for name in pair), pairs_file, patch_centers]
     check_outputs(output, inputs=inputs, plot=plot, overwrite=overwrite)
-    summary = correlate_files(
-        shapes, output, pairs=pairs, frames=frames, de_columns=(de1, de2) if de1 is not None else None,
-        common_ids=common_ids, positions=positions, pixel_scale=pixel_scale, min_sep=min_sep, max_sep=max_sep,
-        nbins=nbins, sep_units=sep_units, bin_slop=bin_slop, npatch=npatch, patch_centers=patch_centers,
-        cross_patch_weight=cross_patch_weight, var_method=var_method, thresholds=thresholds,
-        theta_edges=theta_bins, nboot=nboot, seed=seed, workers=workers, plot=plot, plots_dir=plots_dir,
-        overwrite=overwrite, columns=columns)
+    options = CorrelateOptions(
+        de_columns=(de1, de2) if de1 is not None else None, common_ids=common_ids, positions=positions,
+        pixel_scale=pixel_scale, columns=columns, min_sep=min_sep, max_sep=max_sep, nbins=nbins, sep_units=sep_units,
+        bin_slop=bin_slop, npatch=npatch, cross_patch_weight=cross_patch_weight, var_method=var_method,
+        thresholds=thresholds, theta_edges=theta_bins, nboot=nboot, seed=seed)
+    summary = correlate_files(shapes, output, options, pairs=pairs, frames=frames, patch_centers=patch_centers,
+                              workers=workers, plot=plot, plots_dir=plots_dir, overwrite=overwrite)
     stats = summary["stats"]
     fracs = ", ".join(f">= {t:g}: {f:.3g}" for t, f in zip(stats["threshold"], stats["frac_ge"]))
     errors = (f"jackknife over {summary['npatch']} patches" if summary["var_method"] == "jackknife"

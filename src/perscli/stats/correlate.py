@@ -67,7 +67,7 @@ import math
 import os
 
 from .. import PerscliError
-from ..instrument import ROMAN_PIXEL_SCALE
+from .settings import CorrelateOptions
 
 # the pieces of perscli correlate, each in its own module; every name that lived here before is
 # re-exported for existing callers (``from perscli.stats.correlate import ...``), see __all__
@@ -99,7 +99,7 @@ __all__ = [
     # correlate_hdus
     "XI_COLUMNS", "build_hdus", "xi_table",
     # this module
-    "correlate_files",
+    "CorrelateOptions", "correlate_files",
 ]
 
 log = logging.getLogger("perscli")
@@ -133,12 +133,8 @@ def _png_targets(plot, plots_dir, overwrite):
     return targets
 
 
-def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=None, common_ids=False,
-                    positions="auto", pixel_scale=ROMAN_PIXEL_SCALE, min_sep=1.0, max_sep=100.0, nbins=20,
-                    sep_units="arcmin", bin_slop=None, npatch=20, patch_centers=None, cross_patch_weight="match",
-                    var_method="auto", thresholds=DEFAULT_THRESHOLDS, theta_edges=DEFAULT_THETA_EDGES, nboot=200,
-                    seed=1, workers=1, plot=None, plots_dir=None, overwrite=False, stdin=None,
-                    columns=None) -> dict:
+def correlate_files(catalogs, dest: str, options: CorrelateOptions | None = None, *, pairs=None, frames=None,
+                    patch_centers=None, workers=1, plot=None, plots_dir=None, overwrite=False, stdin=None) -> dict:
     """``perscli correlate`` as a function: xi+/- of De, its covariance and the De statistics.
 
     Writes ``dest`` (FITS; '-' for standard output) with the HDUs XI
@@ -158,17 +154,15 @@ def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=
         Many pairs pooled into one catalogue (:func:`load_pairs`): (A, B)
         paths, or the path of a pairs file.  Not with ``catalogs`` or
         ``de_columns``.
-    var_method : {'auto', 'jackknife', 'shot'}
-        Covariance of xi (:func:`correlate_de`): 'auto' falls back to shot
-        noise, with a warning, when a jackknife is impossible.
-    frames, de_columns, common_ids, positions, pixel_scale, columns
+    options : CorrelateOptions, optional
+        The analysis settings (:class:`~perscli.stats.settings.CorrelateOptions`,
+        where their defaults are written): columns and positions, the
+        separation bins, patches and covariance, thresholds, the
+        position-angle bins and bootstrap, the seed.
+    frames
         See :func:`load_shape_changes`.
-    min_sep, max_sep, nbins, sep_units, bin_slop, npatch, patch_centers, cross_patch_weight, seed, workers
+    patch_centers, workers
         See :func:`correlate_de` (``patch_centers`` is a file here).
-    thresholds
-        See :func:`de_statistics`.
-    theta_edges, nboot
-        See :func:`theta_distribution` (``edges``).
     plot, plots_dir, overwrite, stdin
         Figures, replacing existing outputs, the stream read for '-'.
 
@@ -184,6 +178,12 @@ def correlate_files(catalogs, dest: str, *, pairs=None, frames=None, de_columns=
     """
     from ..io.output import check_output, make_temp_file, write_hdus
 
+    o = options if options is not None else CorrelateOptions()
+    de_columns, common_ids, positions, pixel_scale, columns = (o.de_columns, o.common_ids, o.positions,
+                                                               o.pixel_scale, o.columns)
+    min_sep, max_sep, nbins, sep_units, bin_slop = o.min_sep, o.max_sep, o.nbins, o.sep_units, o.bin_slop
+    npatch, cross_patch_weight, var_method, seed = o.npatch, o.cross_patch_weight, o.var_method, o.seed
+    thresholds, theta_edges, nboot = o.thresholds, o.theta_edges, o.nboot
     catalogs = list(catalogs or ())
     if pairs is not None:
         if catalogs:

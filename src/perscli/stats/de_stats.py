@@ -17,10 +17,8 @@ import math
 
 import numpy as np
 
-#: |De| thresholds of the paper's fractions
-DEFAULT_THRESHOLDS = (1e-8, 1e-4)
-#: |De| bin edges for the position-angle distribution (|g| <= 1, so |De| <= 2)
-DEFAULT_THETA_EDGES = (1e-8, 1e-6, 1e-4, 1e-2, 2.0)
+from .settings import DEFAULT_THETA_EDGES, DEFAULT_THRESHOLDS  # noqa: F401  (their home: stats/settings.py)
+
 #: position-angle bins over [-90, 90) degrees
 N_ANGLE = 18
 #: histogram of |De|: log bins from HIST_LO to HIST_HI, HIST_PER_DECADE per decade, plus under/overflow

@@ -17,6 +17,7 @@ import os
 import yaml
 
 from .. import PerscliError
+from ..stats.settings import CorrelateOptions
 
 #: where the public schedule lives beside a clone (tests and the presets use it when present)
 DEFAULT_SCHEDULE = os.path.join("..", "shared", "data", "roman", "Roman_WAS_obseq_11_1_23.fits")
@@ -93,10 +94,12 @@ SCHEMA = {
         "chunk": 8,
     },
     "correlate": {
-        "min_sep": 1.0,          # arcmin
-        "max_sep": 100.0,
-        "nbins": 20,
-        "npatch": 20,
+        # correlate's own defaults (perscli.stats.settings), in arcmin
+        "min_sep": CorrelateOptions.min_sep,
+        "max_sep": CorrelateOptions.max_sep,
+        "nbins": CorrelateOptions.nbins,
+        "npatch": CorrelateOptions.npatch,
+        # the study's: the paper's fractions and one between them
         "thresholds": [1e-8, 1e-6, 1e-4],
     },
     "budget": {

@@ -9,6 +9,7 @@ is passed between tasks but file names.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import resource
@@ -288,19 +289,20 @@ def _changes(study_dir, p, out):
 
 
 def _correlate(study_dir, p, out):
-    from ..stats.correlate import correlate_files
+    from ..stats.correlate import CorrelateOptions, correlate_files
 
     figures = os.path.join(study_dir, p["figures"])
     os.makedirs(figures, exist_ok=True)
-    common = dict(min_sep=p["min_sep"], max_sep=p["max_sep"], nbins=p["nbins"], npatch=p["npatch"],
-                  thresholds=tuple(p["thresholds"]), seed=p["seed"], plots_dir=figures, overwrite=True)
+    options = CorrelateOptions(min_sep=p["min_sep"], max_sep=p["max_sep"], nbins=p["nbins"], npatch=p["npatch"],
+                               thresholds=tuple(p["thresholds"]), seed=p["seed"])
     if "tables" in p:
         # the differential study's shape changes: one row per galaxy of the sample, De in columns
-        summary = correlate_files([os.path.join(study_dir, t) for t in p["tables"]], out, de_columns=("de1", "de2"),
-                                  **common)
+        summary = correlate_files([os.path.join(study_dir, t) for t in p["tables"]], out,
+                                  dataclasses.replace(options, de_columns=("de1", "de2")), plots_dir=figures,
+                                  overwrite=True)
         return {"frames": len(p["tables"]), "galaxies": int(summary["n"])}
     pairs = [(os.path.join(study_dir, a), os.path.join(study_dir, b)) for a, b in p["pairs"]]
-    correlate_files([], out, pairs=pairs, **common)
+    correlate_files([], out, options, pairs=pairs, plots_dir=figures, overwrite=True)
 
 
 def _budget(study_dir, p, out):

@@ -1,0 +1,92 @@
+"""The settings of ``perscli correlate``, with their defaults written once.
+
+:class:`CorrelateOptions` is the one home of correlate's analysis settings
+(in the manner of TreeCorr's ``corr2_valid_params``): the library
+(:func:`perscli.stats.correlate.correlate_files`) takes one, the command's
+options show and use its defaults, and a study's ``correlate`` section
+starts from them.  This module imports nothing heavy, so that ``--help``
+stays fast.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from ..instrument import ROMAN_PIXEL_SCALE
+
+#: |De| thresholds of the paper's fractions
+DEFAULT_THRESHOLDS = (1e-8, 1e-4)
+#: |De| bin edges for the position-angle distribution (|g| <= 1, so |De| <= 2)
+DEFAULT_THETA_EDGES = (1e-8, 1e-6, 1e-4, 1e-2, 2.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class CorrelateOptions:
+    """How ``perscli correlate`` reads shape changes and correlates them.
+
+    Attributes
+    ----------
+    de_columns : (str, str) or None
+        One table: the columns holding De1 and De2 (see
+        :func:`~perscli.stats.shape_changes.load_shape_changes`).
+    common_ids : bool
+        Keep only the objects measured in both tables.
+    positions : {'auto', 'radec', 'xy'}
+        Which positions to correlate (auto: ra/dec when present).
+    pixel_scale : float
+        Arcsec per pixel for x/y positions in pixels (Roman's).
+    columns : dict or None
+        Column names (NAME=COL) of the tables.
+    min_sep, max_sep : float
+        The separation range, in ``sep_units``.
+    nbins : int
+        Logarithmic separation bins.
+    sep_units : {'arcsec', 'arcmin', 'deg', 'rad'}
+    bin_slop : float or None
+        TreeCorr's bin_slop (None: its default).
+    npatch : int
+        Jackknife patches (k-means; 1: no jackknife).
+    cross_patch_weight : {'match', 'simple', 'mean'}
+        TreeCorr's weighting of pairs that cross patches.
+    var_method : {'auto', 'jackknife', 'shot'}
+        Covariance of xi: 'auto' falls back to shot noise, with a warning,
+        when a jackknife is impossible.
+    thresholds : tuple of float
+        |De| thresholds of the fractions (:func:`~perscli.stats.de_stats.de_statistics`).
+    theta_edges : tuple of float
+        |De| bin edges of the position-angle distribution.
+    nboot : int
+        Bootstrap resamples of the position-angle test.
+    seed : int
+        Random seed (patches, bootstrap).
+    """
+
+    de_columns: tuple | None = None
+    common_ids: bool = False
+    positions: str = "auto"
+    pixel_scale: float = ROMAN_PIXEL_SCALE
+    columns: dict | None = None
+    min_sep: float = 1.0
+    max_sep: float = 100.0
+    nbins: int = 20
+    sep_units: str = "arcmin"
+    bin_slop: float | None = None
+    npatch: int = 20
+    cross_patch_weight: str = "match"
+    var_method: str = "auto"
+    thresholds: tuple = DEFAULT_THRESHOLDS
+    theta_edges: tuple = DEFAULT_THETA_EDGES
+    nboot: int = 200
+    seed: int = 1
+
+
+def default_text(values) -> str:
+    """A tuple of defaults as the command line writes it: ``1e-8,1e-4``."""
+    out = []
+    for v in values:
+        if v and abs(v) < 0.1:
+            mantissa, exponent = f"{v:.0e}".split("e")
+            out.append(f"{mantissa}e{int(exponent)}")
+        else:
+            out.append(f"{v:g}")
+    return ",".join(out)
