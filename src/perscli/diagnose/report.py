@@ -244,7 +244,11 @@ def _figures(outcome, folder) -> list:
         names.append(name)
     # overview: the gap overall and per probe, before and after
     keys = [k for k in before if before[k].gap == before[k].gap]
-    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=110)
+    import textwrap
+
+    # the whole verdict, wrapped (cut short it would drop the effects named last)
+    title = textwrap.fill(report["verdict"], 72)
+    fig, ax = plt.subplots(figsize=(6.4, 3.6 + 0.15 * title.count("\n")), dpi=110)
     xs = np.arange(len(keys) + 1)
     gb = [report["gap_before"]] + [before[k].gap for k in keys]
     ga = [report["gap_after"]] + [after[k].gap if k in after else np.nan for k in keys]
@@ -255,7 +259,7 @@ def _figures(outcome, folder) -> list:
     ax.set_xticklabels(["all"] + keys, rotation=30, ha="right", fontsize=8)
     ax.set_yscale("log")
     ax.set_ylabel("chi2 per pixel (1: pure noise)")
-    ax.set_title(report["verdict"][:80], fontsize=9)
+    ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(os.path.join(folder, "gap.png"))
