@@ -6,8 +6,9 @@ import pytest
 
 from perscli import PerscliError
 from perscli.detector import effects
-from perscli.detector.effects import (DEFAULTS, ORDER, DetectorModel, Effect, apply_ipc, load_detector_model,
-                                      run_chain)
+from perscli.detector.chain import run_chain
+from perscli.detector.effects import DEFAULTS, ORDER, apply_ipc
+from perscli.detector.model import DetectorModel, Effect, load_detector_model
 
 T = 139.8
 

@@ -116,7 +116,7 @@ def test_a_hidden_effect_is_named_recovered_and_closes_the_gap(scene, simulated,
     # where the effect acts, the gap shrinks too
     assert abs(found["probe_gap_after"] - 1.0) < abs(found["probe_gap_before"] - 1.0)
     # the model written renders what was fitted
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     model = load_detector_model(str(outdir / "model.yaml"))
     from perscli.diagnose.candidates import by_name

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from fits_factory import run
-from perscli.detector.effects import NOISE_BLOCK, block_grid, default_model, run_chain, run_chains
+from perscli.detector.blocks import NOISE_BLOCK, block_grid
+from perscli.detector.chain import run_chain, run_chains
+from perscli.detector.model import default_model
 
 
 def _sources(shape, seed=3):
@@ -55,7 +57,8 @@ def test_only_the_active_blocks_are_simulated_and_they_are_the_whole_frames_pixe
 def test_a_stack_of_blocks_gives_the_pixels_of_the_whole_area(extra):
     """The chain on a stack of scattered noise blocks, interpixel capacitance and brighter-fatter through their
     neighbours, row and column noise by their place on the detector."""
-    from perscli.detector.effects import BlockStack, load_detector_model
+    from perscli.detector.blocks import BlockStack
+    from perscli.detector.model import load_detector_model
 
     model = load_detector_model("roman", list(extra))
     # the detector's far corner: its last row and column of blocks are partial (4088 = 127 x 32 + 24)
@@ -76,7 +79,7 @@ def test_a_stack_of_blocks_gives_the_pixels_of_the_whole_area(extra):
 
 
 def test_chains_sharing_their_first_steps_give_each_models_own_frame():
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     img = _sources((96, 96))
     pers = np.linspace(0, 40, img.size).reshape(img.shape)
@@ -234,7 +237,8 @@ def test_the_differential_study_gives_every_galaxy_the_full_computations_de(tmp_
 
 
 def test_brighter_fatter_conserves_charge_and_widens_bright_sources_only():
-    from perscli.detector.effects import ChainContext, REGISTRY
+    from perscli.detector.blocks import ChainContext
+    from perscli.detector.effects import REGISTRY
 
     img = np.zeros((21, 21))
     img[10, 10], img[10, 9], img[10, 11], img[9, 10], img[11, 10] = 9e4, 3e4, 3e4, 3e4, 3e4
@@ -249,7 +253,8 @@ def test_brighter_fatter_conserves_charge_and_widens_bright_sources_only():
 
 
 def test_correlated_read_noise_is_shared_by_rows_and_columns():
-    from perscli.detector.effects import ChainContext, REGISTRY
+    from perscli.detector.blocks import ChainContext
+    from perscli.detector.effects import REGISTRY
 
     eff = REGISTRY["correlated_read_noise"]({"row": 3.0, "column": 0.0})
     img = eff.sample(np.zeros((400, 300)), ChainContext(exptime=1.0, seed=4))

@@ -153,7 +153,7 @@ def test_registry_order_and_schemas():
 ])
 def test_schema_errors_name_effect_parameter_value_and_range(setting, needles):
     from perscli import PerscliError
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     with pytest.raises(PerscliError) as err:
         load_detector_model("roman", [setting])
@@ -165,7 +165,7 @@ def test_schema_errors_name_effect_parameter_value_and_range(setting, needles):
 
 def test_schema_errors_from_a_yaml_file_name_the_file(tmp_path):
     from perscli import PerscliError
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     path = tmp_path / "m.yaml"
     path.write_text("effects:\n  - saturation: {full_well: -5}\n")
@@ -174,7 +174,7 @@ def test_schema_errors_from_a_yaml_file_name_the_file(tmp_path):
 
 
 def test_persistence_settings_are_model_parameters():
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     m = load_detector_model("roman", ["persistence.max_previous=0", "persistence.time_model=galsim",
                                       "persistence.combine=max", "persistence.gamma=1.2"])
@@ -190,8 +190,8 @@ def test_persistence_settings_are_model_parameters():
 
 
 def test_persistence_source_and_fluence_cap_are_model_parameters(tmp_path):
-    from perscli.detector.effects import (Persistence, load_detector_model, model_from_table, model_table,
-                                          model_to_yaml)
+    from perscli.detector.effects import Persistence
+    from perscli.detector.model import load_detector_model, model_from_table, model_table, model_to_yaml
 
     m = load_detector_model("roman")
     assert m.get("persistence").resolved()["source"] == "stars"          # the default: the stars' light
@@ -220,7 +220,9 @@ def test_persistence_source_and_fluence_cap_are_model_parameters(tmp_path):
 
 
 def test_default_model_saturates_and_the_switch_restores_the_old_chain():
-    from perscli.detector.effects import FULL_WELL, load_detector_model, run_chain
+    from perscli.detector.chain import run_chain
+    from perscli.detector.effects import FULL_WELL
+    from perscli.detector.model import load_detector_model
 
     assert FULL_WELL == 1.0e5
     src = np.array([[5.0e4, 2.0e5, 3.0e6]])
@@ -276,7 +278,8 @@ def p_value(chi2, dof):
 
 
 def chain_model(names, **params):
-    from perscli.detector.effects import DEFAULTS, DetectorModel, Effect
+    from perscli.detector.effects import DEFAULTS
+    from perscli.detector.model import DetectorModel, Effect
 
     effs = []
     for name in names:
@@ -312,7 +315,7 @@ def persistence_of(shape):
 
 @pytest.mark.parametrize("case", list(CASES))
 def test_expectation_and_variance_match_sampled_frames(case):
-    from perscli.detector.effects import forward, run_chain
+    from perscli.detector.chain import forward, run_chain
 
     names, params, levels = CASES[case]
     model = chain_model(names, **params)
@@ -331,7 +334,7 @@ def test_expectation_and_variance_match_sampled_frames(case):
 
 def test_the_chi2_test_can_fail():
     """The same test rejects variances that leave out IPC's kernel squared, quantisation or the gain."""
-    from perscli.detector.effects import forward, run_chain
+    from perscli.detector.chain import forward, run_chain
 
     for case, wrong in (("ipc", lambda f: f.mean),                        # Poisson variance, no kernel^2
                         ("quantize", lambda f: f.variance - 1.0 / 12.0),
@@ -357,7 +360,9 @@ def test_forward_of_the_roman_chain_by_hand():
     """The expectation chain written out: sky, reciprocity, dark, persistence, saturation, nonlinearity,
     IPC, gain; the variance: Poisson + dark, through reciprocity, nonlinearity, IPC^2, read noise, gain^2,
     quantisation."""
-    from perscli.detector.effects import apply_ipc, forward, load_detector_model, roman_ipc_kernel
+    from perscli.detector.chain import forward
+    from perscli.detector.effects import apply_ipc, roman_ipc_kernel
+    from perscli.detector.model import load_detector_model
 
     model = load_detector_model("roman", ["gain.gain=1.8"])
     src = np.zeros((9, 9))
@@ -421,7 +426,7 @@ def read_images(path):
 
 
 def test_model_reloads_from_the_frame_and_reproduces_it(work, truth, earlier):
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     e1, e2 = earlier
     a = render(work / "a.fits", truth, *TWEAKS, "--previous", e1, "--previous", e2, mjd=MJD3, seed=31)
@@ -464,7 +469,7 @@ def test_max_previous_zero_counts_every_earlier_exposure(work, truth, earlier):
 
 
 def test_model_from_a_frame_without_one_is_an_error(tmp_path):
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
     from perscli import PerscliError
 
     path = tmp_path / "plain.fits"
@@ -475,7 +480,7 @@ def test_model_from_a_frame_without_one_is_an_error(tmp_path):
 
 def test_corrupt_model_table_is_one_clear_error(tmp_path, earlier):
     from perscli import PerscliError
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     with fits.open(earlier[0]) as hdul:
         t = Table(hdul["MODEL"].data)

@@ -105,7 +105,7 @@ def test_an_exposure_that_is_not_earlier_is_refused():
 
 def test_model_means_the_same_in_render_and_apply_persistence(tmp_path):
     """apply-persistence --model takes a rendered frame (its MODEL table) or a detector-model YAML, as render does."""
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     path = tmp_path / "det.yaml"
     path.write_text("effects:\n  - persistence: {base: pessimistic, combine: max, max_previous: 3}\n")

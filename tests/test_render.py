@@ -94,7 +94,7 @@ def load(path):
 
 def model_of(f):
     """The detector model a rendered frame carries, read back as --model FRAME.fits reads it."""
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     return load_detector_model(f["path"])
 
@@ -633,7 +633,7 @@ def test_provenance(pairs, pers_truth):
         assert prim["TRUTHDS"] == str(table._calculate_datasum())
     assert prim["SEED"] == 2 and prim["DETMODEL"] == "roman" and prim["DETNEFF"] == 11
     assert prim["FILTER"] == FILTER and prim["SCA"] == SCA
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     assert model_of(load(pairs["full_none"])).describe() == load_detector_model("roman").describe()
     assert "EFF01" not in prim                                   # the model is in the MODEL table

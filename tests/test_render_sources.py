@@ -231,7 +231,7 @@ def test_model_of_a_frame_reproduces_its_source(work, truth, hist, persisted):
 
 
 def test_library_render_file_with_a_source(work, truth, hist, persisted):
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
     from perscli.render.exposure import Exposure
     from perscli.render.run import render_file
 
@@ -291,7 +291,8 @@ def test_stars_beyond_the_well_persist_uncapped_with_cap_none(work, truth, hist)
 
 
 def test_fluence_input_of_a_model():
-    from perscli.detector.effects import Persistence, load_detector_model
+    from perscli.detector.effects import Persistence
+    from perscli.detector.model import load_detector_model
 
     # the default source is the stars' light (STARFLU), render and study alike
     assert Persistence.fluence_input(load_detector_model("roman")) == ("stars", None, WELL)

@@ -128,7 +128,7 @@ def test_diagnose_keeps_the_header_gain_and_measures_the_read_noise(shared_data,
     that changes during a grism time series, hot pixels, 1/f noise) is said, not absorbed."""
     import json
 
-    from perscli.detector.effects import load_detector_model
+    from perscli.detector.model import load_detector_model
 
     out = tmp_path / "w"
     result = CliRunner().invoke(cli, ["diagnose", *[str(shared_data / "wfc3" / f) for f in files], "-o", str(out)])

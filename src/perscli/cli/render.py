@@ -21,7 +21,7 @@ def _list_effects(ctx, param, value):
         return
     import shutil
 
-    from ..detector.effects import format_schema
+    from ..detector.model import format_schema
 
     click.echo(format_schema(width=max(100, shutil.get_terminal_size((120, 24)).columns)), nl=False)
     ctx.exit(0)
@@ -151,7 +151,7 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
           -o explicit.fits
       perscli render --list-effects
     """
-    from ..detector.effects import load_detector_model
+    from ..detector.model import load_detector_model
     from ..render.run import footprint_report, format_footprint, render_file, write_regions
 
     if regions is not None and not dry_run:

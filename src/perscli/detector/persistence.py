@@ -256,7 +256,7 @@ def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence
         model = PersistenceModel(name=spec, kind="linear")
     elif _is_fits_name(spec):
         # a frame perscli rendered: the persistence step of the detector model in its MODEL table
-        from .effects import load_detector_model
+        from .model import load_detector_model
 
         model = load_detector_model(spec).persistence_model()
     elif spec.endswith((".yaml", ".yml")) or os.path.exists(spec):

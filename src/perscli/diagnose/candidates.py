@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..detector.effects import DetectorModel
+from ..detector.model import DetectorModel
 from .likelihood import with_effect
 
 

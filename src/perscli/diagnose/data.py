@@ -182,7 +182,7 @@ def attach_simulations(exposures, sims) -> list:
     list of DetectorModel or None
         The model stored in each simulated frame (None where it has none).
     """
-    from ..detector.effects import model_of_frame
+    from ..detector.model import model_of_frame
 
     opened = []
     for name in sims:

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PerscliError
-from ..detector.effects import DetectorModel, Effect, forward
+from ..detector.chain import forward
+from ..detector.model import DetectorModel, Effect
 from ..io.frames import SECONDS_PER_DAY
 
 

@@ -35,7 +35,8 @@ from __future__ import annotations
 import numpy as np
 
 from .. import PerscliError
-from ..detector.effects import DetectorModel, Effect, REGISTRY
+from ..detector.effects import REGISTRY
+from ..detector.model import DetectorModel, Effect
 from .likelihood import Evaluation
 
 #: a read this many sigma from its self-prediction marks the pixel's ramp as jumping

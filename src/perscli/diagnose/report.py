@@ -65,7 +65,7 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
     dict
         The report (see :func:`write_report`), plus the objects the figures need.
     """
-    from ..detector.effects import load_detector_model
+    from ..detector.model import load_detector_model
     from .data import attach_simulations, read_measured
     from .likelihood import Problem
     from .ramp import RampProblem, ramp_model
@@ -170,7 +170,7 @@ def _refit(problem, model, cand):
 def write_report(outcome: dict, outdir: str, *, overwrite: bool = False) -> None:
     """Write OUTDIR (model.yaml, report.json, report.md, PNG figures) atomically: a temporary folder
     beside it renamed into place, so that a failure leaves no half-written OUTDIR."""
-    from ..detector.effects import model_to_yaml
+    from ..detector.model import model_to_yaml
 
     outdir = os.path.abspath(outdir)
     if os.path.exists(outdir) and not overwrite:

@@ -47,7 +47,7 @@ class NoiseModel:
 def frame_detector_model(frame):
     """The detector model that made ``frame`` (its MODEL table, written by ``perscli render``),
     else the default Roman model: ``(DetectorModel, 'MODEL' or 'roman')``."""
-    from ..detector.effects import default_model, model_of_frame
+    from ..detector.model import default_model, model_of_frame
 
     model = model_of_frame(frame)
     return (model, "MODEL") if model is not None else (default_model(), "roman")

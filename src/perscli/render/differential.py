@@ -30,8 +30,10 @@ import math
 import numpy as np
 
 from .. import PerscliError
-from ..detector.effects import (NOISE_BLOCK, BlockStack, DetectorModel, Persistence, active_pixels, block_grid,
-                                run_chains)
+from ..detector.blocks import NOISE_BLOCK, BlockStack, active_pixels, block_grid
+from ..detector.chain import run_chains
+from ..detector.effects import Persistence
+from ..detector.model import DetectorModel
 from .exposure import Exposure, Optics, draw_sources, plan_objects, read_truth
 
 log = logging.getLogger(__name__)

@@ -31,7 +31,8 @@ import os
 import numpy as np
 
 from .. import PerscliError
-from ..detector.effects import DetectorModel, model_table, run_chain
+from ..detector.chain import run_chain
+from ..detector.model import DetectorModel, model_table
 from ..io.fitsfile import OutHDU, format_card
 from ..io.output import add_provenance, check_output, write_hdus
 from .exposure import SCA_SIZE, Exposure, Optics, draw_sources, plan_objects, read_truth
@@ -433,7 +434,7 @@ def simulation_area(bounds) -> tuple:
     exactly that part of the whole detector's frame (but for the persistence
     of pixels outside it, which its earlier frames do not hold).
     """
-    from ..detector.effects import NOISE_BLOCK
+    from ..detector.blocks import NOISE_BLOCK
 
     b = NOISE_BLOCK
     xmin, xmax, ymin, ymax = (int(v) for v in bounds)

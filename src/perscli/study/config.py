@@ -319,7 +319,7 @@ def check(s: dict) -> None:
     if not p["models"]:
         raise PerscliError("persistence.models is empty: give typical, pessimistic or model files")
     # every model and detector setting is checked now, not hours later in a render
-    from ..detector.effects import load_detector_model
+    from ..detector.model import load_detector_model
     from .plan import model_settings
 
     for m in p["models"]:

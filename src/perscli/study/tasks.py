@@ -129,7 +129,7 @@ def _catalog(study_dir, p, out):
 
 
 def _render(study_dir, p, out):
-    from ..detector.effects import load_detector_model
+    from ..detector.model import load_detector_model
     from ..render.exposure import Exposure
     from ..render.run import render_file
 
@@ -168,7 +168,7 @@ def _exposure(p) -> "Exposure":
 
 
 def _variant_model(settings, extra):
-    from ..detector.effects import load_detector_model
+    from ..detector.model import load_detector_model
     from ..render.run import with_persistence_source
 
     return with_persistence_source(load_detector_model("roman", [*settings, *extra]), "stars")
