@@ -674,8 +674,9 @@ def process_reference(frame_path: Path, cat_path: Path):
     """
     from perscli.io.frames import open_frame
     from perscli.measure.fit import ExpModel, fit_exp
-    from perscli.measure.shapes import (_FrameFacts, _noise_and_weights, cut_stamp, psf_profile, read_positions,
-                                        stamp_ladder, stamp_side, start_point)
+    from perscli.measure.noise import _noise_and_weights
+    from perscli.measure.perframe import _FrameFacts, cut_stamp, psf_profile, stamp_ladder, stamp_side, start_point
+    from perscli.measure.selection import read_positions
 
     cat = read_positions(str(cat_path))
     frame = open_frame(str(frame_path))

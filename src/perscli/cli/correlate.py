@@ -194,7 +194,7 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
         raise click.UsageError(f"--min-sep {min_sep} must be less than --max-sep {max_sep}", ctx)
     pairs = None
     if pooled:
-        from ..stats.correlate import read_pairs_file
+        from ..stats.pairs import read_pairs_file
 
         check_outputs(output, inputs=[pairs_file], plot=plot, overwrite=overwrite)
         pairs = [*pair_list, *(read_pairs_file(pairs_file) if pairs_file is not None else [])]

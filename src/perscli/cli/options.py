@@ -224,7 +224,7 @@ sca_opt = click.option(
 
 def _no_checksum(ctx, param, value):
     if value:
-        from ..io.fitsfile import set_checksum_verification
+        from ..io.checksum import set_checksum_verification
 
         set_checksum_verification(False)
 

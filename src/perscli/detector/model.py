@@ -355,7 +355,7 @@ def model_from_table(columns: dict, where: str) -> DetectorModel:
 
 
 def _from_fits(path: str) -> DetectorModel:
-    from ..io.fitsfile import open_fits
+    from ..io.fitsreader import open_fits
 
     with open_fits(path) as f:
         tables = [h for h in f.hdus if h.name == "MODEL" and h.kind == "table"]

@@ -87,7 +87,7 @@ class Check:
 
 
 def _chi2_p(chi2: float, dof: float) -> float:
-    from ..stats.correlate import chi2_sf
+    from ..stats.de_stats import chi2_sf
 
     # the one chi^2 survival function (exact for whole degrees of freedom); dof here are whole numbers
     return chi2_sf(chi2, int(round(max(dof, 1)))) if dof > 0 else 1.0

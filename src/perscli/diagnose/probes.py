@@ -52,7 +52,7 @@ class Probe:
 
     @property
     def p_value(self) -> float:
-        from ..stats.correlate import chi2_sf
+        from ..stats.de_stats import chi2_sf
 
         return chi2_sf(self.chi2, int(max(self.dof, 1))) if self.dof else 1.0
 

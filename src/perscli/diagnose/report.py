@@ -178,7 +178,7 @@ def write_report(outcome: dict, outdir: str, *, overwrite: bool = False) -> None
     parent = os.path.dirname(outdir)
     if not os.path.isdir(parent):
         raise PerscliError(f"{parent}: folder does not exist; create it or choose another output")
-    from ..io.output import make_temp_folder
+    from ..io.tempfiles import make_temp_folder
 
     # a new folder's permissions (0777 less the umask); the files in it get a new file's
     tmp = make_temp_folder(parent, prefix=".perscli-diagnose-")

@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError
-from .fitsfile import HDU, FitsFile, open_fits
+from .fitsreader import HDU, FitsFile, open_fits
 
 #: canonical unit -> (is DN, is a rate)
 UNITS = {

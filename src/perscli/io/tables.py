@@ -223,7 +223,7 @@ def read_table(name: str, *, what: str, stdin=None, columns=None, known=None) ->
         Unreadable, not FITS, truncated, corrupt (CHECKSUM/DATASUM), without a
         binary table, or a mapping naming a column the file lacks.
     """
-    from .fitsfile import open_fits
+    from .fitsreader import open_fits
 
     fits = open_fits(name, stdin=stdin)
     try:

@@ -21,7 +21,10 @@ from __future__ import annotations
 import numpy as np
 
 from .. import PerscliError
-from .shapes import MIN_SNR_DEFAULT, measure_frame, measure_joint, read_positions
+from .joint import measure_joint
+from .noise import MIN_SNR_DEFAULT
+from .perframe import measure_frame
+from .selection import read_positions
 
 #: the CHANGED table of a final's file: the catalogue ids whose stamps a variant changed
 CHANGED_EXTNAME = "CHANGED"

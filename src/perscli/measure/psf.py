@@ -396,7 +396,7 @@ def read_psf_image(spec: str, frame, warn=log.warning):
     the one whose SCA and FILTER keywords match the frame's.  ``warn(message)``
     takes the warning for an image whose SCA or FILTER is not the frame's.
     """
-    from ..io.fitsfile import open_fits
+    from ..io.fitsreader import open_fits
 
     try:
         source = open_fits(spec)

@@ -242,7 +242,7 @@ def stamp_sides(cols: dict, rows, stamp: int) -> np.ndarray:
     32 pixels, rather than ``stamp`` for all.
     """
     from ..instrument import ROMAN_PIXEL_SCALE
-    from ..measure.shapes import stamp_ladder, stamp_side
+    from ..measure.perframe import stamp_ladder, stamp_side
 
     ladder = stamp_ladder(stamp)
     hlr = {"hlr": np.asarray(cols["hlr"], dtype=np.float64)}
@@ -548,7 +548,8 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         rows simulated, objects drawn, active blocks and their fraction, and
         per variant the galaxies changed.
     """
-    from ..io.fitsfile import OutHDU, format_card, table_hdu
+    from ..io.cards import format_card
+    from ..io.fitsfile import OutHDU, table_hdu
     from ..io.output import check_output, write_hdus
     from .run import _exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, pad_to, simulation_area
 

@@ -183,7 +183,7 @@ class Optics:
         import galsim
         import galsim.roman as roman
 
-        from ..scene.pointings import sca_wcs
+        from ..scene.footprints import sca_wcs
 
         self.exposure = exposure
         self.bandpass = _bandpasses()[exposure.filter]
@@ -239,7 +239,7 @@ class Optics:
         NaN for positions too far from the SCA to land on it
         (:func:`perscli.scene.pointings.sky_to_pixels`).
         """
-        from ..scene.pointings import sky_to_pixels
+        from ..scene.footprints import sky_to_pixels
 
         return sky_to_pixels(self.wcs, ra_deg, dec_deg)
 

@@ -33,7 +33,8 @@ import numpy as np
 from .. import PerscliError
 from ..detector.chain import run_chain
 from ..detector.model import DetectorModel, model_table
-from ..io.fitsfile import OutHDU, format_card
+from ..io.cards import format_card
+from ..io.fitsfile import OutHDU
 from ..io.output import add_provenance, check_output, write_hdus
 from .exposure import SCA_SIZE, Exposure, Optics, draw_sources, plan_objects, read_truth
 
@@ -182,7 +183,8 @@ def open_history(name: str, source: str):
         The frame has no such extension (one line saying how to render it
         with one), or cannot be read.
     """
-    from ..io.fitsfile import open_fits, split_selector
+    from ..io.fitsreader import open_fits
+    from ..io.sources import split_selector
     from ..io.frames import open_frame
 
     want = "STARFLU" if source == "stars" else "FLUENCE"
@@ -300,7 +302,7 @@ def footprint_report(truth: str, exposure: Exposure, *, cols=None, optics: Optic
     import galsim
 
     from ..scene import separation, sky_extent
-    from ..scene.pointings import objects_on_sca
+    from ..scene.footprints import objects_on_sca
 
     cols = cols if cols is not None else read_truth(truth, exposure.filter, columns=columns)
     optics = optics if optics is not None else Optics(exposure)
@@ -547,7 +549,7 @@ def history_persistences(opened, exposure: Exposure, laws: dict):
         Name -> electrons per pixel, and the delays (s) after the earlier
         exposures the first law uses.
     """
-    from ..detector.apply import check_earlier
+    from ..detector.earlier import check_earlier
     from ..detector.persistence import order_earlier, persistence_charge
     from ..io.frames import SECONDS_PER_DAY
 

@@ -103,7 +103,8 @@ def truth_hdulist(table):
     -------
     list of perscli.io.fitsfile.OutHDU
     """
-    from ..io.fitsfile import OutHDU, format_card, table_hdu
+    from ..io.cards import format_card
+    from ..io.fitsfile import OutHDU, table_hdu
     from ..io.output import add_provenance
 
     columns = {name: np.asarray(table[name]) for name in table.colnames}

@@ -43,7 +43,7 @@ def check_patch_centers_file(path: str) -> None:
     """
     import stat
 
-    from ..io.fitsfile import stat_input
+    from ..io.sources import stat_input
 
     st = stat_input(path, kind=_PATCH_FILE, hint=f"; give {_PATCH_FILE}")
     if stat.S_ISDIR(st.st_mode):
@@ -93,7 +93,7 @@ def read_patch_center_columns(path: str) -> dict:
     except OSError as exc:
         raise PerscliError(f"{path}: cannot be read ({exc.strerror}); give {_PATCH_FILE}") from None
     if is_fits:
-        from ..io.fitsfile import open_fits
+        from ..io.fitsreader import open_fits
 
         with open_fits(path) as fitsin:
             tables = [h for h in fitsin.hdus if h.kind == "table"]

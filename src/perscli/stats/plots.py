@@ -126,7 +126,7 @@ def theta_figure(theta: dict, png: str) -> None:
     flattening every other bin.  When no bin has enough objects, all of them
     set it.
     """
-    from .correlate import MIN_EXPECTED
+    from .de_stats import MIN_EXPECTED
 
     plt = _pyplot()
     lo, hi, n = (np.asarray(theta[k]) for k in ("de_lo", "de_hi", "n"))

@@ -338,7 +338,7 @@ def measure_strips(s: dict, finals, n: int) -> list:
     import math
 
     from ..scene import project
-    from ..scene.pointings import sca_footprint
+    from ..scene.footprints import sca_footprint
 
     f = s["field"]
     spans = []

@@ -103,7 +103,8 @@ def _size(path: str) -> int:
 # --------------------------------------------------------------------------------------------
 
 def _pointings(study_dir, p, out):
-    from ..scene.pointings import Pointing, write_pointings
+    from ..scene.pointings import write_pointings
+    from ..scene.schedule import Pointing
 
     rows = [Pointing(**{k: v for k, v in r.items() if k != "role"}) for r in p["rows"]]
     write_pointings(rows, out, overwrite=True, step="study: every SCA-exposure rendered",
@@ -194,7 +195,8 @@ def _floor(model) -> float:
 
 
 def write_regions_table(out: str, table: dict, counts: dict) -> None:
-    from ..io.fitsfile import OutHDU, format_card, table_hdu
+    from ..io.cards import format_card
+    from ..io.fitsfile import OutHDU, table_hdu
     from ..io.output import write_hdus
 
     hdu = table_hdu(table, "REGIONS", descriptions={"id": "catalogue id of a galaxy whose stamps are simulated",
