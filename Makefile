@@ -65,7 +65,7 @@ FIELD  := demo_output/field
 demo-field: $(STAMP)
 	@test -d $(SHARED)/gaia || { echo "demo-field needs $(SHARED) (Gaia chunks, Roman schedule)"; exit 1; }
 	mkdir -p $(FIELD)
-	$(BIN)/perscli pointings --schedule $(SHARED)/roman/Roman_WAS_obseq_11_1_23.fits --ra 9.98 --dec -43.86 \
+	$(BIN)/perscli pointings select --schedule $(SHARED)/roman/Roman_WAS_obseq_11_1_23.fits --ra 9.98 --dec -43.86 \
 	    --radius 0.04 --filter J129 --limit 3 --sca 1 -o $(FIELD)/pointings.fits --overwrite
 	$(BIN)/perscli catalog --ra 10.0477 --dec -43.7909 --size 20 --gaia $(SHARED)/gaia/145650.fits \
 	    --seed 1 -o $(FIELD)/truth.fits --overwrite

@@ -77,7 +77,9 @@ def fluence_grid(shape=(16, 16), seed=1):
 
 
 @pytest.fixture(autouse=True)
-def _checksums_back_on():
-    """--no-checksum switches verification off for the process (and its workers): not for the next test."""
+def _checksums_stay_on():
+    """--no-checksum holds for its command only (perscli.io.checksum.read_options): never after it."""
+    from perscli.io.checksum import checksums_enabled
+
     yield
-    os.environ.pop("PERSCLI_NO_CHECKSUM", None)
+    assert checksums_enabled(), "a test left CHECKSUM verification off"

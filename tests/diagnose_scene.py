@@ -20,7 +20,8 @@ def make_truth(path, *, bounds, nstars: int, ngalaxies: int, seed: int = 3, brig
     """A truth catalogue of stars and galaxies inside ``bounds`` (x0, x1, y0, y1 of SCA 7)."""
     from astropy.table import Table
 
-    from perscli.render.exposure import Exposure, Optics
+    from perscli.render.exposure import Exposure
+    from perscli.optics import Optics
 
     optics = Optics(Exposure(ra=RA, dec=DEC, pa=PA, sca=SCA, filter=FILTER, mjd=MJD1))
     rng = np.random.default_rng(seed)

@@ -149,8 +149,13 @@ def readme_examples(path: Path = ROOT / "README.md") -> list:
     return out
 
 
-def help_examples(command) -> list:
-    """The lines of a click command's 'Examples:' block (its docstring), in order."""
+def help_examples(command, name: str | None = None) -> list:
+    """The lines of a click command's 'Examples:' block (its docstring), in order; for a group with
+    subcommands (perscli pointings), its own then each subcommand's.
+
+    ``name`` is the command line that shows the help ('perscli pointings plan'; default 'perscli NAME').
+    """
+    name = name or f"perscli {command.name}"
     doc = command.help or ""
     lines = doc.splitlines()
     out, inside = [], False
@@ -165,7 +170,9 @@ def help_examples(command) -> list:
             block.append((number, line))
     for _, text in _logical_lines(block):
         if _is_example(text):
-            out.append(Example(f"perscli {command.name} --help", text))
+            out.append(Example(f"{name} --help", text))
+    for sub, subcommand in getattr(command, "commands", {}).items():
+        out += help_examples(subcommand, f"{name} {sub}")
     return out
 
 
@@ -225,7 +232,6 @@ def run_examples(examples, folder: Path, *, shared: Path, bindir: Path | None = 
     env["PATH"] = f"{bindir}{os.pathsep}{env.get('PATH', '')}"
     # examples that install something in ~ (shell completion) install it in the folder
     env["HOME"] = str(folder)
-    env.pop("PERSCLI_NO_CHECKSUM", None)
     present = shared_files(shared)
     known = set(known_shared or SHARED_NAMES) | set(present)
     written: dict = {}

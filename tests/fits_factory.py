@@ -168,6 +168,35 @@ def invoke(*args, **kw):
     return CliRunner().invoke(cli, [str(a) for a in args], **kw)
 
 
+def leaf_commands():
+    """[(name, command)] of every command that runs: 'render', the subcommands of a group ('pointings plan'),
+    and the flag form a group still runs as a deprecated alias (perscli.cli.pointings.FlagFormGroup.legacy,
+    as 'pointings')."""
+    import click
+
+    from perscli.cli.main import cli
+
+    out = []
+
+    def walk(name, cmd):
+        if isinstance(cmd, click.Group):
+            if getattr(cmd, "legacy", None) is not None:
+                out.append((name, cmd.legacy))
+            for sub, child in sorted(cmd.commands.items()):
+                walk(f"{name} {sub}", child)
+        else:
+            out.append((name, cmd))
+
+    for name, cmd in sorted(cli.commands.items()):
+        walk(name, cmd)
+    return out
+
+
+def command_named(name: str):
+    """The command 'render', 'pointings plan' or (a group's flag form) 'pointings' of :func:`leaf_commands`."""
+    return dict(leaf_commands())[name]
+
+
 def run(*args, code=0, **kw):
     """``perscli ARGS`` (:func:`invoke`), asserting its exit status ``code``; returns click's result.
 
@@ -192,6 +221,24 @@ def _failure(result):
 
 #: the start of the one line of a usage error (exit status 2): "perscli render: error: ..."
 USAGE_PREFIX = re.compile(r"perscli( [\w-]+)*: error: ")
+#: ...and its end: where the command's help is
+USAGE_HINT = re.compile(r" \(see 'perscli( [\w-]+)* -h'\)$")
+
+
+#: one usage error: which command, what, and where its help is
+USAGE_LINE = re.compile(r"^(perscli(?: [a-z-]+)*): error: (.+) \(see '\1 -h'\)$")
+
+
+def usage_error(result, command="perscli"):
+    """The message of a one-line usage error of ``command`` (exit 2, nothing on stdout)."""
+    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
+    assert result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    match = USAGE_LINE.match(lines[0])
+    assert match, lines[0]
+    assert match.group(1) == command, lines[0]
+    return match.group(2)
 
 
 def one_line_error(result, *needles, code=1, out=None, allow_warnings=False):
@@ -214,6 +261,7 @@ def one_line_error(result, *needles, code=1, out=None, allow_warnings=False):
         assert lines[0].startswith("Error: "), lines[0]
     elif code == 2:
         assert USAGE_PREFIX.match(lines[0]), lines[0]
+        assert "Usage:" not in result.stderr and USAGE_HINT.search(lines[0]), lines[0]
     for needle in map(str, needles):
         assert needle in lines[0], (needle, lines[0])
     if out is not None:
@@ -231,7 +279,7 @@ def expect_error(tmp_path, args, *needles, command=(), code=1, out="out.fits", i
 
     ``command``: words put before ``args`` (a string or a sequence), for a
     module's ``functools.partial``.  ``out``: the output, relative to
-    ``tmp_path``.  ``inputs``: the files that must be left unchanged (by
+    ``tmp_path`` (None: no ``-o``, for the error of a missing one).  ``inputs``: the files that must be left unchanged (by
     default every argument naming a file).  ``any_of``: the line holds at
     least one of these; ``fix_words``: at least one of these (words that say
     what to do).  ``words_outside_paths``: the needles (other than paths in
@@ -239,10 +287,11 @@ def expect_error(tmp_path, args, *needles, command=(), code=1, out="out.fits", i
     paths in ``tmp_path`` (pytest names it after the test: 'truncated', ...).
     """
     argv = [*((command,) if isinstance(command, str) else command), *args]
-    out = Path(tmp_path, out)
+    out = None if out is None else Path(tmp_path, out)
     inputs = [str(a) for a in argv if os.path.isfile(str(a))] if inputs is None else inputs
-    before, files = snapshot(*inputs, out), listing(tmp_path)
-    result = invoke(*argv, "-o", out)
+    outs = () if out is None else (out,)
+    before, files = snapshot(*inputs, *outs), listing(tmp_path)
+    result = invoke(*argv, *(("-o", out) if out is not None else ()))
     line = one_line_error(result, code=code, allow_warnings=allow_warnings)
     if code == 2:
         assert line.startswith(f"perscli {argv[0]}: error: "), line
@@ -255,5 +304,5 @@ def expect_error(tmp_path, args, *needles, command=(), code=1, out="out.fits", i
     if fix_words:
         assert any(w in words for w in fix_words), ("no fix suggested", line)
     assert listing(tmp_path) == files          # no output, no temporary file
-    assert snapshot(*inputs, out) == before    # inputs (and an existing output) unchanged
+    assert snapshot(*inputs, *outs) == before  # inputs (and an existing output) unchanged
     return line

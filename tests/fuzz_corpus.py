@@ -852,7 +852,6 @@ class ForkServer:
 
     def start(self) -> "ForkServer":
         env = dict(os.environ)
-        env.pop("PERSCLI_NO_CHECKSUM", None)
         here = os.path.dirname(os.path.abspath(__file__))
         env["PYTHONPATH"] = here + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         env.setdefault("OMP_NUM_THREADS", "1")

@@ -222,7 +222,7 @@ def test_corrupted_data_caught_by_datasum(frame_writer, tmp_path):
 
 def test_library_persistence_image_equals_the_commands_prediction(frame_writer, tmp_path):
     from perscli.detector.apply import persistence_image
-    from perscli.detector.persistence import load_model
+    from perscli.detector.model import load_persistence_model as load_model
     from perscli.io.frames import open_frame
 
     rng = np.random.default_rng(12)

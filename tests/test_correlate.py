@@ -9,7 +9,7 @@ from astropy.io import fits
 
 import fits_factory
 from fits_factory import invoke, run
-from perscli.stats.correlate import de_histogram, de_statistics, theta_distribution
+from perscli.stats.de_stats import de_histogram, de_statistics, theta_distribution
 
 treecorr = pytest.importorskip("treecorr")
 

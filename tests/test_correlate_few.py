@@ -6,7 +6,8 @@ from astropy.io import fits
 
 from fits_factory import invoke, one_line_error, run
 from perscli import PerscliError
-from perscli.stats.correlate import ShapeChanges, correlate_de
+from perscli.stats.shape_changes import ShapeChanges
+from perscli.stats.xi import correlate_de
 
 treecorr = pytest.importorskip("treecorr")
 

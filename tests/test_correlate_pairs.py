@@ -9,7 +9,9 @@ from astropy.io import fits
 
 from fits_factory import invoke, one_line_error, run
 from perscli import PerscliError
-from perscli.stats.correlate import CorrelateOptions, correlate_files, load_pairs, read_pairs_file
+from perscli.stats.correlate import correlate_files
+from perscli.stats.pairs import load_pairs, read_pairs_file
+from perscli.stats.settings import CorrelateOptions
 
 treecorr = pytest.importorskip("treecorr")
 

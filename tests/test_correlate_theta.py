@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from perscli.stats.correlate import (MIN_EXPECTED, N_ANGLE, CorrelateOptions, chi2_sf, correlate_files,
-                                    theta_distribution)
+from perscli.stats.correlate import MIN_EXPECTED, N_ANGLE, correlate_files
+from perscli.stats.de_stats import chi2_sf, theta_distribution
+from perscli.stats.settings import CorrelateOptions
 
 K = N_ANGLE
 P0 = 1.0 / K

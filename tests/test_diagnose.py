@@ -27,7 +27,8 @@ BOUNDS = (1001, 1128, 2001, 2128)
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    from perscli.render.exposure import Exposure, Optics
+    from perscli.render.exposure import Exposure
+    from perscli.optics import Optics
 
     d = tmp_path_factory.mktemp("diagnose")
     optics = Optics(Exposure(ra=RA, dec=DEC, pa=PA, sca=SCA, filter=FILTER, mjd=MJD1))

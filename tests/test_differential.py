@@ -199,7 +199,7 @@ def test_persisting_stars_are_whole_groups_of_overlapping_stamps():
 @pytest.mark.parametrize("n", [16, 64, 256])
 def test_the_psf_envelope_bounds_a_star_wherever_it_falls_on_its_pixel(n):
     from perscli.render.differential import psf_envelope
-    from perscli.render.exposure import stamp_drawer
+    from perscli.optics import stamp_drawer
 
     env = psf_envelope(7, "J129", n)
     drawer = stamp_drawer(7, "J129")

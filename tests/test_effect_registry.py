@@ -47,7 +47,8 @@ REFERENCE = {
 
 
 def write_truth(path):
-    from perscli.render.exposure import Exposure, Optics
+    from perscli.render.exposure import Exposure
+    from perscli.optics import Optics
 
     optics = Optics(Exposure(ra=RA, dec=DEC, pa=PA, sca=SCA, filter=FILTER, mjd=MJD1))
     rows = []
@@ -514,7 +515,7 @@ def test_saturated_fluence_and_its_persistence(work, truth, earlier):
 
 def test_measure_noise_model_reads_the_frames_detector_model(work, truth):
     from perscli.io.frames import open_frame
-    from perscli.measure.shapes import noise_model
+    from perscli.measure.noise import noise_model
 
     path = render(work / "nm.fits", truth, "--set", "read_noise.sigma=3", "--set", "dark.current=0.1",
                   "--set", "gain.gain=2", seed=3)
@@ -537,7 +538,7 @@ def test_measure_noise_model_reads_the_frames_detector_model(work, truth):
 def test_a_foreign_model_table_is_not_a_detector_model(tmp_path):
     """measure on another program's frame with a MODEL table of its own: the default Roman model."""
     from perscli.io.frames import open_frame
-    from perscli.measure.shapes import frame_detector_model
+    from perscli.measure.noise import frame_detector_model
 
     path = tmp_path / "foreign.fits"
     table = fits.BinTableHDU.from_columns([fits.Column("NAME", "10A", array=["a"])], name="MODEL")

@@ -176,7 +176,8 @@ def small(tmp_path_factory):
     """A 160x160 rendered cutout and its truth catalogue: a few galaxies and a bright star."""
     from astropy.table import Table
 
-    from perscli.render.exposure import Exposure, Optics
+    from perscli.render.exposure import Exposure
+    from perscli.optics import Optics
 
     tmp = tmp_path_factory.mktemp("small")
     optics = Optics(Exposure(ra=10, dec=-44, pa=30, sca=7, filter="J129", mjd=MJD))
@@ -252,7 +253,8 @@ BIG_BOUNDS = ["--bounds", 1533, 2556, 1533, 2556]
 @pytest.fixture(scope="module")
 def crowded(tmp_path_factory):
     """~10,000 galaxies on a 1024 x 1024 cutout: a few seconds of work for render and measure."""
-    from perscli.render.exposure import Exposure, Optics
+    from perscli.render.exposure import Exposure
+    from perscli.optics import Optics
 
     tmp = tmp_path_factory.mktemp("crowded")
     centre = Optics(Exposure(ra=10, dec=-44, pa=30, sca=7, filter="J129", mjd=MJD)).world_centre
@@ -322,3 +324,59 @@ def test_workers_die_with_a_killed_parent(crowded, tmp_path):
     proc.kill()
     proc.communicate(timeout=60)
     assert _all_gone(workers), "workers outlived a parent killed with SIGKILL"
+
+
+# -- read options (--no-checksum) are passed down to every worker -------------------------------------
+
+def _verifying(context, item):
+    from perscli.io.checksum import checksums_enabled
+
+    return checksums_enabled()
+
+
+def test_read_options_reach_worker_processes_threads_and_pickled_tasks():
+    """--no-checksum is a read option passed down (perscli.io.checksum.read_options), not a global: the
+    executor's processes and threads and the study's Dask tasks get the caller's, and it ends with its block."""
+    import pickle
+
+    from perscli.executor import run, thread_map
+    from perscli.io.checksum import carrying_read_options, checksums_enabled, read_options
+
+    with read_options(verify_checksums=False):
+        assert not checksums_enabled()
+        assert run(_verifying, range(6), workers=2) == [False] * 6
+        assert thread_map(lambda i: checksums_enabled(), range(6), workers=2) == [False] * 6
+        task = pickle.dumps(carrying_read_options(_verifying))   # as Dask ships a study task
+    assert checksums_enabled()
+    assert run(_verifying, range(4), workers=2) == [True] * 4
+    assert pickle.loads(task)(None, 0) is False and checksums_enabled()
+
+
+def test_one_progress_callback_drawn_as_lines_or_a_bar():
+    """progress(done, total, name): lines for logs (the study's), a bar only at a terminal, nothing with -q."""
+    import io
+
+    from perscli.progress import bar, lines
+
+    out = io.StringIO()
+    step = lines("study", out)
+    step(1, 2, "render-e1 (3.0 s)")
+    step(2, 2)
+    said = out.getvalue().splitlines()
+    assert said[0].startswith("study: [1/2] render-e1 (3.0 s); ") and said[0].endswith(" s elapsed")
+    assert said[1].startswith("study: [2/2]; ")
+    quiet = io.StringIO()
+    lines("study", quiet, quiet=True)(1, 1, "x")
+    assert quiet.getvalue() == ""
+    assert bar("rows", io.StringIO()) is None            # not a terminal: logs and pipes stay clean
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    term = Terminal()
+    draw = bar("rows", term)
+    assert bar("rows", term, quiet=True) is None
+    for k in (1, 2, 3):
+        draw(k, 3)
+    assert "rows" in term.getvalue() and "100%" in term.getvalue()

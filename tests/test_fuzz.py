@@ -1057,7 +1057,6 @@ def test_server_kills_a_run_at_its_deadline(server, inputs, tmp_path):
 
 def _clean_env():
     env = dict(os.environ)
-    env.pop("PERSCLI_NO_CHECKSUM", None)
     return env
 
 

@@ -114,7 +114,6 @@ def untouched(inputs):
 
 def clean_env() -> dict:
     env = dict(os.environ)
-    env.pop("PERSCLI_NO_CHECKSUM", None)
     env.setdefault("OMP_NUM_THREADS", "1")
     return env
 

@@ -203,8 +203,8 @@ def test_a_column_scaled_by_zero_is_refused(server, seeds, tmp_path, name, key):
 def test_measure_shapes_of_a_catalogue_with_repeated_ids_would_be_refused_by_correlate(seeds, tmp_path):
     """Why measure must refuse repeated ids: correlate refuses the SHAPES table they make."""
     from perscli import PerscliError
-    from perscli.measure.shapes import read_positions
-    from perscli.stats.correlate import load_shape_changes
+    from perscli.measure.selection import read_positions
+    from perscli.stats.shape_changes import load_shape_changes
 
     shapes = with_values(seeds["shapes"], tmp_path / "dup_shapes.fits", id=(1, 1))
     with pytest.raises(PerscliError, match="appears more than once"):
@@ -248,7 +248,8 @@ def test_a_schedule_with_an_exposure_time_of_zero_or_less_is_refused(server, tmp
 
 def test_a_pointings_table_with_a_negative_exposure_time_is_refused(server, tmp_path):
     """A pointings table (what render and catalog --footprints read) needs a time > 0 in every row."""
-    from perscli.scene.pointings import Pointing, write_pointings
+    from perscli.scene.pointings import write_pointings
+    from perscli.scene.schedule import Pointing
 
     rows = [Pointing(expid=k, mjd=61541.97 + k, exptime=t, ra=10.0, dec=-44.0, pa=30.0, filter="J129", sca=7)
             for k, t in enumerate((139.8, -139.8))]
@@ -439,8 +440,8 @@ def test_measure_columns(server, seeds, tmp_path):
 
 
 def test_study_takes_no_checksum_and_passes_it_to_its_tasks(tmp_path, monkeypatch):
-    """--no-checksum on study reaches the run (its tasks, in this process or the LocalCluster's workers,
-    inherit PERSCLI_NO_CHECKSUM); the study itself is replaced by stubs, nothing is rendered."""
+    """--no-checksum on study reaches the run (its read options, which the runner carries to each task);
+    the study itself is replaced by stubs, nothing is rendered."""
     from click.testing import CliRunner
 
     import perscli.study.config as config
@@ -453,12 +454,10 @@ def test_study_takes_no_checksum_and_passes_it_to_its_tasks(tmp_path, monkeypatc
     monkeypatch.setattr(config, "dump", lambda s: "name: stub\n")
     monkeypatch.setattr(plan, "build", lambda s: [])
     monkeypatch.setattr(runner, "task_dicts", lambda tasks: [])
-    monkeypatch.setattr(runner, "run", lambda tasks, outdir, **kw: seen.append(os.environ.get("PERSCLI_NO_CHECKSUM"))
-                        or [])
-    for flag, expected in (([], None), (["--no-checksum"], "1")):
-        # through monkeypatch, so that the variable the option sets is removed again after the test (it
-        # would turn the checks off for every later test of this process)
-        monkeypatch.delenv("PERSCLI_NO_CHECKSUM", raising=False)
+    from perscli.io.checksum import checksums_enabled
+
+    monkeypatch.setattr(runner, "run", lambda tasks, outdir, **kw: seen.append(checksums_enabled()) or [])
+    for flag, expected in (([], True), (["--no-checksum"], False)):
         result = CliRunner().invoke(cli, ["study", "--preset", "ci", "-o", str(tmp_path / "s"), *flag])
         assert result.exit_code == 0, result.output
         assert seen[-1] == expected
@@ -552,7 +551,7 @@ def test_the_budget_legend_hides_no_point(monkeypatch, xip5):
 def test_bin_theta_is_scaled_to_the_bins_with_objects(monkeypatch, tmp_path):
     """Three galaxies in one |De| bin (fractions of 1/3, error bars of 0.5) no longer set the y axis of
     2000 in another, whose fractions lie near 1/18."""
-    from perscli.stats.correlate import theta_distribution
+    from perscli.stats.de_stats import theta_distribution
     from perscli.stats.plots import theta_figure
 
     rng = np.random.default_rng(2)

@@ -15,14 +15,16 @@ from astropy.io import fits
 import perscli
 from perscli import PerscliError
 from perscli.io.output import CREATOR, add_provenance, check_output
-from perscli.io.output import atomic_output, atomic_path, make_temp_file, make_temp_folder, write_hdus
+from perscli.io.output import atomic_output, atomic_path, write_hdus
+from perscli.io.tempfiles import make_temp_file, make_temp_folder
 
 from fits_factory import (DAY, SHAPE, T0, cards_except, cube_file, frame_file, image_file, invoke, listing,
                           raw_cards_masked, timing, wfc3_ramp_file)
 
 
 def small_hdul(value=1.0):
-    from perscli.io.fitsfile import OutHDU, format_card
+    from perscli.io.fitsfile import OutHDU
+    from perscli.io.cards import format_card
 
     return [OutHDU([format_card("OBJECT", "test")]), OutHDU([], np.full(SHAPE, value, dtype=np.float32), extname="SCI")]
 

@@ -11,3 +11,43 @@ def test_no_module_is_over_800_lines():
     assert len(sizes) > 50
     big = {name: n for name, n in sizes.items() if n > MAX_LINES}
     assert not big, f"split these along their jobs: {big}"
+
+
+# -- layers: imports go one way -----------------------------------------------------------------
+
+def _perscli_imports(path: Path) -> set:
+    """The perscli modules (and names) a file imports, anywhere in it (function-level imports too)."""
+    import ast
+
+    package = ["perscli", *path.relative_to(SRC).parts[:-1]]
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package[:len(package) - node.level + 1] + ([node.module] if node.module else []))
+            names.add(base)
+            names.update(f"{base}.{alias.name}" for alias in node.names)
+        elif isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+    return {n for n in names if n == "perscli" or n.startswith("perscli.")}
+
+
+def _reaching(paths, forbidden) -> dict:
+    found = {}
+    for path in paths:
+        bad = sorted(n for n in _perscli_imports(path) if any(n == f or n.startswith(f + ".") for f in forbidden))
+        if bad:
+            found[str(path.relative_to(SRC))] = bad
+    return found
+
+
+def test_optics_sits_below_render_and_measure():
+    """perscli.optics (Roman's WCS, PSF and stamp drawing) imports neither of the two that use it."""
+    assert not _reaching([SRC / "optics.py"], ("perscli.render", "perscli.measure", "perscli.study",
+                                               "perscli.cli", "perscli.diagnose", "perscli.stats"))
+
+
+def test_measure_does_not_reach_into_render():
+    """measure draws through perscli.optics, as render does, rather than importing render's modules."""
+    assert not _reaching(sorted((SRC / "measure").rglob("*.py")), ("perscli.render", "perscli.study", "perscli.cli"))

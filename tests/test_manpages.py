@@ -11,9 +11,18 @@ from perscli.cli.manpages import render_all
 MAN = Path(__file__).resolve().parents[1] / "man"
 
 
+def _commands():
+    """(name, command) of every command and subcommand: ('render', ...), ('pointings plan', ...)."""
+    for name, command in cli.commands.items():
+        yield name, command
+        for sub, subcommand in getattr(command, "commands", {}).items():
+            yield f"{name} {sub}", subcommand
+
+
 def test_one_page_per_command_and_all_current():
     pages = render_all()
-    assert set(pages) == {"perscli.1"} | {f"perscli-{name}.1" for name in cli.commands}
+    assert set(pages) == {"perscli.1"} | {f"perscli-{name.replace(' ', '-')}.1" for name, _ in _commands()}
+    assert {"perscli-pointings-plan.1", "perscli-pointings-select.1", "perscli-pointings-before.1"} <= set(pages)
     for name, text in pages.items():
         path = MAN / name
         assert path.exists(), f"man/{name} missing: run `make man`"
@@ -26,6 +35,19 @@ def test_pages_carry_the_options_and_examples():
     page = render_all()["perscli-apply-persistence.1"]
     for text in ("\\-\\-time\\-model", "\\-\\-max\\-previous", "\\-\\-combine", "Examples:", ".SH SYNOPSIS"):
         assert text in page
+
+
+def test_a_subcommands_page_and_its_groups():
+    pages = render_all()
+    plan = pages["perscli-pointings-plan.1"]
+    assert plan.startswith('.TH "PERSCLI-POINTINGS-PLAN" "1"')
+    for text in ("\\-\\-dither", "\\-\\-exptime", "\\-\\-footprints", "Examples:",
+                 ".SH SEE ALSO\n\\fBperscli\\-pointings\\fR(1)"):
+        assert text in plan, text
+    # the group's page: its commands, each naming its page; not the deprecated flag form's options
+    group = pages["perscli-pointings.1"]
+    assert "See \\fBperscli\\-pointings\\-plan\\fR(1)." in group and ".SH COMMANDS" in group
+    assert "\\-\\-dither" not in group.split(".SH OPTIONS")[1]
 
 
 def test_the_generator_writes_every_page(tmp_path, capsys):
@@ -43,7 +65,7 @@ def test_plain_text_and_troff_are_the_same_page():
     from perscli.cli.manpages import page_parts, to_text
 
     root = click.Context(cli, info_name="perscli", **cli.context_settings)
-    for name, command in cli.commands.items():
+    for name, command in _commands():
         parts = page_parts(command, f"perscli {name}", root)
         text = " ".join(to_text(parts).split())
         for flags, help_text in parts["options"]:

@@ -17,7 +17,8 @@ MJD = 61541.97
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     """A bright star and a few galaxies on a 160x160 cutout; exposure 2 with and without persistence."""
-    from perscli.render.exposure import Exposure, Optics
+    from perscli.render.exposure import Exposure
+    from perscli.optics import Optics
 
     tmp = tmp_path_factory.mktemp("measure")
     optics = Optics(Exposure(ra=10, dec=-44, pa=30, sca=7, filter="J129", mjd=MJD))

@@ -86,7 +86,8 @@ def test_newton_converges_fast_at_low_snr(model):
 
 def test_predicted_snr_matches_the_optimal_snr_of_a_drawn_galaxy(model):
     """predicted_snr is F sqrt(sum p^2 / V) of the round catalogue galaxy through the PSF."""
-    from perscli.measure.shapes import SnrTable, _FrameFacts, predicted_snr
+    from perscli.measure.noise import SnrTable, predicted_snr
+    from perscli.measure.perframe import _FrameFacts
 
     bandpass = roman.getBandpasses(AB_zeropoint=True)["J129"]
     psf = roman.getPSF(7, "J129", wavelength=bandpass.effective_wavelength)
@@ -106,7 +107,7 @@ def test_predicted_snr_matches_the_optimal_snr_of_a_drawn_galaxy(model):
 
 
 def test_stamp_sides_follow_the_catalogue_size():
-    from perscli.measure.shapes import stamp_ladder, stamp_side
+    from perscli.measure.perframe import stamp_ladder, stamp_side
 
     assert stamp_ladder(48) == [16, 24, 32, 40, 48] and stamp_ladder(32) == [16, 24, 32]
     assert stamp_ladder(50) == [16, 24, 32, 40, 48, 50] and stamp_ladder(16) == [16]
@@ -116,8 +117,19 @@ def test_stamp_sides_follow_the_catalogue_size():
     assert [stamp_side(cat, i, 0.11, stamp_ladder(24)) for i in range(5)] == [16, 24, 24, 24, 24]
 
 
-def test_cli_default_cut_is_the_library_default():
-    from perscli.cli.measure import MIN_SNR_DEFAULT as cli_default
+def test_cli_defaults_are_the_library_defaults():
+    """Every setting of MeasureOptions is an option of the command, with its default (written once)."""
+    import dataclasses
+
+    from perscli.cli.measure import measure
+    from perscli.measure.settings import MeasureOptions
     from perscli.measure.shapes import MIN_SNR_DEFAULT
 
-    assert cli_default == MIN_SNR_DEFAULT == 5.0
+    defaults = {p.name: p.default for p in measure.params}
+    o = MeasureOptions()
+    # --columns is the shared repeatable option (perscli.cli.options.columns_opt): unset gives None
+    for field in dataclasses.fields(o):
+        if field.name != "columns":
+            assert defaults[field.name] == getattr(o, field.name), field.name
+    assert o.columns is None and "columns" in defaults
+    assert o.min_snr == MIN_SNR_DEFAULT == 5.0

@@ -420,7 +420,7 @@ def test_required_oversampling():
 
 def test_stamp_drawer_default_is_unchanged(psf):
     """render's drawer: the default still multiplies by the pixel, bit for bit; pixel=False leaves it out."""
-    from perscli.render.draw import StampDrawer
+    from perscli.optics import StampDrawer
 
     profile = galsim.PixelScale(P).toImage(psf)
     default, without = StampDrawer(profile), StampDrawer(profile, pixel=False)
@@ -452,7 +452,7 @@ def test_psf_profile_is_optical_only(scene, images):
     image; an image that includes the pixel is refused, since ExpModel would apply the pixel again."""
     from perscli import PerscliError
     from perscli.io.frames import open_frame
-    from perscli.measure.shapes import psf_profile
+    from perscli.measure.perframe import psf_profile
 
     tmp, frame, cat, _ = scene
     f = open_frame(str(frame))

@@ -9,7 +9,8 @@ from astropy.io import fits
 from conftest import SAMPLE_DATA, fluence_grid
 from fits_factory import run
 from perscli import PerscliError
-from perscli.detector.persistence import (PRESETS, PersistenceModel, load_model, persistence_charge,
+from perscli.detector.model import load_persistence_model as load_model
+from perscli.detector.persistence import (PRESETS, PersistenceModel, persistence_charge,
                                           time_factor)
 from perscli.io.frames import SECONDS_PER_DAY, open_frame
 
@@ -113,6 +114,42 @@ def test_model_means_the_same_in_render_and_apply_persistence(tmp_path):
     assert (model.A, model.combine, model.max_previous) == (0.086, "max", 3)
     from_detector = load_detector_model(str(path)).persistence_model()
     assert from_detector.params() == model.params()
+
+
+def test_one_loader_reads_a_preset_the_same_way_in_render_and_apply_persistence(tmp_path):
+    """base: wfc3 brings the WFC3 pipeline's settings wherever the model is read (they once differed)."""
+    from perscli.detector.model import load_detector_model
+
+    by_name = load_model("wfc3")
+    in_render = load_detector_model(None, ["persistence.base=wfc3"]).persistence_model()
+    path = tmp_path / "det.yaml"
+    path.write_text("effects:\n  - persistence: {base: wfc3}\n")
+    from_file = load_model(str(path))
+    assert by_name.params() == in_render.params() == from_file.params()
+    assert (by_name.time_model, by_name.combine, by_name.max_previous, by_name.lookback) == ("middle", "max", 0, 16.0)
+    # a setting given beside the base wins, in every form
+    over = load_detector_model(None, ["persistence.base=wfc3", "persistence.lookback=2"]).persistence_model()
+    assert (over.lookback, load_model("wfc3", ["lookback=2"]).lookback) == (2.0, 2.0)
+    # the standalone law file keeps its rules: unknown keys and half a law are refused
+    for text, needle in (("A: 0.03\nx_0: 7.0e4\n", "unknown persistence parameter"), ("A: 0.03\n", "missing x0")):
+        path.write_text(text)
+        with pytest.raises(PerscliError, match=needle):
+            load_model(str(path))
+
+
+def test_the_persistence_step_ignores_earlier_frames_beyond_its_lookback():
+    """lookback is a setting of the persistence step, so render honours it as apply-persistence does."""
+    ends = [0.0, 3600.0 * 5]
+    x = [np.full((2, 2), 1e5), np.full((2, 2), 1e5)]
+    start = 3600.0 * 5 + 60.0
+    both = persistence_charge(x, ends, start, 139.8, load_model("typical"))
+    recent = persistence_charge(x[1:], ends[1:], start, 139.8, load_model("typical"))
+    from perscli.detector.model import load_detector_model
+
+    pm = load_detector_model(None, ["persistence.lookback=1"]).persistence_model()
+    assert pm.lookback == 1.0
+    np.testing.assert_array_equal(persistence_charge(x, ends, start, 139.8, pm), recent)
+    assert np.all(both > recent)
 
 
 def test_model_from_a_rendered_frame(tmp_path):

@@ -7,9 +7,10 @@ import pytest
 from scipy import integrate
 
 from perscli import PerscliError, _kernels
+from perscli.detector.model import load_persistence_model as load_model
 from perscli.detector.persistence import (GALSIM_LINEAR_COEFFICIENTS, PRESETS, PersistenceModel,
-                                          accumulate, load_model, time_factor)
-from perscli.io.fitsfile import ones_complement_add
+                                          accumulate, time_factor)
+from perscli.io.checksum import ones_complement_add
 
 
 def paper_F(x, A, x0, dx, alpha, half_well, **_):
@@ -140,7 +141,7 @@ def test_overrides_and_their_errors():
     assert "gamma=1.2" in model.name
     with pytest.raises(PerscliError, match="unknown persistence parameter 'beta'"):
         load_model("typical", ["beta=1"])
-    with pytest.raises(PerscliError, match="not a number"):
+    with pytest.raises(PerscliError, match="gamma must be a finite number"):
         load_model("typical", ["gamma=fast"])
     with pytest.raises(PerscliError, match="KEY=VALUE"):
         load_model("typical", ["gamma"])

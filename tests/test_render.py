@@ -39,7 +39,8 @@ GRID = [("star", 16.0, 0.3, 0, 0), ("star", 18.0, 0.3, 0, 0), ("star", 20.0, 0.3
 
 @pytest.fixture(scope="module")
 def optics():
-    from perscli.render.exposure import Exposure, Optics
+    from perscli.render.exposure import Exposure
+    from perscli.optics import Optics
 
     return Optics(Exposure(ra=RA, dec=DEC, pa=PA, sca=SCA, filter=FILTER, mjd=MJD1))
 

@@ -281,7 +281,8 @@ def test_sky_level_is_galsims_on_the_exposure_date(tmp_path):
     import galsim
     import galsim.roman as roman
 
-    from perscli.render.exposure import Exposure, Optics
+    from perscli.render.exposure import Exposure
+    from perscli.optics import Optics
 
     optics = Optics(Exposure(ra=RA, dec=DEC, pa=PA, sca=SCA, filter=FILTER, mjd=MJD))
     wcs = galsim_wcs()

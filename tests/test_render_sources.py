@@ -35,7 +35,8 @@ OBJECTS = [("star", 1040.3, 2050.6, 13.5, 0.0), ("galaxy", 1095.2, 2090.7, 16.0,
 
 @pytest.fixture(scope="module")
 def optics():
-    from perscli.render.exposure import Exposure, Optics
+    from perscli.render.exposure import Exposure
+    from perscli.optics import Optics
 
     return Optics(Exposure(ra=RA, dec=DEC, pa=PA, sca=SCA, filter=FILTER, mjd=MJD1))
 
@@ -234,19 +235,20 @@ def test_library_render_file_with_a_source(work, truth, hist, persisted):
     from perscli.detector.model import load_detector_model
     from perscli.render.exposure import Exposure
     from perscli.render.run import render_file
+    from perscli.render.settings import RenderOptions
 
     model = load_detector_model("roman")
     before = model.describe()
     exposure = Exposure(ra=RA2, dec=DEC, pa=PA, sca=SCA, filter=FILTER, mjd=MJD2, bounds=BOUNDS)
     out = str(work / "lib_stars.fits")
-    summary = render_file(truth, exposure, out, model=model, seed=2, previous=[hist["full"]],
-                          persistence_source="stars", hdus=("PERSIST", "SCI"), overwrite=True)
+    summary = render_file(truth, exposure, out, RenderOptions(persistence_source="stars", hdus=("PERSIST", "SCI")),
+                          model=model, seed=2, previous=[hist["full"]], overwrite=True)
     assert model.describe() == before                                  # the caller's model is not changed
     assert summary["hdus"] == ("SCI", "PERSIST") and summary["persistence_source"] == "stars"
     assert summary["fluence_cap"] == WELL and summary["objects"] == 4
     np.testing.assert_array_equal(images(out)["PERSIST"], images(persisted["stars"])["PERSIST"])
-    thr = render_file(truth, exposure, str(work / "lib_thr.fits"), model=model, seed=2, previous=[hist["full"]],
-                      persistence_source=5e4, hdus="SCI,PERSIST", overwrite=True)
+    thr = render_file(truth, exposure, str(work / "lib_thr.fits"), RenderOptions(persistence_source=5e4,
+                      hdus="SCI,PERSIST"), model=model, seed=2, previous=[hist["full"]], overwrite=True)
     assert thr["persistence_source"] == "threshold" and thr["persistence_threshold"] == 5e4
 
 
@@ -440,7 +442,7 @@ def test_a_frame_without_objects(work, optics, where):
 
 def test_exposure_from_a_schedule_row(shared_data, tmp_path):
     from perscli.render.exposure import Exposure
-    from perscli.scene.pointings import read_schedule, schedule_pointing
+    from perscli.scene.schedule import read_schedule, schedule_pointing
 
     schedule = read_schedule(str(shared_data / "roman" / "Roman_WAS_obseq_11_1_23.fits"))
     e = Exposure.from_pointing(schedule_pointing(schedule, 4183), sca=3, bounds=(1, 64, 1, 64))

@@ -14,8 +14,9 @@ import pytest
 from astropy.io import fits
 
 from perscli import PerscliError
-from perscli.scene.pointings import (PLAN_REFERENCE_MJD, best_pa, first_observable_start, observable, plan_dithers,
-                                     sun_angle)
+from perscli.scene.pointings import PLAN_REFERENCE_MJD
+from perscli.scene.dithers import plan_dithers
+from perscli.scene.observability import best_pa, first_observable_start, observable, sun_angle
 
 from fits_factory import expect_error, invoke, listing
 

@@ -13,9 +13,11 @@ import pytest
 from astropy.io import fits
 
 from perscli import PerscliError
-from perscli.scene.pointings import (Pointing, Schedule, plan_dithers, previous_exposures, read_pointings,
-                                     read_schedule, sca_footprint, schedule_pointing, select_covering,
-                                     write_pointings)
+from perscli.scene.pointings import read_pointings, write_pointings
+from perscli.scene.dithers import plan_dithers
+from perscli.scene.footprints import sca_footprint
+from perscli.scene.schedule import (Pointing, Schedule, previous_exposures, read_schedule, schedule_pointing,
+                                    select_covering)
 
 import fits_factory
 from fits_factory import invoke, listing, raw_cards_masked
@@ -288,15 +290,8 @@ def test_missing_schedule_file(tmp_path):
                  "nope.fits", "no such file")
 
 
-def expect_usage_error(tmp_path, args, *needles):
-    files = listing(tmp_path)
-    result = invoke("pointings", *args, "-o", tmp_path / "out.fits")
-    assert result.exit_code == 2, (result.exit_code, result.output)
-    assert result.stderr.startswith("perscli pointings: error: ") and result.stdout == ""
-    assert len(result.stderr.splitlines()) == 1, result.stderr
-    for needle in needles:
-        assert needle in result.stderr, (needle, result.stderr)
-    assert listing(tmp_path) == files
+#: a usage error of the flag form (exit 2) in one line, nothing written (the shared harness's)
+expect_usage_error = partial(fits_factory.expect_error, command="pointings", code=2)
 
 
 @pytest.mark.parametrize("args, needle", [

@@ -13,28 +13,13 @@ from click.shell_completion import ShellComplete
 
 from perscli.cli import manpages
 from perscli.cli.helpers import PathName
-from perscli.cli.main import PerscliGroup, cli
+from perscli.cli.main import cli
+from perscli.cli.helpers import PerscliGroup
 
-from fits_factory import DAY, SHAPE, T0, frame_file, invoke, listing
+from fits_factory import DAY, SHAPE, T0, command_named, frame_file, invoke, leaf_commands, listing, usage_error
 
 BIN = os.path.dirname(sys.executable)
 SCRIPT = os.path.join(BIN, "perscli")
-
-#: one usage error: which command, what, and where its help is
-USAGE_LINE = re.compile(r"^(perscli(?: [a-z-]+)?): error: (.+) \(see '\1 -h'\)$")
-
-
-def usage_error(result, command="perscli"):
-    """The message of a one-line usage error of ``command`` (exit 2, nothing on stdout)."""
-    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
-    assert result.stdout == ""
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1, result.stderr
-    match = USAGE_LINE.match(lines[0])
-    assert match, lines[0]
-    assert match.group(1) == command, lines[0]
-    return match.group(2)
-
 
 # -- usage errors: one line ----------------------------------------------------------------------
 
@@ -357,6 +342,14 @@ PATH_PARAMS = {
     ("pointings", "schedule"): "file",
     ("pointings", "catalog"): "file",
     ("pointings", "output"): "file",
+    ("pointings select", "schedule"): "file",
+    ("pointings select", "catalog"): "file",
+    ("pointings select", "output"): "file",
+    ("pointings before", "schedule"): "file",
+    ("pointings before", "catalog"): "file",
+    ("pointings before", "output"): "file",
+    ("pointings plan", "catalog"): "file",
+    ("pointings plan", "output"): "file",
     ("render", "truth"): "file",
     ("render", "pointings_file"): "file",
     ("render", "model_spec"): ("file", "roman"),
@@ -376,7 +369,7 @@ _PATHLIKE = re.compile(r"\.(fits|yaml|reg|json|png)\b|FILE|PATH|DIR|PNG|FRAME", 
 
 
 def _param(command, name):
-    return next(p for p in cli.commands[command].params if p.name == name)
+    return next(p for p in command_named(command).params if p.name == name)
 
 
 def completions(args, incomplete):
@@ -385,11 +378,11 @@ def completions(args, incomplete):
 
 
 def test_every_file_parameter_is_known_here():
-    for command, cmd in cli.commands.items():
+    for command, cmd in leaf_commands():
         for p in cmd.params:
             if p.metavar and _PATHLIKE.search(p.metavar) and (command, p.name) not in PATH_PARAMS:
                 pytest.fail(f"{command} {p.name} ({p.metavar}) takes a path: add it to PATH_PARAMS")
-    assert all(any(p.name == name for p in cli.commands[cmd].params) for cmd, name in PATH_PARAMS), \
+    assert all(any(p.name == name for p in command_named(cmd).params) for cmd, name in PATH_PARAMS), \
         "PATH_PARAMS names a parameter that no longer exists"
 
 
@@ -399,7 +392,7 @@ def test_every_path_parameter_completes_file_names(command, name):
     kind, names = (want, ()) if isinstance(want, str) else (want[0], want[1:])
     param = _param(command, name)
     assert isinstance(param.type, click.Path), f"{command} {name}: type=click.Path (perscli.cli.helpers.FILE)"
-    ctx = click.Context(cli.commands[command], info_name=command)
+    ctx = click.Context(command_named(command), info_name=command)
     items = param.shell_complete(ctx, "")
     assert (items[0].type, items[0].value) == (kind, "")
     assert sorted(item.value for item in items[1:]) == sorted(names)

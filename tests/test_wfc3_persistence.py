@@ -306,11 +306,16 @@ def test_dq_and_model_error_options_are_checked(flt_pair, tmp_path):
     assert not out.exists()
 
 
-def test_cli_defaults_are_the_librarys():
-    from perscli.cli import apply_persistence as cmd
-    from perscli.detector import apply
+def test_cli_defaults_are_the_librarys(tmp_path):
+    """The command's defaults are ApplyOptions' (written once): the help shows them, a run uses them."""
+    from perscli.cli.apply_persistence import apply_persistence
+    from perscli.detector.settings import DEFAULT_DQ_BIT, DEFAULT_MODEL_ERROR, ApplyOptions
 
-    assert (cmd.MODEL_ERROR, cmd.DQ_BIT) == (apply.DEFAULT_MODEL_ERROR, apply.DEFAULT_DQ_BIT)
+    options = {p.name: p for p in apply_persistence.params}
+    assert options["mode"].default == ApplyOptions().mode == "add"
+    assert options["model_error"].default == ApplyOptions().model_error == DEFAULT_MODEL_ERROR
+    assert f"default: {DEFAULT_DQ_BIT}" in options["dq_bit"].help
+    assert "the model's lookback; 0, wfc3: 16" in options["lookback"].help
 
 
 # -- subarrays and full frames, raw/ima and flt -------------------------------------------------------

@@ -206,8 +206,15 @@ def _error_payload(exc: BaseException) -> bytes:
         return pickle.dumps(RuntimeError(f"{type(exc).__name__}: {exc}\n(in a worker process)\n{text}"))
 
 
-def _worker(conn, func, context, parent_pid: int) -> None:
-    """Serve chunks from ``conn`` until told to stop or the parent goes away."""
+def _worker(conn, func, context, parent_pid: int, read: dict) -> None:
+    """Serve chunks from ``conn`` until told to stop or the parent goes away, with the parent's read options."""
+    from .io.checksum import read_options
+
+    with read_options(**read):
+        _serve(conn, func, context, parent_pid)
+
+
+def _serve(conn, func, context, parent_pid: int) -> None:
     _die_with_parent(parent_pid)
     # the parent's handlers (Terminated, KeyboardInterrupt) are not for workers: the parent ends them
     for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
@@ -270,14 +277,16 @@ def _died(proc) -> PerscliError:
 def _parallel(func, chunks, context, nworkers: int, total: int, progress):
     from multiprocessing.connection import wait
 
+    from .io.checksum import current_read_options
+
     ctx = _mp_context()
     procs, conns = [], []
     finished = False
     try:
         for _ in range(nworkers):
             parent_end, child_end = ctx.Pipe(duplex=True)
-            proc = ctx.Process(target=_worker, args=(child_end, func, context, os.getpid()), daemon=True,
-                               name="perscli-worker")
+            proc = ctx.Process(target=_worker, args=(child_end, func, context, os.getpid(), current_read_options()),
+                               daemon=True, name="perscli-worker")
             proc.start()
             child_end.close()
             procs.append(proc)
@@ -364,6 +373,9 @@ def thread_map(func, items, *, workers: int = 1, progress=None) -> list:
         return results
     from concurrent.futures import ThreadPoolExecutor
 
+    from .io.checksum import carrying_read_options
+
+    func = carrying_read_options(func)     # a new thread starts from an empty context
     pool = ThreadPoolExecutor(min(workers, len(items)), thread_name_prefix="perscli")
     futures = []
     try:

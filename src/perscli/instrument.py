@@ -19,6 +19,7 @@ ROMAN_WAS_GAP              30.0 s      from the end of one survey exposure to th
 ROMAN_WAS_CADENCE          169.8 s     exposure starts: ROMAN_EXPTIME + ROMAN_WAS_GAP
 ROMAN_PIXEL_SCALE          0.11"       arcsec per pixel
 ROMAN_SCA_SIZE             4088        active pixels per side of an SCA
+ROMAN_DETECTOR_SIZE        4096        pixels per side of the H4RG-10, reference pixels included
 ROMAN_N_SCA                18          SCAs in the focal plane, numbered 1-18
 ROMAN_GAIN                 1.0         e-/DN
 ROMAN_READ_NOISE           8.5 e-      per pixel, Gaussian
@@ -60,6 +61,9 @@ ROMAN_PIXEL_SCALE = 0.11
 
 #: Active pixels per side of an SCA (``galsim.roman.n_pix``).
 ROMAN_SCA_SIZE = 4088
+
+#: Pixels per side of the H4RG-10 detector, its 4-pixel border of reference pixels included.
+ROMAN_DETECTOR_SIZE = 4096
 
 #: SCAs in the focal plane, numbered 1 to ROMAN_N_SCA (``galsim.roman.n_sca``).
 ROMAN_N_SCA = 18

@@ -17,6 +17,7 @@ import os
 import numpy as np
 
 from .instrument import ROMAN_EXPTIME, ROMAN_WAS_CADENCE
+from .optics import bandpasses, quick_roman_psf
 
 #: Roman WAS cadence: 139.8 s exposures starting ~169.8 s apart (a ~30 s gap).
 EXPTIME = ROMAN_EXPTIME
@@ -61,8 +62,8 @@ def make_sample_sequence(outdir: str, *, n: int = 4, size: int = 256, seed: int 
 
     rng = np.random.default_rng(seed)
     os.makedirs(outdir, exist_ok=True)
-    bandpass = roman.getBandpasses(AB_zeropoint=True)[filter_name]
-    psf = roman.getPSF(sca, filter_name, n_waves=5, pupil_bin=8, wavelength=bandpass)
+    bandpass = bandpasses()[filter_name]
+    psf = quick_roman_psf(sca, filter_name)
     centre = galsim.CelestialCoord(ra * galsim.degrees, dec * galsim.degrees)
     scale = roman.pixel_scale
     # stars on a field a little larger than the cutout, so dithers move them in and out

@@ -7,15 +7,24 @@ import logging
 import click
 
 from .helpers import FILE, PerscliCommand, check_outputs, progress_reporter, report_errors
+from ..detector.settings import COMBINES, MODES, PRESET_SETTINGS, PRESETS, SETTINGS, TIME_MODELS, ApplyOptions
 from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, model_opt, no_checksum_opt, output_opt,
                       overwrite_opt, units_opt, verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
-# the defaults of perscli.detector.apply (DEFAULT_MODEL_ERROR, DEFAULT_DQ_BIT), written here again so that
-# --help does not import numpy; tests/test_wfc3_persistence.py checks that they agree
-MODEL_ERROR = 0.3
-DQ_BIT = 1024
+#: the defaults, written once (perscli.detector.settings)
+D = ApplyOptions()
+
+
+def _model_default(key: str) -> str:
+    """'[default: the model's KEY; VALUE, wfc3: VALUE]': the setting's default and the presets' own."""
+    def text(value):
+        return f"{value:g}" if isinstance(value, float) else str(value)
+
+    own = "".join(f", {name}: {text(PRESET_SETTINGS[name][key])}" for name in PRESETS
+                  if key in PRESET_SETTINGS.get(name, {}))
+    return f"[default: the model's {key}; {text(SETTINGS[key][2])}{own}]"
 
 
 def _power_of_two(ctx, param, value):
@@ -42,24 +51,24 @@ def _power_of_two(ctx, param, value):
 @click.option("--param", "params", multiple=True, metavar="KEY=VALUE",
               help="The same as --set persistence.KEY=VALUE (the older spelling, kept for the scripts that use "
                    "it). Repeatable.")
-@click.option("--mode", type=click.Choice(["add", "subtract", "predict"]), default="add", show_default=True,
+@click.option("--mode", type=click.Choice(MODES), default=D.mode, show_default=True,
               help="Add persistence, subtract it (a correction), or write the persistence alone.")
-@click.option("--time-model", type=click.Choice(["exact", "middle", "galsim"]), default=None,
+@click.option("--time-model", type=click.Choice(TIME_MODELS), default=None,
               help="exact: integral of the rate over the exposure from the real timestamps; "
                    "middle: the rate at the middle of the exposure (of each read's window for a ramp) times "
                    "its length, as STScI's WFC3 pipeline; "
                    "galsim: galsim.roman.applyPersistence(method='fermi')'s mid-exposure rate "
-                   "[default: the model's time_model; exact, wfc3: middle].")
-@click.option("--combine", type=click.Choice(["sum", "max"]), default=None,
+                   f"{_model_default('time_model')}.")
+@click.option("--combine", type=click.Choice(COMBINES), default=None,
               help="Sum over earlier exposures (the paper, GalSim) or per-pixel maximum (WFC3 pipeline) "
-                   "[default: the model's combine; sum, wfc3: max].")
+                   f"{_model_default('combine')}.")
 @click.option("--max-previous", type=click.IntRange(min=0), default=None, metavar="N",
               help="Only the N most recent earlier exposures count (0: all) "
-                   "[default: the model's max_previous; 10, wfc3: 0].")
+                   f"{_model_default('max_previous')}.")
 @click.option("--lookback", type=click.FloatRange(min=0), default=None, metavar="HOURS",
               help="Ignore earlier exposures that ended more than HOURS before CURRENT starts (0: no limit; "
-                   "-v names them) [default: the model's lookback; 0, wfc3: 16].")
-@click.option("--model-error", type=click.FloatRange(min=0), default=MODEL_ERROR, show_default=True,
+                   f"-v names them) {_model_default('lookback')}.")
+@click.option("--model-error", type=click.FloatRange(min=0), default=D.model_error, show_default=True,
               metavar="FRACTION",
               help="Fractional uncertainty of the persistence. Where CURRENT has an ERR array (WFC3 flt/ima, "
                    "JWST): --mode subtract adds FRACTION x persistence to it in quadrature, --mode predict "
@@ -69,7 +78,7 @@ def _power_of_two(ctx, param, value):
                    "electrons per second, whatever the units of the data (WFC3's advice: 0.01). A frame "
                    "without DQ gets one.")
 @click.option("--dq-bit", type=int, default=None, callback=_power_of_two, metavar="VALUE",
-              help=f"The DQ value --flag-above sets, a power of two [default: {DQ_BIT}, a value calwf3 is not known to "
+              help=f"The DQ value --flag-above sets, a power of two [default: {D.dq_bit}, a value calwf3 is not known to "
                    "set in WFC3-IR data].")
 @click.option("--gap", type=FiniteRange(min=0), default=None, metavar="SECONDS",
               help="Ignore header timestamps: PREVIOUS... then CURRENT, in command-line order, are consecutive "
@@ -125,8 +134,8 @@ def apply_persistence(current, previous, output, model_spec, settings, params, m
       perscli apply-persistence exp4.fits 'exp3.fits[SCI][65:192,65:192]' --mode predict -o pers_cutout.fits
       cat exp4.fits | perscli apply-persistence - exp3.fits -o - | perscli apply-persistence - exp2.fits -o out.fits
     """
-    from ..detector.apply import DEFAULT_DQ_BIT, apply_persistence_files
-    from ..detector.persistence import load_model
+    from ..detector.apply import apply_persistence_files
+    from ..detector.model import load_persistence_model
 
     if dq_bit is not None and flag_above is None:
         raise click.UsageError("--dq-bit sets the bit --flag-above flags: give --flag-above E_PER_S too")
@@ -144,12 +153,14 @@ def apply_persistence(current, previous, output, model_spec, settings, params, m
                                      param_hint="'--set'")
         overrides.append(f"{name}={value}")
     check_outputs(output, inputs=[current, *previous, model_spec], overwrite=overwrite)
-    model = load_model(model_spec, (*overrides, *params))
-    result = apply_persistence_files(
-        current, previous, output, model=model, mode=mode, time_model=time_model, combine=combine,
-        max_previous=max_previous, lookback=lookback, model_error=model_error, flag_above=flag_above,
-        dq_bit=DEFAULT_DQ_BIT if dq_bit is None else dq_bit, units=units, gain=gain, exptime=exptime, gap=gap,
-        overwrite=overwrite, workers=workers, progress=progress_reporter("rows"), compress=compress)
+    # the options --time-model, --combine, --max-previous and --lookback are the model's settings
+    model = load_persistence_model(model_spec, (*overrides, *params)).with_settings(
+        time_model=time_model, combine=combine, max_previous=max_previous, lookback=lookback)
+    options = ApplyOptions(mode=mode, model_error=model_error, flag_above=flag_above,
+                           dq_bit=D.dq_bit if dq_bit is None else dq_bit, units=units, gain=gain, exptime=exptime,
+                           gap=gap, compress=compress)
+    result = apply_persistence_files(current, previous, output, model=model, options=options, overwrite=overwrite,
+                                     workers=workers, progress=progress_reporter("rows"))
     log.info("%s: persistence from %d earlier exposure(s): max %.4g e-, total %.6g e- (last plane)%s",
              "stdout" if output == "-" else output, len(result.used), result.max_electrons,
              result.total_electrons, f"; {result.flagged} pixel(s) flagged in DQ" if flag_above is not None else "")

@@ -116,7 +116,7 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_rows, ga
       perscli catalog --ra 10 --dec -44 --galaxy-density 0 -o - | gzip > cat_stars.fits.gz
       perscli catalog --ra 150 --dec 2 --star-param thin_height=300 --star-param mag_min=10 -o cat_cosmos.fits
       perscli catalog --ra 10 --dec -44 --size 5 --star-density 20 -o cat_dense_stars.fits
-      perscli pointings --plan --ra 10 --dec -44 --n 2 --sca 7 -o cat_plan.fits
+      perscli pointings plan --ra 10 --dec -44 --n 2 --sca 7 -o cat_plan.fits
       perscli catalog --footprints cat_plan.fits --margin 30 --gaia 145649.fits --gaia 145650.fits -o cat_sca7.fits
       perscli catalog --footprints cat_plan.fits --sca 1 --bounds 1 128 1 128 -o cat_sca1_cut.fits
     """

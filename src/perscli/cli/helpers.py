@@ -177,30 +177,16 @@ def _debug_traceback() -> None:
 
 
 def progress_reporter(label: str, stream=None):
-    """A ``progress(done, total, name=None)`` callback drawing a bar on stderr.
+    """A ``progress(done, total, name=None)`` callback drawing a bar on stderr (:func:`perscli.progress.bar`).
 
     Silent (None) when stderr is not a terminal or with -q, so logs and pipes
     stay clean.
     """
-    stream = stream if stream is not None else sys.stderr
+    from ..progress import bar
+
     ctx = click.get_current_context(silent=True)
     verbosity = (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
-    if verbosity < 0 or not stream.isatty():
-        return None
-    state = {"done": 0}
-
-    def progress(done, total, name=None):
-        bar = state.get("bar")
-        if bar is None:
-            bar = click.progressbar(length=total, label=label, file=stream)
-            bar.__enter__()
-            state["bar"] = bar
-        bar.update(done - state["done"], current_item=name)
-        state["done"] = done
-        if done >= total:
-            bar.__exit__(None, None, None)
-
-    return progress
+    return bar(label, stream, quiet=verbosity < 0)
 
 
 # -- usage errors: one line ----------------------------------------------------------------------

@@ -1,6 +1,8 @@
 """Manual pages from the click help: the ``perscli man`` command, and ``python -m perscli.cli.manpages man``.
 
-One page for the group (perscli.1) and one per command (perscli-NAME.1).
+One page for the group (perscli.1), one per command (perscli-NAME.1) and one
+per subcommand of a command that has them (perscli-NAME-SUB.1, e.g.
+perscli-pointings-plan.1).
 The text is click's own help, so the pages cannot drift from ``--help``:
 ``perscli man`` builds them from the commands it runs with, and
 tests/test_manpages.py checks that the pages committed in man/ (installed
@@ -46,7 +48,8 @@ def page_parts(command: click.Command, name: str, parent: click.Context | None =
             description.append(("para", " ".join(line.strip() for line in lines)))
     # command.params, not get_params(): click caches the help option on the command with the
     # names of whichever context asked first (a test invoking the command alone, say)
-    options = [p.get_help_record(ctx) for p in command.params if isinstance(p, click.Option)]
+    params = command.params
+    options = [p.get_help_record(ctx) for p in params if isinstance(p, click.Option)]
     options = [rec for rec in options if rec]
     options.append((", ".join(ctx.help_option_names), "Show this message and exit."))
     commands = None
@@ -69,6 +72,17 @@ def _escape(text: str) -> str:
     return "\n".join(lines)
 
 
+def _page_name(name: str) -> str:
+    """The page of a command line: 'perscli pointings plan' -> 'perscli-pointings-plan'."""
+    return name.replace(" ", "-")
+
+
+def _parent_page(name: str) -> str:
+    """The page a command's page refers to: its group's ('perscli' for a command, 'perscli-pointings' for a
+    subcommand of pointings)."""
+    return _page_name(name.rsplit(" ", 1)[0])
+
+
 def to_troff(parts: dict) -> str:
     """A page as troff (the man(7) macros)."""
     name = parts["name"]
@@ -88,9 +102,10 @@ def to_troff(parts: dict) -> str:
     if parts["commands"] is not None:
         out.append(".SH COMMANDS")
         for sub, short in parts["commands"]:
-            out.append(f".TP\n\\fB{_escape(sub)}\\fR\n{_escape(short)}\nSee \\fBperscli\\-{_escape(sub)}\\fR(1).")
+            page = _escape(f"{_page_name(name)}-{sub}")
+            out.append(f".TP\n\\fB{_escape(sub)}\\fR\n{_escape(short)}\nSee \\fB{page}\\fR(1).")
     else:
-        out.append(".SH SEE ALSO\n\\fBperscli\\fR(1)")
+        out.append(f".SH SEE ALSO\n\\fB{_escape(_parent_page(name))}\\fR(1)")
     return "\n".join(out) + "\n"
 
 
@@ -132,9 +147,9 @@ def to_text(parts: dict, width: int = 80) -> str:
     if parts["commands"] is not None:
         out.append("COMMANDS")
         for sub, short in parts["commands"]:
-            out += [fill(sub), fill(f"{short} See perscli-{sub}(1).", item), ""]
+            out += [fill(sub), fill(f"{short} See {_page_name(name)}-{sub}(1).", item), ""]
     else:
-        out += ["SEE ALSO", body + "perscli(1)", ""]
+        out += ["SEE ALSO", body + f"{_parent_page(name)}(1)", ""]
     footer = f"perscli {__version__}"
     out.append(footer + " " * max(1, width - len(footer) - len(title)) + title)
     return "\n".join(out) + "\n"
@@ -146,18 +161,24 @@ def render_page(command: click.Command, name: str, parent: click.Context | None 
 
 
 def _pages():
-    """{file name: (command, name, parent context)} for the group and every command."""
+    """{file name: (command, name, parent context)} for the group, every command and every subcommand."""
     from .main import cli
 
     root = click.Context(cli, info_name="perscli", **cli.context_settings)
     pages = {"perscli.1": (cli, "perscli", None)}
     for sub in cli.list_commands(root):
-        pages[f"perscli-{sub}.1"] = (cli.get_command(root, sub), f"perscli {sub}", root)
+        command = cli.get_command(root, sub)
+        pages[f"perscli-{sub}.1"] = (command, f"perscli {sub}", root)
+        if isinstance(command, click.Group):
+            ctx = click.Context(command, info_name=sub, parent=root)
+            for subsub in command.list_commands(ctx):
+                pages[f"perscli-{sub}-{subsub}.1"] = (command.get_command(ctx, subsub), f"perscli {sub} {subsub}",
+                                                      ctx)
     return pages
 
 
 def render_all() -> dict:
-    """{file name: troff text} for the group and every command."""
+    """{file name: troff text} for the group, every command and every subcommand."""
     return {fname: render_page(*spec) for fname, spec in _pages().items()}
 
 
@@ -211,23 +232,37 @@ def main(argv=None):
 # -- perscli man ---------------------------------------------------------------------------------
 
 def _command_names(ctx, param, incomplete):
+    """Complete COMMAND, then SUBCOMMAND when COMMAND has them (perscli man pointings <TAB>)."""
     from click.shell_completion import CompletionItem
 
     from .main import cli
 
-    return [CompletionItem(name) for name in cli.commands if name.startswith(incomplete)]
+    group = cli
+    for word in ctx.params.get("command_name") or ():
+        group = group.commands.get(word) if isinstance(group, click.Group) else None
+    if not isinstance(group, click.Group):
+        return []
+    return [CompletionItem(name) for name in group.commands if name.startswith(incomplete)]
 
 
 def _known_command(ctx, param, value):
+    """COMMAND [SUBCOMMAND]: a perscli command, and one of its subcommands when it has them."""
     from .main import cli
 
-    if value is not None and value not in cli.commands:
-        import difflib
+    group, path = cli, "perscli"
+    for word in value or ():
+        if not isinstance(group, click.Group):
+            raise click.BadParameter(f"'{path}' has no subcommands: give only '{path.split(' ', 1)[1]}'", ctx,
+                                     param, param_hint="COMMAND")
+        if word not in group.commands:
+            import difflib
 
-        close = difflib.get_close_matches(value, cli.commands, n=1)
-        hint = f"; did you mean '{close[0]}'?" if close else f": one of {', '.join(sorted(cli.commands))}"
-        raise click.BadParameter(f"'{value}' is not a perscli command{hint}", ctx, param, param_hint="COMMAND")
-    return value
+            close = difflib.get_close_matches(word, group.commands, n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else f": one of {', '.join(sorted(group.commands))}"
+            what = "a perscli command" if group is cli else f"a subcommand of {path}"
+            raise click.BadParameter(f"'{word}' is not {what}{hint}", ctx, param, param_hint="COMMAND")
+        group, path = group.commands[word], f"{path} {word}"
+    return tuple(value or ())
 
 
 def _stdout_is_terminal() -> bool:
@@ -265,7 +300,7 @@ def show_with_man(troff: str) -> bool:
 
 @click.command("man", cls=PerscliCommand,
                short_help="Show the manual page of perscli or of one of its commands.")
-@click.argument("command_name", metavar="[COMMAND]", required=False, callback=_known_command,
+@click.argument("command_name", metavar="[COMMAND [SUBCOMMAND]]", nargs=-1, callback=_known_command,
                 shell_complete=_command_names)
 @click.option("--troff", is_flag=True, default=False,
               help="Print the troff source (what man(1) reads) instead of showing the page.")
@@ -279,7 +314,7 @@ def show_with_man(troff: str) -> bool:
 @verbosity_opts
 @report_errors
 def man(command_name, troff, all_pages, dest, overwrite):
-    """The manual page of perscli, or of COMMAND (e.g. render).
+    """The manual page of perscli, or of COMMAND (e.g. render), or of its SUBCOMMAND (pointings plan).
 
     The pages are made from the help of the commands installed, so they
     always describe the perscli that runs.  On a terminal the page is shown
@@ -295,6 +330,7 @@ def man(command_name, troff, all_pages, dest, overwrite):
     Examples:
       perscli man render
       perscli man render | grep -A2 -e --previous
+      perscli man pointings plan | grep -A1 -e --dither
       perscli man apply-persistence -o perscli-apply-persistence.1
       perscli man --all -o ~/.local/share/man/man1
     """
@@ -302,17 +338,17 @@ def man(command_name, troff, all_pages, dest, overwrite):
     from .main import cli
 
     if all_pages:
-        if command_name is not None:
+        if command_name:
             raise click.UsageError("--all writes every page: give no COMMAND with it")
         if dest is None or dest == "-":
             raise click.UsageError("--all needs -o FOLDER, e.g. -o ~/.local/share/man/man1")
         write_pages(dest, overwrite=overwrite)
         return
-    if command_name is None:
+    if not command_name:
         parts = page_parts(cli, "perscli")
     else:
-        root = click.Context(cli, info_name="perscli", **cli.context_settings)
-        parts = page_parts(cli.commands[command_name], f"perscli {command_name}", root)
+        # the page as installed (the same contexts as render_all's)
+        parts = page_parts(*_pages()[f"perscli-{'-'.join(command_name)}.1"])
     if dest is not None and dest != "-":
         check_output(dest, overwrite=overwrite)
         with atomic_output(dest, overwrite=overwrite) as fh:

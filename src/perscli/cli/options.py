@@ -44,6 +44,7 @@ import math
 import click
 
 from ..instrument import ROMAN_FILTERS, ROMAN_N_SCA
+from ..scene import DEC_RANGE, MJD_RANGE, PA_RANGE, RA_RANGE
 from .helpers import FILE, OUTPUT, file_or
 
 output_opt = click.option(
@@ -146,23 +147,23 @@ def _mjd_hint(value: float) -> str:
     return f" (a Julian Date? MJD = JD - 2400000.5 = {value - 2400000.5:.5f})" if value > 2400000.5 else ""
 
 
-# the ranges of perscli.scene (RA_RANGE, DEC_RANGE, PA_RANGE, MJD_RANGE), written here again so that --help does
-# not import numpy; tests/test_cli_options.py checks that they agree
-RA_TYPE = _Range(0.0, 360.0, hint=_ra_hint)
-DEC_TYPE = _Range(-90.0, 90.0)
-PA_TYPE = _Range(-360.0, 360.0)
-MJD_TYPE = _Range(0.0, 100000.0, hint=_mjd_hint)
+# the ranges of perscli.scene, where they are written (a light import: numpy waits for the functions that use it)
+RA_TYPE = _Range(*RA_RANGE, hint=_ra_hint)
+DEC_TYPE = _Range(*DEC_RANGE)
+PA_TYPE = _Range(*PA_RANGE)
+MJD_TYPE = _Range(*MJD_RANGE, hint=_mjd_hint)
 
 
 def ra_opt(help: str = "Field centre: right ascension", *, required: bool = False):
     """``--ra DEG``: a right ascension in [0, 360] degrees; ``help`` says what position it is."""
-    return click.option("--ra", type=RA_TYPE, default=None, required=required, metavar="DEG",
+    # no default=None: click (8.3+) does not enforce required=True on an option given a default, even None
+    return click.option("--ra", type=RA_TYPE, required=required, metavar="DEG",
                         help=f"{help}, degrees (ICRS).")
 
 
 def dec_opt(help: str = "Field centre: declination", *, required: bool = False):
     """``--dec DEG``: a declination in [-90, 90] degrees; ``help`` says what position it is."""
-    return click.option("--dec", type=DEC_TYPE, default=None, required=required, metavar="DEG",
+    return click.option("--dec", type=DEC_TYPE, required=required, metavar="DEG",
                         help=f"{help}, degrees (ICRS).")
 
 
@@ -224,12 +225,14 @@ sca_opt = click.option(
 
 def _no_checksum(ctx, param, value):
     if value:
-        from ..io.checksum import set_checksum_verification
+        from ..io.checksum import read_options
 
-        set_checksum_verification(False)
+        # in force until the command's context closes (passed down, like rasterio.Env; the executor
+        # carries it to worker threads, processes and Dask tasks)
+        ctx.with_resource(read_options(verify_checksums=False))
 
 
-# eager, so that it is in force before any input is opened; it also reaches worker processes
+# eager, so that it is in force before any input is opened
 no_checksum_opt = click.option(
     "--no-checksum", is_flag=True, default=False, expose_value=False, is_eager=True, callback=_no_checksum,
     help="Do not verify the CHECKSUM/DATASUM of inputs (for files edited on purpose; "

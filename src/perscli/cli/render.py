@@ -8,11 +8,15 @@ import click
 
 from .. import PerscliError
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
+from ..render.settings import DEFAULT_HDUS, HDU_NAMES, RenderOptions
 from .helpers import FILE, PerscliCommand, check_outputs, progress_reporter, report_errors
 from .options import (columns_opt, compress_opt, dec_opt, mjd_opt, model_opt, no_checksum_opt, output_opt, overwrite_opt, pa_opt,
                       plot_opt, ra_opt, required_seed_opt, verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
+
+#: the defaults, written once (perscli.render.settings)
+D = RenderOptions()
 
 
 def _list_effects(ctx, param, value):
@@ -55,22 +59,23 @@ def _list_effects(ctx, param, value):
 @click.option("--previous", multiple=True, metavar="FRAME", type=FILE,
               help="An earlier exposure of the same SCA (a frame perscli rendered); repeatable. Its STARFLU "
                    "(FLUENCE for --persistence-source all) leaves persistence in this one.")
-@click.option("--persistence-source", "persistence_source", metavar="all|stars|ELECTRONS", default=None,
+@click.option("--persistence-source", "persistence_source", metavar="all|stars|ELECTRONS",
+              default=D.persistence_source,
               help="What of the --previous frames persists: stars (their STARFLU: the light of stars only, as in "
                    "the paper and perscli study), all (their FLUENCE: every photon, the sky's too) or a number of "
                    "electrons (only pixels whose FLUENCE exceeds it); same as --set persistence.source=...  "
                    "[default: the model's, stars]")
-@click.option("--hdus", metavar="NAME,...", default=None,
-              help="The HDUs to write, among SCI,IDEAL,FLUENCE,STARFLU,PERSIST,MODEL (STARFLU: the stars' "
+@click.option("--hdus", metavar="NAME,...", default=",".join(D.hdus),
+              help=f"The HDUs to write, among {','.join(HDU_NAMES)} (STARFLU: the stars' "
                    "fluence, what later frames' persistence comes from by default)  "
-                   "[default: SCI,IDEAL,FLUENCE,STARFLU,PERSIST,MODEL]")
+                   f"[default: {','.join(DEFAULT_HDUS)}]")
 @click.option("--dry-run", "dry_run", is_flag=True, default=False,
               help="Draw nothing, write no frame or figure (no -o or --seed needed): print where the frame lands (its "
                    "corners on the sky, its size) and how many stars and galaxies of TRUTH.fits land on it.")
 @click.option("--regions", metavar="FILE.reg", default=None, type=FILE,
               help="With --dry-run: also write a ds9 region file (fk5) of the frame's outline and of the objects "
                    "drawn on it.")
-@click.option("--strict", is_flag=True, default=False,
+@click.option("--strict", is_flag=True, default=D.strict,
               help="No object of TRUTH.fits on the frame is an error (exit 1, nothing written), not a warning.")
 @columns_opt("TRUTH.fits", "ra=ALPHA_J2000,dec=DELTA_J2000,id=NUMBER")
 @required_seed_opt
@@ -125,13 +130,13 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     where the frame lands and how many objects of TRUTH.fits it covers,
     drawing nothing; a frame on which no object lands is warned about
     (naming where the frame and the catalogue are), and refused with
-    --strict.  perscli pointings --footprints --catalog counts the objects
+    --strict.  perscli pointings select|plan --footprints --catalog counts the objects
     on every row, and perscli catalog --footprints draws a catalogue where
     the SCA lands.
 
     \b
     Examples:
-      perscli pointings --plan --ra 10 --dec -44 --n 3 --sca 7 -o seq.fits
+      perscli pointings plan --ra 10 --dec -44 --n 3 --sca 7 -o seq.fits
       perscli catalog --footprints seq.fits --bounds 1 512 1 512 -o seq_truth.fits
       perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 512 1 512 --dry-run --regions seq0.reg
       perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 512 1 512 --seed 1 --strict -o e0.fits
@@ -184,10 +189,10 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     check_outputs(output, inputs=[truth, pointings_file, model_spec, *previous], plot=plot, overwrite=overwrite)
     exposure = _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds)
     model = load_detector_model(model_spec, settings)
-    summary = render_file(truth, exposure, output, model=model, seed=seed, previous=previous,
-                          overwrite=overwrite, workers=workers, progress=progress_reporter("objects"), plot=plot,
-                          compress=compress, persistence_source=persistence_source, hdus=hdus, strict=strict,
-                          columns=columns)
+    options = RenderOptions(hdus=hdus, compress=compress, persistence_source=persistence_source, strict=strict,
+                            columns=columns)
+    summary = render_file(truth, exposure, output, options, model=model, seed=seed, previous=previous,
+                          overwrite=overwrite, workers=workers, progress=progress_reporter("objects"), plot=plot)
     log.info("%s: %d objects, sky %.3f e-/pixel/s, units %s, persistence max %.3g e-",
              "stdout" if output == "-" else output, summary["objects"], summary["sky_rate"], summary["unit"],
              summary["persistence_max"])
@@ -225,7 +230,10 @@ def _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, 
 
 
 # --dry-run draws and writes nothing: -o and --seed are required only without it, which the body checks (usage
-# errors, exit 2, with click's own words)
+# errors, exit 2, with click's own words).  --compress is the option every writing command shares
+# (cli/options.py): render's default is RenderOptions'
 for _param in render.params:
     if _param.name in ("output", "seed"):
         _param.required = False
+    elif _param.name == "compress":
+        _param.default = D.compress

@@ -27,8 +27,8 @@ from .options import no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
 @click.option("--cost-from", "cost_from", type=click.Path(exists=True, dir_okay=False), default=None,
               metavar="COST.json", help="With --dry-run: project CPU-hours and bytes from the cost.json of "
                                        "an earlier study (e.g. the small preset's).")
-# eager: it sets PERSCLI_NO_CHECKSUM before anything is read, and the serial run, the LocalCluster's worker
-# processes and every task's readers inherit it, as for the other commands
+# eager: in force before anything is read; the runner carries it to every task (serial, LocalCluster or a
+# remote scheduler's workers), as the executor does for the other commands
 @no_checksum_opt
 @overwrite_opt
 @verbosity_opts

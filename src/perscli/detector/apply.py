@@ -42,6 +42,7 @@ from ..io.fitsfile import OutHDU, format_card, ones_complement_add
 from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, require_timing
 from ..io.output import add_provenance
 from .persistence import GALSIM_EXPTIME, PersistenceModel, accumulate, time_factor
+from .settings import DEFAULT_DQ_BIT, DEFAULT_MODEL_ERROR, MODES, ApplyOptions
 
 # re-exported for existing callers (``from perscli.detector.apply import check_earlier``): the checks
 # and the placement of earlier exposures moved to perscli.detector.earlier
@@ -49,22 +50,6 @@ from .earlier import (Overlap, _check_detector, _check_start, _detector, check_e
                       overlap)
 
 log = logging.getLogger(__name__)
-
-MODES = ("add", "subtract", "predict")
-
-#: Fractional uncertainty of the predicted persistence (the default of ``model_error``): a judgement,
-#: not a published or fitted figure.  The WFC3 Data Handbook (ch. 8, NOTES.md section 10) gives no
-#: number; it says the model can differ from the short-term persistence and underestimates it after
-#: spatial scans.  0.3 stands for "good to some tens of per cent"; give your own with --model-error.
-DEFAULT_MODEL_ERROR = 0.3
-
-#: The DQ value ORed into pixels flagged for persistence (the default of ``dq_bit``).  In the
-#: WFC3 Data Handbook's table of data quality flags, as we recall it (not checked here against
-#: the current edition), calwf3 sets 1-512 and 2048-8192 in IR data, while 1024 marks charge
-#: traps in UVIS data only, so it is free in IR frames; 32768 does not fit HST's signed 16-bit DQ.
-#: Check it against the DQ definitions of your pipeline, or choose another (JWST's stcal names
-#: 32 PERSISTENCE).
-DEFAULT_DQ_BIT = 1024
 
 #: keywords written by :func:`provenance`
 _PROVENANCE_KEY = re.compile(r"^(PS(MODE|MODEL|KIND|TIME|COMB|MAXPRV|LOOKB|NPREV|UNIT|CUR|CURDS|MERR|FLAG|DQBIT"
@@ -116,17 +101,7 @@ def _plane_ends(current: Frame) -> np.ndarray:
     return np.array([(current.end - current.start) * SECONDS_PER_DAY])
 
 
-def with_settings(model: PersistenceModel, *, time_model=None, combine=None, max_previous=None,
-                  lookback=None) -> PersistenceModel:
-    """``model`` with its settings replaced where given (command-line options over the model file)."""
-    changes = {k: v for k, v in (("time_model", time_model), ("combine", combine), ("max_previous", max_previous),
-                                 ("lookback", lookback))
-               if v is not None and v != getattr(model, k)}
-    return dataclasses.replace(model, **changes) if changes else model
-
-
-def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str | None = None,
-         max_previous: int | None = None, lookback: float | None = None) -> PersistencePlan:
+def plan(current: Frame, previous, model: PersistenceModel) -> PersistencePlan:
     """Check the earlier exposures, place them, order them by time and work out their time factors.
 
     Parameters
@@ -144,9 +119,9 @@ def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str |
         STScI's WFC3 pipeline; 'galsim': GalSim's ``rate((0.5 + i) * 139.8 s)
         * 139.8 s`` for the i-th most recent one), max_previous (0: all) and
         lookback (hours; earlier exposures that ended longer before the
-        current one starts are ignored, with a note at -v; 0: no limit).
-    time_model, max_previous, lookback : optional
-        Override the model's settings.
+        current one starts are ignored, with a note at -v; 0: no limit);
+        :meth:`~perscli.detector.persistence.PersistenceModel.with_settings`
+        replaces them.
 
     Returns
     -------
@@ -154,7 +129,6 @@ def plan(current: Frame, previous, model: PersistenceModel, *, time_model: str |
     """
     from .persistence import beyond_lookback, exposure_time_factors, order_earlier
 
-    model = with_settings(model, time_model=time_model, max_previous=max_previous, lookback=lookback)
     previous = list(previous)
     require_timing(current)
     if not current.is_ramp and previous and not current.end > current.start:
@@ -313,9 +287,7 @@ def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, b
     return [extra for _, extra in results]
 
 
-def persistence_image(current: Frame, previous, model: PersistenceModel, *, time_model: str | None = None,
-                      combine: str | None = None, max_previous: int | None = None, lookback: float | None = None,
-                      workers: int = 1) -> np.ndarray:
+def persistence_image(current: Frame, previous, model: PersistenceModel, *, workers: int = 1) -> np.ndarray:
     """The persistence that earlier exposures leave in ``current``, in electrons.
 
     Parameters are those of :func:`plan` and :func:`map_blocks`.
@@ -324,8 +296,6 @@ def persistence_image(current: Frame, previous, model: PersistenceModel, *, time
     -------
     ndarray of float64, shape ``(nplanes, ny, nx)``
     """
-    model = with_settings(model, time_model=time_model, combine=combine, max_previous=max_previous,
-                          lookback=lookback)
     the_plan = plan(current, previous, model)
     out = np.zeros((current.nreads,) + current.shape)
 
@@ -449,15 +419,14 @@ def _dq_targets(current: Frame, dq_bit: int):
 
 
 def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: str = "add",
-                   time_model: str | None = None, combine: str | None = None, max_previous: int | None = None,
-                   lookback: float | None = None, model_error: float = DEFAULT_MODEL_ERROR,
+                   model_error: float = DEFAULT_MODEL_ERROR,
                    flag_above: float | None = None, dq_bit: int = DEFAULT_DQ_BIT, workers: int = 1,
                    progress=None):
     """Output HDUs: the current frame with persistence added, subtracted or alone.
 
     Parameters
     ----------
-    current, previous, model, time_model, combine, max_previous, lookback, workers, progress
+    current, previous, model, workers, progress
         See :func:`plan` and :func:`map_blocks`.
     mode : {'add', 'subtract', 'predict'}
         Data plus persistence, data minus persistence, or persistence alone;
@@ -489,9 +458,6 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
     if mode not in MODES:
         raise PerscliError(f"--mode must be one of {', '.join(MODES)}, not {mode!r}")
     _check_corrections(model_error, flag_above, dq_bit)
-    model = with_settings(model, time_model=time_model, combine=combine, max_previous=max_previous,
-                          lookback=lookback)
-    time_model, combine, max_previous = model.time_model, model.combine, model.max_previous
     the_plan = plan(current, previous, model)
     ny, nx = current.shape
     nplanes = current.nreads
@@ -613,15 +579,14 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
                 hdus.append(OutHDU(cards, data, extname="DQ"))
     result = PersistenceResult(used=the_plan.used, skipped=the_plan.skipped, max_electrons=peak,
                                total_electrons=total, flagged=flagged)
-    provenance(hdus[0], current, result, model, mode=mode, time_model=time_model, combine=combine,
-               max_previous=max_previous, current_datasum=current_sum,
+    provenance(hdus[0], current, result, model, mode=mode, current_datasum=current_sum,
                model_error=model_error if err_out else None,
                flag=(flag_above, dq_bit) if flag_mask is not None else None)
     return hdus, result
 
 
 def provenance(header, current: Frame, result: PersistenceResult, model: PersistenceModel, *,
-               mode: str, time_model: str, combine: str, max_previous: int, current_datasum: int,
+               mode: str, current_datasum: int,
                model_error: float | None = None, flag: tuple | None = None) -> None:
     """Write the settings and inputs of an apply-persistence run into the primary header.
 
@@ -631,9 +596,9 @@ def provenance(header, current: Frame, result: PersistenceResult, model: Persist
         "PSMODE": (mode, "persistence: add, subtract or predict"),
         "PSMODEL": (model.name[-68:], "persistence model"),
         "PSKIND": (model.kind, "fermi or linear"),
-        "PSTIME": (time_model if model.kind == "fermi" else "none", "time model: exact, middle or galsim"),
-        "PSCOMB": (combine, "combination over earlier exposures"),
-        "PSMAXPRV": (max_previous, "most recent earlier exposures counted (0: all)"),
+        "PSTIME": (model.time_model if model.kind == "fermi" else "none", "time model: exact, middle or galsim"),
+        "PSCOMB": (model.combine, "combination over earlier exposures"),
+        "PSMAXPRV": (model.max_previous, "most recent earlier exposures counted (0: all)"),
         "PSLOOKB": (float(model.lookback), "[h] earlier exposures older are ignored (0: none)"),
         "PSNPREV": (len(result.used), "earlier exposures used"),
         "PSUNIT": (current.unit, "units of the science data"),
@@ -675,19 +640,14 @@ def provenance(header, current: Frame, result: PersistenceResult, model: Persist
     if flag is not None:
         extra += f" flag-above={flag[0]:g} dq-bit={flag[1]}"
     add_provenance(header, step=f"apply-persistence mode={mode} model={model.name} "
-                                f"time-model={params['PSTIME'][0]} combine={combine} "
+                                f"time-model={params['PSTIME'][0]} combine={model.combine} "
                                 f"previous={len(result.used)}{extra}",
                    params=params, inputs=inputs)
 
 
 def apply_persistence_files(current: str, previous, dest: str, *, model: PersistenceModel,
-                            mode: str = "add", time_model: str | None = None, combine: str | None = None,
-                            max_previous: int | None = None, lookback: float | None = None,
-                            model_error: float = DEFAULT_MODEL_ERROR, flag_above: float | None = None,
-                            dq_bit: int = DEFAULT_DQ_BIT, units: str | None = None, gain: float | None = None,
-                            exptime: float | None = None, gap: float | None = None, overwrite: bool = False,
-                            workers: int = 1, progress=None, stdin=None, stdout=None,
-                            compress: str = "none") -> PersistenceResult:
+                            options: ApplyOptions = ApplyOptions(), overwrite: bool = False, workers: int = 1,
+                            progress=None, stdin=None, stdout=None) -> PersistenceResult:
     """Read frames, apply persistence and write the result: the whole command as a function.
 
     Parameters
@@ -699,17 +659,14 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
     dest : str
         Output path, or '-' for stdout.
     model : PersistenceModel
-    mode, time_model, combine, max_previous, lookback, model_error, flag_above, dq_bit, workers, progress
-        See :func:`apply_to_frame`.
-    units, gain, exptime : optional
-        Override BUNIT, GAIN/CCDGAIN and supply EXPTIME for every input.
-    gap : float, optional
-        Ignore header timestamps: the inputs form a regular sequence in the
-        order ``previous..., current`` with ``gap`` seconds between exposures.
+        The law and its settings (time_model, combine, max_previous, lookback).
+    options : ApplyOptions
+        The mode, the corrections of ERR and DQ, what overrides the inputs'
+        headers, and the output's compression.
     overwrite : bool
         Replace an existing output.
-    compress : {'none', 'gzip', 'rice'}
-        Lossless tile compression of the output's images.
+    workers, progress
+        See :func:`map_blocks`.
 
     Returns
     -------
@@ -718,24 +675,24 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
     from ..io.frames import assign_sequence_timing, open_frame
     from ..io.output import check_output, write_hdus
 
+    o = options
     names = [current, *previous]
     if names.count("-") > 1:
         raise PerscliError("only one input can be read from standard input ('-')")
-    _check_corrections(model_error, flag_above, dq_bit)
+    _check_corrections(o.model_error, o.flag_above, o.dq_bit)
     check_output(dest, overwrite=overwrite, inputs=names)
     opened = []
     try:
         for name in names:
-            opened.append(open_frame(name, units=units, gain=gain, exptime=exptime, stdin=stdin))
+            opened.append(open_frame(name, units=o.units, gain=o.gain, exptime=o.exptime, stdin=stdin))
         cur, prevs = opened[0], opened[1:]
-        if gap is not None:
-            if gap < 0:
-                raise PerscliError(f"--gap must be >= 0 seconds, not {gap}")
-            assign_sequence_timing(prevs + [cur], gap, exptime)
-        hdus, result = apply_to_frame(cur, prevs, model, mode=mode, time_model=time_model, combine=combine,
-                                      max_previous=max_previous, lookback=lookback, model_error=model_error,
-                                      flag_above=flag_above, dq_bit=dq_bit, workers=workers, progress=progress)
-        write_hdus(hdus, dest, overwrite=overwrite, stdout=stdout, compress=compress)
+        if o.gap is not None:
+            if o.gap < 0:
+                raise PerscliError(f"--gap must be >= 0 seconds, not {o.gap}")
+            assign_sequence_timing(prevs + [cur], o.gap, o.exptime)
+        hdus, result = apply_to_frame(cur, prevs, model, mode=o.mode, model_error=o.model_error,
+                                      flag_above=o.flag_above, dq_bit=o.dq_bit, workers=workers, progress=progress)
+        write_hdus(hdus, dest, overwrite=overwrite, stdout=stdout, compress=o.compress)
         return result
     finally:
         for frame in opened:

@@ -85,12 +85,13 @@ from typing import TYPE_CHECKING, ClassVar
 import numpy as np
 
 from .. import PerscliError
-from ..instrument import (ROMAN_DARK_CURRENT, ROMAN_FULL_WELL, ROMAN_GAIN, ROMAN_NONLINEARITY_BETA, ROMAN_READ_NOISE,
-                          ROMAN_RECIPROCITY_ALPHA)
+from ..instrument import (ROMAN_DARK_CURRENT, ROMAN_DETECTOR_SIZE, ROMAN_FULL_WELL, ROMAN_GAIN,
+                          ROMAN_NONLINEARITY_BETA, ROMAN_READ_NOISE, ROMAN_RECIPROCITY_ALPHA)
 # re-exported for existing callers (``from perscli.detector.effects import ...``, ``effects.X``): the parameter
 # schema and the noise blocks moved to params.py and blocks.py, which do not import this module
 from .blocks import NOISE_BLOCK, BlockStack, ChainContext, active_pixels, block_grid, block_streams  # noqa: F401
 from .params import Param  # noqa: F401
+from .settings import PERSISTENCE_SCHEMA
 
 if TYPE_CHECKING:
     # re-exported for existing callers, lazily (see __getattr__ at the end): model.py and chain.py import
@@ -309,55 +310,24 @@ class Dark(DetectorEffect):
         return var + self.p["current"] * ctx.exptime
 
 
-def _persistence_schema():
-    from .persistence import COMBINES, FERMI_PARAMETERS, GALSIM_LINEAR_COEFFICIENTS, PRESETS, TIME_MODELS
-
-    bounds = {"A": dict(lo=0.0), "x0": dict(lo=0.0, lo_open=True), "dx": dict(lo=0.0, lo_open=True),
-              "half_well": dict(lo=0.0)}
-    law = tuple(Param(key, "float", None, unit, f"{text} (default: from base)", derived="base", **bounds.get(key, {}))
-                for key, (text, unit) in FERMI_PARAMETERS.items())
-    return (
-        Param("base", "choice", "typical", "", "the paper's parameter set (Table 1) the law starts from",
-              choices=tuple(PRESETS)),
-        Param("kind", "choice", "fermi", "", "fermi: the paper's rate F(x) (t/1000 s)^-gamma; linear: GalSim's "
-              "coefficients x fluence", choices=("fermi", "linear")),
-        *law,
-        Param("coefficients", "floats", list(GALSIM_LINEAR_COEFFICIENTS), "",
-              "kind linear: fraction of each earlier exposure's fluence, most recent first (galsim.roman)"),
-        Param("time_model", "choice", "exact", "", "exact: the rate integrated over the exposure; middle: the "
-              "rate at its middle x its length (the WFC3 pipeline); galsim: GalSim's mid-exposure rate x 139.8 s",
-              choices=TIME_MODELS),
-        Param("combine", "choice", "sum", "", "sum over earlier exposures (the paper, GalSim) or per-pixel max "
-              "(WFC3 pipeline)", choices=COMBINES),
-        Param("max_previous", "int", 10, "", "only the N most recent earlier exposures count (0: all)", lo=0),
-        Param("source", "float", "stars", "e-", "what of an earlier exposure persists: stars (its STARFLU: the "
-              "light of stars only; the paper's setting and the study's), all (its FLUENCE: every photon, sky and "
-              "galaxies too), or a number: only pixels whose FLUENCE exceeds that many electrons", lo=0.0,
-              choices=("all", "stars")),
-        Param("floor", "float", 0.0, "e-", "pixels of an earlier exposure whose persisting fluence (STARFLU or "
-              "FLUENCE) is at or below this leave nothing: how far faint light persists (0: all of it, the linear "
-              "law down to zero; the paper does not say)", lo=0.0),
-        Param("fluence_cap", "float", "well", "e-", "the fluence fed to the law is at most this: well = "
-              "saturation.full_well (no cap with saturation off), none = no cap (STARFLU beyond the well "
-              "persists: the law extrapolated)", lo=0.0, lo_open=True, choices=("well", "none")),
-    )
-
-
 @register
 class Persistence(DetectorEffect):
     name = "persistence"
     description = ("charge released by earlier exposures (--previous), from their FLUENCE or STARFLU "
                    "(source, fluence_cap) (perscli.detector.persistence; added as its expectation)")
-    schema = _persistence_schema()
+    schema = PERSISTENCE_SCHEMA
 
     @classmethod
     def resolve(cls, params):
-        from .persistence import PRESETS
+        from .persistence import PRESETS, preset_settings
 
         out = super().resolve(params)
         for key, value in PRESETS[out["base"]].items():
             if out.get(key) is None:
                 out[key] = float(value)
+        for key, value in preset_settings(out["base"]).items():
+            if out.get(key) is None:
+                out[key] = value
         out["coefficients"] = [float(c) for c in out["coefficients"]]
         return out
 
@@ -603,7 +573,7 @@ class CorrelatedReadNoise(DetectorEffect):
 
     #: offsets are drawn for this many rows and columns from the detector's first, whatever the area:
     #: a pixel gets its row's and column's offsets whether a frame, a cutout or blocks are simulated
-    LINES = 4096
+    LINES = ROMAN_DETECTOR_SIZE
 
     def _offsets(self, ctx, which: int, sigma: float, needed: int) -> np.ndarray:
         bits = np.random.Philox(key=[int(ctx.seed) & 0xFFFFFFFFFFFFFFFF, zlib.crc32(self.name.encode())])

@@ -15,6 +15,7 @@ The YAML model format and the effects themselves are documented in
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import os
 from dataclasses import dataclass, field
@@ -149,6 +150,125 @@ def load_detector_model(spec: str | None = None, overrides=()) -> DetectorModel:
     for text in overrides:
         _override(model, text)
     return model
+
+
+def load_persistence_model(spec: str = "typical", overrides=()):
+    """The persistence part of a detector model, in any of the forms a user names one.
+
+    The one loader of persistence models: ``perscli apply-persistence --model``,
+    the study's ``persistence.models`` and the figures read them here, with the
+    persistence step's schema (:class:`~perscli.detector.effects.Persistence`)
+    checking every value, as ``perscli render --model/--set`` does.
+
+    Parameters
+    ----------
+    spec : str
+        A preset: 'typical' or 'pessimistic' (the paper's Table 1), 'wfc3'
+        (STScI's WFC3-IR law with the WFC3 pipeline's settings), or
+        'galsim-linear' (GalSim's 8 coefficients).  A YAML file: a detector
+        model (``effects:``; its persistence step), or the persistence
+        parameters at top level or under ``persistence:``, optionally with
+        ``base: PRESET`` to start from a preset (and its settings), or
+        ``kind: linear`` with ``coefficients: [...]``; without a base, a file
+        gives the whole Fermi law (A, x0, dx, alpha, gamma, half_well).  Or a
+        frame perscli rendered: the persistence step of its MODEL table.
+    overrides : mapping or sequence of 'KEY=VALUE'
+        Parameters of the law or settings (time_model, combine, max_previous,
+        lookback) that replace those of ``spec``; the model's name records them.
+
+    Returns
+    -------
+    perscli.detector.persistence.PersistenceModel
+    """
+    from .persistence import PRESETS
+
+    if spec in PRESETS:
+        params, name = {"base": spec}, spec
+    elif spec == "galsim-linear":
+        params, name = {"kind": "linear"}, spec
+    elif _is_fits(spec):
+        model = load_detector_model(spec)
+        eff = model.get("persistence")
+        params, name = dict(eff.params) if eff else {}, f"{os.path.basename(model.source)}: persistence"
+    elif spec.endswith((".yaml", ".yml")) or os.path.exists(spec):
+        params, name = _persistence_from_yaml(spec)
+    else:
+        raise PerscliError(
+            f"unknown persistence model {spec!r}: use typical, pessimistic, wfc3, galsim-linear or a YAML file")
+    params.pop("enabled", None)
+    params = Persistence.validate(params, spec)
+    pmodel = Persistence.model(params, name)
+    if not _is_fits(spec):
+        pmodel = dataclasses.replace(pmodel, name=name)
+    changes = _persistence_overrides(overrides, pmodel)
+    if not changes:
+        return pmodel
+    desc = ",".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in changes.items())
+    return dataclasses.replace(Persistence.model({**params, **changes}), name=f"{pmodel.name}+{desc}")
+
+
+def _persistence_from_yaml(path: str) -> tuple:
+    """(step parameters, model name) of a YAML persistence model or detector model."""
+    from ..io.config import load_yaml
+    from .persistence import FERMI_PARAMETERS, PRESET_SETTINGS, SETTINGS
+
+    doc = load_yaml(path, "persistence model")
+    if isinstance(doc, dict) and isinstance(doc.get("effects"), list):
+        eff = _from_yaml(path).get("persistence")       # a detector model: its persistence step
+        return (dict(eff.params) if eff else {}), path
+    if isinstance(doc, dict) and isinstance(doc.get("persistence"), dict):
+        doc = doc["persistence"]
+    if not isinstance(doc, dict):
+        raise PerscliError(f"{path}: expected a mapping of persistence parameters (A, x0, dx, alpha, gamma, "
+                           "half_well)")
+    params = {("kind" if k == "model" else k): v for k, v in doc.items()}
+    known = ("base", "kind", "coefficients", "enabled", *FERMI_PARAMETERS, *SETTINGS)
+    unknown = [str(k) for k in params if k not in known]
+    if unknown:
+        raise PerscliError(f"{path}: unknown persistence parameter(s) {', '.join(unknown)}; valid are "
+                           f"{', '.join(known[:3])}, {', '.join(FERMI_PARAMETERS)}, {', '.join(SETTINGS)}")
+    base, kind = params.get("base"), params.get("kind", "fermi")
+    law = [k for k in FERMI_PARAMETERS if k in params]
+    missing = [k for k in FERMI_PARAMETERS if k not in params]
+    if kind == "fermi" and base is None and law and missing:
+        # a law file without a base is the whole law: half a law silently completed by 'typical' is a trap
+        raise PerscliError(f"{path}: missing {', '.join(missing)} (or give 'base: typical' to start from a preset)")
+    settings = {k: v for k, v in params.items() if k in SETTINGS}
+    plain_preset = base is not None and not law and kind == "fermi" and set(params) <= {"base", "kind", *settings} \
+        and all(PRESET_SETTINGS.get(base, {}).get(k, SETTINGS[k][2]) == v for k, v in settings.items())
+    return params, base if plain_preset else path
+
+
+def _persistence_overrides(overrides, pmodel) -> dict:
+    """{key: value} of 'KEY=VALUE' overrides (or a mapping) of a persistence model, checked."""
+    import yaml
+
+    from .persistence import FERMI_PARAMETERS, SETTINGS
+
+    if isinstance(overrides, dict):
+        items = list(overrides.items())
+    else:
+        items = []
+        for text in overrides:
+            if "=" not in text:
+                raise PerscliError(f"override {text!r} is not KEY=VALUE (e.g. --set persistence.gamma=1.1, or "
+                                   "--param gamma=1.1)")
+            key, value = (s.strip() for s in text.split("=", 1))
+            try:
+                value = yaml.safe_load(value)
+            except yaml.YAMLError:
+                pass
+            items.append((key, value))
+    changes = {}
+    for key, value in items:
+        if key not in FERMI_PARAMETERS and key not in SETTINGS:
+            raise PerscliError(f"unknown persistence parameter {key!r}: valid are "
+                               f"{', '.join([*FERMI_PARAMETERS, *SETTINGS])}")
+        if key in FERMI_PARAMETERS and pmodel.kind != "fermi":
+            raise PerscliError(f"parameter {key} cannot be set for the linear model {pmodel.name!r}; use a Fermi "
+                               "model (typical, pessimistic, wfc3 or a YAML file) to set the law's parameters")
+        changes.update(Persistence.validate({key: value}, "--set"))
+    return changes
 
 
 def _is_fits(spec: str) -> bool:

@@ -9,9 +9,8 @@ is documented in :mod:`perscli.detector.effects`.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
-
-import numpy as np
 
 from .. import PerscliError
 
@@ -104,6 +103,8 @@ class Param:
         if self.kind == "kernel":
             if value == "roman":
                 return value
+            import numpy as np      # here only: the schemas are read by --help, which must not wait for numpy
+
             arr = np.asarray(value, dtype=float) if isinstance(value, (list, tuple)) and _numbers(value) else None
             if arr is None or arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
                 raise fail(self._requirement())
@@ -124,7 +125,7 @@ class Param:
                 number = float(number)
             except ValueError:
                 pass
-        if isinstance(number, bool) or not isinstance(number, (int, float, np.integer, np.floating)) \
+        if isinstance(number, bool) or not isinstance(number, numbers.Real) \
                 or not math.isfinite(number):
             raise fail("must be a whole number" if self.kind == "int" else "must be a finite number")
         if self.kind == "int":

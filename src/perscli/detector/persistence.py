@@ -24,79 +24,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
 
 import numpy as np
 
 from .. import PerscliError
-from .. import instrument as _instrument
-
-#: Parameter sets of the law.
-#:
-#: 'typical' and 'pessimistic': the paper's Table 1 (Lin et al., H4RG lab fits;
-#: GalSim's Roman module uses 'typical'), with the paper's linear law below
-#: half_well = 5e4 e- (its "Implementation of persistence effect").
-#:
-#: 'wfc3': HST WFC3-IR, the Fermi-function form of Long et al. (2012, SPIE 8442,
-#: cited by the paper; the exposure-time dependent version is WFC3 ISR 2015-15)
-#: with the parameters of STScI's WFC3 persistence software as NOTES.md section 1
-#: records them: norm 0.3 (A, e-/s at t = 1000 s), alpha 0.174, gamma 1.0,
-#: x0 9.0e4 e- and dx 2.0e4 e-, in the parametrisation used here.  Long's law has
-#: no linear branch: the Fermi function holds down to zero fluence, which
-#: half_well = 0 expresses.  STScI's later "A-gamma" model tabulates A and gamma
-#: against fluence and exposure time from calibration data that perscli does not
-#: hold; these single values are its Fermi-law predecessor.
-PRESETS = {
-    "typical": dict(A=0.017, x0=6.0e4, dx=5.0e4, alpha=0.045, gamma=1.0, half_well=5.0e4),
-    "pessimistic": dict(A=0.086, x0=1.37e5, dx=2.6e4, alpha=0.02, gamma=1.0, half_well=5.0e4),
-    "wfc3": dict(A=0.3, x0=9.0e4, dx=2.0e4, alpha=0.174, gamma=1.0, half_well=0.0),
-}
-
-#: How a preset is applied when it is chosen by name (``--model wfc3``, or ``base: wfc3`` in a
-#: YAML file); the settings of a preset missing here are the defaults of :data:`SETTINGS`.
-#: 'wfc3' follows STScI's WFC3-IR persistence pipeline (NOTES.md sections 1 and 10): the
-#: current at the MIDDLE of the later exposure times its length, the per-pixel MAXIMUM over
-#: earlier exposures rather than their sum, every earlier exposure of the last 16 hours
-#: (older ones are ignored), however many there are.
-PRESET_SETTINGS = {
-    "wfc3": dict(time_model="middle", combine="max", max_previous=0, lookback=16.0),
-}
-
-#: GalSim's linear persistence coefficients (galsim.roman.persistence_coefficients):
-#: the fraction of the i-th most recent earlier exposure added to the current one.
-GALSIM_LINEAR_COEFFICIENTS = (
-    4.5707683e-4, 1.4959818e-4, 9.115737e-5, 6.56769e-5,
-    5.135571e-5, 4.217028e-5, 3.577534e-5, 3.106601e-5,
-)
-
-#: GalSim's Roman exposure time (galsim.roman.exptime), used by its 'fermi' method.
-GALSIM_EXPTIME = _instrument.ROMAN_EXPTIME
-
-#: The schema of the Fermi parameters: name -> (description, unit).
-FERMI_PARAMETERS = {
-    "A": ("normalisation of the current at t = 1000 s", "e-/s"),
-    "x0": ("fluence of the Fermi step", "e-"),
-    "dx": ("width of the Fermi step", "e-"),
-    "alpha": ("power-law index of the fluence dependence", ""),
-    "gamma": ("power-law index of the decay in time", ""),
-    "half_well": ("fluence below which the law is linear (0: the Fermi law down to zero fluence)", "e-"),
-}
-
-TIME_MODELS = ("exact", "middle", "galsim")
-COMBINES = ("sum", "max")
-
-#: How a model is applied (not the law itself): name -> (description, allowed values, default).
-SETTINGS = {
-    "time_model": ("exact: integral of the rate over the exposure; middle: the rate at the middle of the "
-                   "exposure x its length (WFC3 pipeline); galsim: GalSim's mid-exposure rate x 139.8 s",
-                   TIME_MODELS, "exact"),
-    "combine": ("sum over earlier exposures (the paper, GalSim) or per-pixel max (WFC3 pipeline)", COMBINES, "sum"),
-    "max_previous": ("only the N most recent earlier exposures count (0: all; the paper: 10)", "integer >= 0", 10),
-    "lookback": ("hours: earlier exposures that ended longer ago than this before the current one starts are "
-                 "ignored (0: no limit; WFC3 pipeline: 16)", "number >= 0", 0.0),
-}
+from .settings import (COMBINES, FERMI_PARAMETERS, GALSIM_EXPTIME, GALSIM_LINEAR_COEFFICIENTS,  # noqa: F401
+                       PRESET_SETTINGS, PRESETS, SETTINGS, TIME_MODELS, preset_settings)
 
 
 @dataclass(frozen=True)
@@ -134,43 +68,24 @@ class PersistenceModel:
     gamma: float = PRESETS["typical"]["gamma"]
     half_well: float = PRESETS["typical"]["half_well"]
     coefficients: tuple = field(default=GALSIM_LINEAR_COEFFICIENTS)
-    time_model: str = "exact"
-    combine: str = "sum"
-    max_previous: int = 10
-    lookback: float = 0.0
+    time_model: str = SETTINGS["time_model"][2]
+    combine: str = SETTINGS["combine"][2]
+    max_previous: int = SETTINGS["max_previous"][2]
+    lookback: float = SETTINGS["lookback"][2]
 
     def __post_init__(self):
-        if self.time_model not in TIME_MODELS:
-            raise PerscliError(f"persistence time_model must be one of {', '.join(TIME_MODELS)}, "
-                               f"not {self.time_model!r}")
-        if self.combine not in COMBINES:
-            raise PerscliError(f"persistence combine must be one of {', '.join(COMBINES)}, not {self.combine!r}")
-        if isinstance(self.max_previous, bool) or not isinstance(self.max_previous, int) or self.max_previous < 0:
-            raise PerscliError(f"persistence max_previous must be a whole number >= 0 (0: all), "
-                               f"not {self.max_previous!r}")
-        if (isinstance(self.lookback, bool) or not isinstance(self.lookback, (int, float))
-                or not math.isfinite(self.lookback) or self.lookback < 0):
-            raise PerscliError(f"persistence lookback must be a number of hours >= 0 (0: no limit), "
-                               f"not {self.lookback!r}")
-        if self.kind not in ("fermi", "linear"):
-            raise PerscliError(f"persistence model kind must be 'fermi' or 'linear', not {self.kind!r}")
+        # the one schema of a persistence model (perscli.detector.settings.PERSISTENCE_SCHEMA) checks a
+        # model built here directly as it checks a model file or a --set
+        from .settings import PERSISTENCE_SCHEMA
+
+        where = f"persistence model {self.name!r}"
+        for param in PERSISTENCE_SCHEMA:
+            if hasattr(self, param.name):
+                param.check("persistence", getattr(self, param.name), where)
         if self.kind == "fermi":
             for key in FERMI_PARAMETERS:
-                value = getattr(self, key)
-                if not (isinstance(value, (int, float)) and math.isfinite(value)):
-                    raise PerscliError(f"persistence parameter {key}={value!r} is not a finite number")
-            for key in ("x0", "dx"):
-                if getattr(self, key) <= 0:
-                    raise PerscliError(
-                        f"persistence parameter {key}={getattr(self, key)!r} must be positive (electrons)")
-            if self.half_well < 0:
-                raise PerscliError(f"persistence parameter half_well={self.half_well!r} must be >= 0 electrons "
-                                   "(0: no linear branch)")
-            if self.A < 0:
-                raise PerscliError(f"persistence parameter A={self.A!r} must not be negative (e-/s)")
-        else:
-            if len(self.coefficients) == 0 or not all(math.isfinite(c) for c in self.coefficients):
-                raise PerscliError("linear persistence model needs a list of finite coefficients")
+                if getattr(self, key) is None:
+                    raise PerscliError(f"{where}: persistence.{key} is not given")
 
     @property
     def slope(self) -> float:
@@ -208,6 +123,17 @@ class PersistenceModel:
             raise PerscliError("the linear model has no persistence current, only per-exposure fractions")
         return self.F(x) * (np.asarray(t, dtype=np.float64) / 1000.0) ** (-self.gamma)
 
+    def with_settings(self, *, time_model=None, combine=None, max_previous=None,
+                      lookback=None) -> "PersistenceModel":
+        """This model with its settings replaced where given (command-line options over the model file).
+
+        The name stays: the settings are recorded beside it (PSTIME, PSCOMB, PSMAXPRV, PSLOOKB).
+        """
+        changes = {k: v for k, v in (("time_model", time_model), ("combine", combine),
+                                     ("max_previous", max_previous), ("lookback", lookback))
+                   if v is not None and v != getattr(self, k)}
+        return dataclasses.replace(self, **changes) if changes else self
+
     def params(self) -> dict:
         """The parameters and settings as a plain dict (for headers and YAML)."""
         if self.kind == "linear":
@@ -218,164 +144,13 @@ class PersistenceModel:
         return out
 
 
-def _number(key, value, source):
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        raise PerscliError(f"{source}: persistence parameter {key}={value!r} is not a number") from None
+def __getattr__(name):
+    # the loader's old home: perscli.detector.model.load_persistence_model reads every form of a model
+    if name == "load_model":
+        from .model import load_persistence_model
 
-
-def load_model(spec: str = "typical", overrides: Mapping[str, object] | Sequence[str] = ()) -> PersistenceModel:
-    """Build a persistence model from a name or a YAML file, with overrides.
-
-    Parameters
-    ----------
-    spec : str
-        'typical' or 'pessimistic' (the paper's Table 1), 'wfc3' (STScI's
-        WFC3-IR parameters with the WFC3 pipeline's settings, see
-        :data:`PRESETS` and :data:`PRESET_SETTINGS`), 'galsim-linear'
-        (GalSim's 8 coefficients), the path of a YAML file, or a frame
-        perscli rendered (the persistence step of the detector model in its
-        MODEL table, as ``perscli render --model FRAME.fits`` reads it).  The YAML file
-        holds either the parameters at top level or under a ``persistence:``
-        key (so a detector-model file can be given), optionally with
-        ``base: typical|pessimistic|wfc3`` to start from a preset (and its
-        settings), ``kind: linear`` with ``coefficients: [...]`` for a linear model.
-    overrides : mapping or sequence of 'KEY=VALUE'
-        Values of A, x0, dx, alpha, gamma, half_well, or of the settings
-        (time_model, combine, max_previous, lookback), that replace those of
-        ``spec``; unknown keys are an error.
-
-    Returns
-    -------
-    PersistenceModel
-    """
-    if spec in PRESETS:
-        model = PersistenceModel(name=spec, **PRESETS[spec], **PRESET_SETTINGS.get(spec, {}))
-    elif spec == "galsim-linear":
-        model = PersistenceModel(name=spec, kind="linear")
-    elif _is_fits_name(spec):
-        # a frame perscli rendered: the persistence step of the detector model in its MODEL table
-        from .model import load_detector_model
-
-        model = load_detector_model(spec).persistence_model()
-    elif spec.endswith((".yaml", ".yml")) or os.path.exists(spec):
-        model = _model_from_yaml(spec)
-    else:
-        raise PerscliError(
-            f"unknown persistence model {spec!r}: use typical, pessimistic, wfc3, galsim-linear or a YAML file")
-    if isinstance(overrides, Mapping):
-        items = list(overrides.items())
-    else:
-        items = []
-        for text in overrides:
-            if "=" not in text:
-                raise PerscliError(f"--param {text!r} is not KEY=VALUE (e.g. --param gamma=1.1)")
-            key, value = text.split("=", 1)
-            items.append((key.strip(), value.strip()))
-    if not items:
-        return model
-    changes = {}
-    for key, value in items:
-        if key in SETTINGS:
-            changes[key] = _setting(key, value, "--param")
-            continue
-        if key not in FERMI_PARAMETERS:
-            raise PerscliError(f"unknown persistence parameter {key!r}: valid are "
-                               f"{', '.join([*FERMI_PARAMETERS, *SETTINGS])}")
-        if model.kind != "fermi":
-            raise PerscliError(f"parameter {key} cannot be set for the linear model {model.name!r}; "
-                               "use --model typical|pessimistic|FILE.yaml to set Fermi parameters")
-        changes[key] = _number(key, value, "--param")
-    desc = ",".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in changes.items())
-    return dataclasses.replace(model, name=f"{model.name}+{desc}", **changes)
-
-
-def _is_fits_name(spec: str) -> bool:
-    base = spec.split("[", 1)[0]
-    if base.lower().endswith((".fits", ".fits.gz", ".fit", ".fz")):
-        return True
-    try:
-        with open(base, "rb") as fh:
-            return fh.read(10) == b"SIMPLE  = "
-    except OSError:
-        return False
-
-
-def _setting(key, value, source):
-    """A model setting (time_model, combine, max_previous, lookback) from YAML or the command line, checked."""
-    if key == "lookback":
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            number = float("nan")
-        if isinstance(value, bool) or not math.isfinite(number) or number < 0:
-            raise PerscliError(f"{source}: persistence lookback={value!r} must be a number of hours >= 0 "
-                               "(0: no limit)")
-        return number
-    if key == "max_previous":
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            number = float("nan")
-        if isinstance(value, bool) or not math.isfinite(number) or number != int(number) or number < 0:
-            raise PerscliError(f"{source}: persistence max_previous={value!r} must be a whole number >= 0 (0: all)")
-        return int(number)
-    allowed = SETTINGS[key][1]
-    if value not in allowed:
-        raise PerscliError(f"{source}: persistence {key}={value!r} must be one of {', '.join(allowed)}")
-    return value
-
-
-def _model_from_yaml(path: str) -> PersistenceModel:
-    from ..io.config import load_yaml
-
-    doc = load_yaml(path, "persistence model")
-    if isinstance(doc, Mapping) and isinstance(doc.get("persistence"), Mapping):
-        doc = doc["persistence"]
-    if isinstance(doc, Mapping) and isinstance(doc.get("effects"), list):
-        # a detector model: take its persistence step
-        steps = [e["persistence"] for e in doc["effects"] if isinstance(e, Mapping) and "persistence" in e]
-        doc = steps[0] if steps else None
-    if not isinstance(doc, Mapping):
-        raise PerscliError(f"{path}: expected a mapping of persistence parameters (A, x0, dx, alpha, gamma, half_well)")
-    return _model_from_mapping(dict(doc), path)
-
-
-def _model_from_mapping(doc: dict, path: str) -> PersistenceModel:
-    """A model from parsed parameters (a YAML file's, or a detector model's persistence step)."""
-    doc = dict(doc)
-    kind = doc.pop("kind", doc.pop("model", "fermi"))
-    base = doc.pop("base", None)
-    doc.pop("enabled", None)
-    settings = {key: _setting(key, doc.pop(key), path) for key in list(doc) if key in SETTINGS}
-    if kind == "linear":
-        coeffs = doc.pop("coefficients", GALSIM_LINEAR_COEFFICIENTS)
-        if doc:
-            raise PerscliError(f"{path}: unknown keys for a linear model: {', '.join(map(str, doc))}")
-        if not isinstance(coeffs, (list, tuple)):
-            raise PerscliError(f"{path}: coefficients must be a list of numbers")
-        return PersistenceModel(name=path, kind="linear",
-                                coefficients=tuple(_number("coefficients", c, path) for c in coeffs), **settings)
-    if kind != "fermi":
-        raise PerscliError(f"{path}: kind must be 'fermi' or 'linear', not {kind!r}")
-    if base is not None and base not in PRESETS:
-        raise PerscliError(f"{path}: base must be one of {', '.join(PRESETS)}, not {base!r}")
-    if base is not None:
-        # a preset brings its own conventions (wfc3: the WFC3 pipeline's); the file's settings win
-        settings = {**PRESET_SETTINGS.get(base, {}), **settings}
-    params = dict(PRESETS[base or "typical"])
-    unknown = [k for k in doc if k not in FERMI_PARAMETERS]
-    if unknown:
-        raise PerscliError(
-            f"{path}: unknown persistence parameter(s) {', '.join(map(str, unknown))}; "
-            f"valid are {', '.join(FERMI_PARAMETERS)}")
-    missing = [k for k in FERMI_PARAMETERS if k not in doc] if base is None else []
-    if missing:
-        raise PerscliError(f"{path}: missing {', '.join(missing)} (or give 'base: typical' to start from a preset)")
-    params.update({k: _number(k, v, path) for k, v in doc.items()})
-    name = base if base and not doc and settings == PRESET_SETTINGS.get(base, {}) else path
-    return PersistenceModel(name=name, **params, **settings)
+        return load_persistence_model
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def time_factor(t_start, t_end, gamma: float) -> np.ndarray:

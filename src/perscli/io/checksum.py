@@ -1,8 +1,9 @@
 """FITS checksums (FITS Standard, Appendix J): CHECKSUM and DATASUM, and the switch that turns their check off.
 
-- :func:`checksums_enabled`, :func:`set_checksum_verification`: ``--no-checksum``
-  (``PERSCLI_NO_CHECKSUM=1``, inherited by worker processes), and
-  :data:`CHECKSUM_HINT`, what a mismatch means and what to do.
+- :func:`read_options` (``--no-checksum``), :func:`checksums_enabled`,
+  :class:`carrying_read_options` (how the options reach worker threads,
+  processes and Dask tasks), and :data:`CHECKSUM_HINT`, what a mismatch means
+  and what to do.
 - :func:`ones_complement_add`: how the DATASUMs of pieces combine.
 - :func:`_stored_cards`, :func:`_verify_header_bytes`: the check of a stored
   header against its CHECKSUM, without reading the data.
@@ -16,7 +17,8 @@ its outputs.
 
 from __future__ import annotations
 
-import os
+import contextlib
+import contextvars
 
 from .. import PerscliError
 from .cards import CARD, _parse_value
@@ -29,17 +31,57 @@ CHECKSUM_HINT = ("the checksums are stale (the file changed after they were writ
                  "with astropy's `fitscheck --force FILE` or give --no-checksum; otherwise re-copy it")
 
 
+#: whether the CHECKSUM/DATASUM of inputs are verified, in the current context (thread, task)
+_VERIFY = contextvars.ContextVar("perscli_verify_checksums", default=True)
+
+
 def checksums_enabled() -> bool:
-    """Whether CHECKSUM/DATASUM of inputs are verified (``--no-checksum`` turns it off)."""
-    return os.environ.get("PERSCLI_NO_CHECKSUM", "") in ("", "0")
+    """Whether CHECKSUM/DATASUM of inputs are verified here (:func:`read_options` turns it off)."""
+    return _VERIFY.get()
 
 
-def set_checksum_verification(enabled: bool) -> None:
-    """Switch verification on or off for this process and the processes it starts."""
-    if enabled:
-        os.environ.pop("PERSCLI_NO_CHECKSUM", None)
-    else:
-        os.environ["PERSCLI_NO_CHECKSUM"] = "1"
+@contextlib.contextmanager
+def read_options(*, verify_checksums: bool = True):
+    """The options of the FITS reads made inside the block, as ``rasterio.Env`` holds GDAL's.
+
+    Passed down, not global: they hold in this thread's context (a ``contextvars`` variable) until
+    the block ends, so one command's ``--no-checksum`` never reaches the next call in the same
+    process; :class:`carrying_read_options` takes them to the executor's threads, processes and
+    Dask tasks.
+
+    Parameters
+    ----------
+    verify_checksums : bool
+        Verify the CHECKSUM and DATASUM of every HDU read (False: ``--no-checksum``, for files
+        edited on purpose).
+    """
+    token = _VERIFY.set(bool(verify_checksums))
+    try:
+        yield
+    finally:
+        _VERIFY.reset(token)
+
+
+def current_read_options() -> dict:
+    """The read options in force here, as keyword arguments of :func:`read_options`."""
+    return {"verify_checksums": _VERIFY.get()}
+
+
+class carrying_read_options:
+    """``func`` with the read options in force where this was made, wherever it is called.
+
+    A worker thread starts from an empty context and a worker process or a Dask worker on
+    another machine knows nothing of the command line: the executor and the study's runner wrap
+    each function they hand out.  Picklable when ``func`` is.
+    """
+
+    def __init__(self, func, options: dict | None = None):
+        self.func = func
+        self.options = current_read_options() if options is None else dict(options)
+
+    def __call__(self, *args, **kwargs):
+        with read_options(**self.options):
+            return self.func(*args, **kwargs)
 
 
 def ones_complement_add(a: int, b: int) -> int:

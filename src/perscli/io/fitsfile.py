@@ -19,8 +19,8 @@ CFITSIO leaves to its caller:
 - CHECKSUM and DATASUM (FITS Standard, Appendix J) of every HDU whose data
   are read are verified when present, on the bytes as stored (for a
   tile-compressed image, its binary table).  The check can be switched off
-  (``--no-checksum``, which sets ``PERSCLI_NO_CHECKSUM=1`` so that worker
-  processes inherit it) for files edited on purpose.
+  (``--no-checksum``: :func:`perscli.io.checksum.read_options`, carried to
+  worker threads, processes and Dask tasks) for files edited on purpose.
 - The one hand-written fast path: rows of a plain, uncompressed image are read
   with ``os.pread`` as stored (big-endian), so that apply-persistence's
   compiled kernel converts, models and checksums them in one pass
@@ -56,7 +56,7 @@ from .. import PerscliError
 # the writer below looks up here, as it does ``_header_cards`` and ``_plain_image``, defined here).
 from .cards import BLOCK, CARD, Header, format_card, history_cards, padded  # noqa: F401
 from .cards import _card_problem, _is_structural, _parse_value  # noqa: F401
-from .checksum import CHECKSUM_HINT, checksums_enabled, ones_complement_add, set_checksum_verification  # noqa: F401
+from .checksum import CHECKSUM_HINT, checksums_enabled, ones_complement_add, read_options  # noqa: F401
 from .checksum import _ascii_checksum  # noqa: F401
 from .fitsreader import HDU, FitsFile, _cfitsio_reason, open_fits  # noqa: F401
 from .sources import FIFO_TIMEOUT, Source, _CHUNK, open_source, split_selector, stat_input  # noqa: F401

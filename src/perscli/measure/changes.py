@@ -25,6 +25,7 @@ from .joint import measure_joint
 from .noise import MIN_SNR_DEFAULT
 from .perframe import measure_frame
 from .selection import read_positions
+from .settings import MeasureOptions
 
 #: the CHANGED table of a final's file: the catalogue ids whose stamps a variant changed
 CHANGED_EXTNAME = "CHANGED"
@@ -93,7 +94,7 @@ def _variant_view(path: str, variant: str):
     return read
 
 
-def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp: int = 48,
+def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp: int = MeasureOptions.stamp,
                     min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1, pixels=None) -> dict:
     """De of every galaxy of the sample between each variant and the reference, fitting only those that changed.
 
@@ -156,7 +157,7 @@ def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp
                 ids = read_changed(path, v)
             mask[[index[int(i)] for i in ids if int(i) in index]] = True
             changed[v].append(mask & subset)
-    kw = dict(stamp=stamp, min_snr=min_snr, workers=workers)
+    kw = dict(options=MeasureOptions(stamp=stamp, min_snr=min_snr), workers=workers)
     parts = {v: [] for v in variants}
     if joint:
         refs = [f"{p}[SCI]" for p in finals]
@@ -233,7 +234,7 @@ def _rows_of(cat, ids) -> np.ndarray:
     return np.array([index[int(i)] for i in ids], dtype=np.int64)
 
 
-def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = True, stamp: int = 48,
+def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = True, stamp: int = MeasureOptions.stamp,
                   min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1, overwrite: bool = True,
                   header=None, pixels=None) -> dict:
     """:func:`measure_changes` of each variant, written into ``dest``: one table per variant, named after it.

@@ -8,7 +8,7 @@ so are the transform's first and second derivatives with respect to every
 parameter.  The PSF enters as its Fourier transform times the pixel
 response (or alone, for an effective PSF that includes the pixel already:
 :mod:`perscli.measure.psf`), tabulated once per stamp size
-(:class:`perscli.render.draw.StampDrawer`, the renderer's own table), and
+(:class:`perscli.optics.StampDrawer`, the renderer's own table), and
 pixel values come from the fold of the frequencies above Nyquist and one
 inverse FFT: no Gaussian approximation of the PSF, whose rings and spikes a
 few Gaussians cannot follow (that is where ngmix-style fits lose accuracy on
@@ -155,7 +155,7 @@ class ExpModel:
     """
 
     def __init__(self, psf, n: int, pad: int = 8, pixel: bool = True):
-        from ..render.draw import StampDrawer
+        from ..optics import StampDrawer
 
         self.n = int(n)
         self.pad = int(pad)

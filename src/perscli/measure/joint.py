@@ -21,12 +21,13 @@ import numpy as np
 from .. import PerscliError
 from ..instrument import ROMAN_PIXEL_SCALE
 from .fit import FLAG_EDGE, ExpModel, JointStamp, fit_joint
-from .noise import (MIN_SNR_DEFAULT, _check_min_snr, _ivar_at, _noise_and_weights, _snr_table, _start_size,
-                    catalogue_rate, frame_units_per_rate, predicted_snr)
+from .noise import (_check_min_snr, _ivar_at, _noise_and_weights, _snr_table, _start_size, catalogue_rate,
+                    frame_units_per_rate, predicted_snr)
 from .perframe import (FLAG_BELOW_CUT, FLAG_BLEND, FLAG_LOW_SN, FLAG_MOVED, FLAG_OFF_FRAME, MAX_MOVE, MIN_S2N,
                        Windows, _FrameFacts, _gather, _psf_exp_model, cut_stamp, stamp_ladder, stamp_side,
                        stamp_window)
 from .selection import _pixel_scale, blended_on_sky, frame_wcs, frame_xy, on_frame, select_kinds
+from .settings import MeasureOptions
 
 
 def local_ainv(wcs, x, y, ra0, dec0, h: float = 0.5) -> np.ndarray:
@@ -154,8 +155,7 @@ def measure_joint_object(ctx: JointContext, j: int) -> dict:
     return cols
 
 
-def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=None, blend_radius=4.0,
-                  progress=None, workers: int = 1, kinds=None, min_snr=MIN_SNR_DEFAULT, all_rows: bool = False,
+def measure_joint(frames, cat, *, options: MeasureOptions | None = None, progress=None, workers: int = 1,
                   inputs=None, psf_options=None, psf_used=None, data=None, only=None) -> dict:
     """One shape per galaxy from all the frames it falls on (``perscli measure --joint``).
 
@@ -174,6 +174,12 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
         common), each with a WCS and EXPTIME.
     cat : dict
         From :func:`read_positions`, with ra/dec.
+    options : perscli.measure.settings.MeasureOptions, optional
+        How to select and fit, as for :func:`measure_frame`; ``method`` is
+        not read (a joint fit is an exp fit), and ``min_snr`` cuts the
+        combined predicted S/N.
+    progress, workers
+        As for :func:`measure_frame`.
     inputs : list, optional
         Appended with (stem, name, DATASUM) per frame, for provenance.
     psf_options, psf_used
@@ -185,7 +191,6 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
         such as the same exposures with persistence.
     only : ndarray of bool, optional
         Per catalogue row: fit only these of the selected galaxies.
-    Others as for :func:`measure_frame`.
 
     Returns
     -------
@@ -196,11 +201,14 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
     from ..executor import run
     from ..io.frames import open_frame
 
-    min_snr = _check_min_snr(min_snr)
+    o = options if options is not None else MeasureOptions()
+    psf, stamp = o.psf, o.stamp
+    psf_options = psf_options if psf_options is not None else o.psf_options()
+    min_snr = _check_min_snr(o.min_snr)
     if "ra" not in cat:
         raise PerscliError(f"{cat.get('label', 'catalogue')}: --joint needs ra/dec in the catalogue (x/y are "
                            "pixels of one frame)")
-    rows, _ = select_kinds(cat, kinds)
+    rows, _ = select_kinds(cat, o.kinds)
     jframes, models, model_keys, noises, filters, scales = [], [], {}, [], [], []
     rate_frame = None
     for k, name in enumerate(frames):
@@ -223,7 +231,7 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
                 raise PerscliError(f"{frame.label}: --joint needs EXPTIME (the joint flux is in e-/s)")
             pixel_scale = _pixel_scale(wcs)
             scales.append(pixel_scale)
-            noise, weights, ivar = _noise_and_weights(frame, sky=sky, read_noise=read_noise)
+            noise, weights, ivar = _noise_and_weights(frame, sky=o.sky, read_noise=o.read_noise)
             noises.append(noise)
             shape = tuple(frame.shape)
             # standard input cannot be read again: its pixels are kept now
@@ -257,7 +265,7 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
     todo = selected if only is None else selected[np.asarray(only, dtype=bool)[rows[selected]]]
     pixel_scale = float(np.mean(scales)) if scales else ROMAN_PIXEL_SCALE
     # neighbours of any kind within --blend-radius pixels, on the sky
-    blends_all = blended_on_sky(cat["ra"], cat["dec"], blend_radius * pixel_scale)
+    blends_all = blended_on_sky(cat["ra"], cat["dec"], o.blend_radius * pixel_scale)
     ladder = stamp_ladder(stamp)
     sizes = np.full(len(rows), stamp, dtype=np.int32)
     for j in todo:
@@ -278,9 +286,9 @@ def measure_joint(frames, cat, *, psf="roman", stamp=48, sky=None, read_noise=No
     ctx = JointContext(frames=jframes, models=models, cat=cat, rows=rows, sizes=sizes, blends=blends_all[rows],
                        rate_frame=rate_frame, stamp=stamp, pixel_scale=pixel_scale)
     results = run(measure_joint_object, todo, context=ctx, workers=workers, progress=progress)
-    out = np.arange(len(rows)) if all_rows else todo
+    out = np.arange(len(rows)) if o.all_rows else todo
     cols = _gather(results, todo, out, _JOINT_FLOAT, _JOINT_INT)
-    if all_rows:
+    if o.all_rows:
         fitted = np.isin(out, todo)
         cols["ra"][~fitted] = cat["ra"][rows[out[~fitted]]]
         cols["dec"][~fitted] = cat["dec"][rows[out[~fitted]]]

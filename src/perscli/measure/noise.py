@@ -21,14 +21,8 @@ import numpy as np
 
 from .. import PerscliError
 from .fit import P_EXP, ExpModel
-
-#: default cut on the predicted S/N (:func:`predicted_snr`).  Why 5: the fitted flux S/N (flux / its
-#: error, what flag 2048 tests against 5) is ~0.6 of the predicted optimal S/N, so a galaxy predicted
-#: below 5 is fitted at S/N ~3 and is flagged 2048 unless noise lifts it: on a full J129 SCA at the
-#: paper's densities 921 of the 2242 galaxies lie below 5, and 4 of them (0.4%) came out unflagged
-#: before the cut, at the cost of 86 model evaluations each (62% of all the fitting).  Their shapes
-#: carry no information.
-MIN_SNR_DEFAULT = 5.0
+# the default cut (and why 5) lives with the other settings, in a module light enough for --help
+from .settings import MIN_SNR_DEFAULT
 
 #: mean of the mixture's second moment per axis in units of r_e^2: T = 2 r_e^2 * this
 _MIXTURE_MOMENT = float(np.sum(P_EXP * (np.array([0.05072, 0.13756, 0.28781, 0.53195, 0.91209, 1.50157]) ** 2)))

@@ -21,10 +21,11 @@ import numpy as np
 
 from .. import PerscliError
 from .fit import FLAG_EDGE, ExpModel, fit_exp
-from .noise import (MIN_SNR_DEFAULT, _check_min_snr, _ivar_at, _noise_and_weights, _snr_table, _start_size,
-                    catalogue_rate, frame_units_per_rate, predicted_snr)
+from .noise import (_check_min_snr, _ivar_at, _noise_and_weights, _snr_table, _start_size, catalogue_rate,
+                    frame_units_per_rate, predicted_snr)
 from .psf import psf_model
 from .selection import _frame_positions, _pixel_scale, blended, frame_wcs, on_frame, select_kinds
+from .settings import MeasureOptions
 
 #: Flag bits of the output (``flags`` column), documented in the command's help.
 FLAGS = {
@@ -281,10 +282,8 @@ def _gather(results, fitted, out_rows, float_columns, int_columns) -> dict:
     return cols
 
 
-def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, read_noise=None,
-                  blend_radius=4.0, progress=None, workers: int = 1, kinds=None, min_snr=MIN_SNR_DEFAULT,
-                  all_rows: bool = False, models=None, psf_options=None, psf_used=None, data=None,
-                  only=None) -> dict:
+def measure_frame(frame, cat, *, options: MeasureOptions | None = None, progress=None, workers: int = 1,
+                  models=None, psf_options=None, psf_used=None, data=None, only=None) -> dict:
     """Measure the selected catalogue objects on one frame.
 
     The frame is read here, once; the objects are fitted by
@@ -296,21 +295,25 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
     frame : perscli.io.frames.Frame
     cat : dict
         From :func:`read_positions`.
-    kinds : None, 'all' or sequence of str
-        Which rows (:func:`select_kinds`): by default the galaxies, or every
-        row of a catalogue without a kind column.
-    min_snr : float
-        Objects whose :func:`predicted_snr` is below this are not fitted
-        (0: no cut; objects without a predicted S/N are always fitted).
-    all_rows : bool
-        Also return rows, without fits, for the selected objects off the
-        frame (flag 256) and below the cut (flag 4096).
+    options : perscli.measure.settings.MeasureOptions, optional
+        How to select and fit (default: ``MeasureOptions()``, the command's
+        defaults): psf, method, stamp, sky, read_noise, blend_radius, kinds
+        (which rows, :func:`select_kinds`), min_snr (objects whose
+        :func:`predicted_snr` is below it are not fitted; those without one
+        always are) and all_rows (also return rows, without fits, for the
+        selected objects off the frame, flag 256, and below the cut, flag
+        4096); ``joint`` and ``columns`` are not read here.
+    progress : callable, optional
+        Progress callback of :func:`perscli.executor.run`.
+    workers : int
+        Processes fitting the objects.
     models : dict, optional
         Stamp side -> ExpModel for this frame's PSF, filled here as needed
         (a cache to share between frames of one SCA and filter).
     psf_options : perscli.measure.psf.PsfOptions, optional
-        How to read a PSF image (--psf-pixel, --psf-oversampling,
-        --allow-undersampled-psf).
+        How to read a PSF image, made from ``options`` by the caller
+        (:meth:`MeasureOptions.psf_options`) and shared by the frames of a
+        run so that each warning is given once (None: made here).
     psf_used : list, optional
         Appended with the :class:`perscli.measure.psf.PsfModel` when this
         call makes the models (for --write-psf).
@@ -321,8 +324,6 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
     only : ndarray of bool, optional
         Per catalogue row: fit only these of the selected objects (the
         selection and ``_todo`` are unchanged).
-    psf, method, stamp, sky, read_noise, blend_radius, progress, workers
-        As for :func:`measure_files`.
 
     Returns
     -------
@@ -333,12 +334,15 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
     """
     from ..executor import run
 
-    min_snr = _check_min_snr(min_snr)
-    rows_sel, _ = select_kinds(cat, kinds)
+    o = options if options is not None else MeasureOptions()
+    psf, method, stamp, blend_radius = o.psf, o.method, o.stamp, o.blend_radius
+    psf_options = psf_options if psf_options is not None else o.psf_options()
+    min_snr = _check_min_snr(o.min_snr)
+    rows_sel, _ = select_kinds(cat, o.kinds)
     wcs = frame_wcs(frame)
     x, y, ra, dec = _frame_positions(frame, cat, wcs)
     pixel_scale = _pixel_scale(wcs)
-    noise, weights, ivar = _noise_and_weights(frame, sky=sky, read_noise=read_noise)
+    noise, weights, ivar = _noise_and_weights(frame, sky=o.sky, read_noise=o.read_noise)
     data = np.asarray(frame.planes()[0]) if data is None else data
     if data.dtype.kind != "f":
         data = data.astype(np.float64)
@@ -381,9 +385,9 @@ def measure_frame(frame, cat, *, psf="roman", method="exp", stamp=48, sky=None, 
                        method=method, stamp=stamp, models=models if method == "exp" else None, sizes=sizes,
                        psf_image=psf_image)
     results = run(measure_object, todo, context=ctx, workers=workers, progress=progress)
-    out_rows = rows_sel if all_rows else todo
+    out_rows = rows_sel if o.all_rows else todo
     cols = _gather(results, todo, out_rows, _FLOAT_COLUMNS, _INT_COLUMNS)
-    if all_rows:
+    if o.all_rows:
         fitted = np.isin(out_rows, todo)
         on_all = on_frame(x[out_rows], y[out_rows], data.shape)
         cols["flags"][~on_all] = FLAG_OFF_FRAME

@@ -59,7 +59,6 @@ with the pixel, or 4x without, by 5e-5 or less for Z087 and redder filters
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 from dataclasses import dataclass, field
@@ -67,6 +66,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError
+from ..instrument import ROMAN_PIXEL_SCALE
+# GalSim's Roman PSF and filters: the ones render draws with (roman_wavelength stays importable from here)
+from ..optics import roman_psf as galsim_roman_psf
+from ..optics import roman_wavelength, to_pixels
 
 log = logging.getLogger(__name__)
 
@@ -174,7 +177,7 @@ class PsfModel:
     oversampling: float | None = None
     sca: str = ""
     filter: str = ""
-    pixel_scale: float = 0.11
+    pixel_scale: float = ROMAN_PIXEL_SCALE
     wavelength: float | None = None
     aliased_power: float | None = None
     arcsec_profile: object = field(default=None, repr=False)
@@ -201,24 +204,9 @@ class PsfModel:
         return np.asarray(drawn.array, dtype=np.float64), float(WRITE_OVERSAMPLING), False
 
 
-@functools.lru_cache(maxsize=None)
-def _roman_bandpasses():
-    import galsim.roman as roman
-
-    return roman.getBandpasses(AB_zeropoint=True)
-
-
-def roman_wavelength(filt) -> float | None:
-    """Effective wavelength (nm) of a Roman filter name, None for any other."""
-    name = str(filt or "").strip()
-    bandpasses = _roman_bandpasses()
-    return float(bandpasses[name].effective_wavelength) if name in bandpasses else None
-
-
 def roman_psf(frame) -> PsfModel:
     """galsim.roman.getPSF for the frame's SCA and FILTER, at the SCA centre and the filter's effective
-    wavelength (what ``perscli render`` draws with), in Roman pixels (0.11")."""
-    import galsim
+    wavelength (:func:`perscli.optics.roman_psf`, what ``perscli render`` draws with), in Roman pixels (0.11")."""
     import galsim.roman as roman
 
     sca, filt = frame.keyword("SCA"), frame.keyword("FILTER")
@@ -232,8 +220,8 @@ def roman_psf(frame) -> PsfModel:
         sca_number = int(sca)
     except (TypeError, ValueError):
         raise PerscliError(f"{frame.label}: SCA={sca!r} is not a Roman SCA number (1-18)") from None
-    psf = roman.getPSF(sca_number, name, wavelength=wavelength)
-    return PsfModel(profile=galsim.PixelScale(roman.pixel_scale).toImage(psf), pixel_included=False, source="roman",
+    psf = galsim_roman_psf(sca_number, name)
+    return PsfModel(profile=to_pixels(psf), pixel_included=False, source="roman",
                     sca=str(sca_number), filter=name, pixel_scale=roman.pixel_scale, wavelength=wavelength,
                     arcsec_profile=psf)
 

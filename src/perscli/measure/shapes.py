@@ -40,8 +40,9 @@ import numpy as np
 from .. import PerscliError
 from .noise import _check_min_snr
 from .perframe import FLAGS, STAMP_HLR, STAMP_MARGIN, STAMP_MIN
-from .psf import PsfOptions, psf_hdus
+from .psf import psf_hdus
 from .selection import _pixel_scale, frame_wcs, select_kinds
+from .settings import MeasureOptions
 
 # re-exported for existing callers (perscli.measure.changes, perscli.render.differential, the tests and
 # benchmarks import them from here); some are also used below
@@ -71,11 +72,8 @@ _DESCRIPTIONS = {"snr_pred": "S/N predicted from the catalogue (cut: MINSNR)",
                  "nframes": "frames the galaxy falls on with >= 20 usable pixels"}
 
 
-def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp", stamp=48, sky=None,
-                  read_noise=None, blend_radius=4.0, workers=1, overwrite=False, progress=None, kinds=None,
-                  min_snr=MIN_SNR_DEFAULT, all_rows: bool = False, joint: bool = False, psf_pixel=None,
-                  psf_oversampling=None, allow_undersampled_psf: bool = False, write_psf=None,
-                  columns=None) -> dict:
+def measure_files(frames, catalog: str, dest: str, *, options: MeasureOptions | None = None, write_psf=None,
+                  workers: int = 1, overwrite: bool = False, progress=None) -> dict:
     """``perscli measure`` as a function: shapes of the catalogue's galaxies on each frame, or jointly.
 
     Writes a FITS file.  Per frame (the default): a SHAPES table, one row per
@@ -92,34 +90,17 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
     catalog : str
         Truth catalogue (``perscli catalog``) or any table with id and ra/dec or x/y.
     dest : str
-    kinds : None, 'all', str or sequence of str
-        Rows to fit (:func:`select_kinds`): default the galaxies, or every row
-        of a catalogue without a kind column.
-    min_snr : float
-        Cut on the S/N predicted from the catalogue (:func:`predicted_snr`);
-        default :data:`MIN_SNR_DEFAULT`; 0 fits everything on the frame.
-    all_rows : bool
-        Write rows, without a fit, for selected objects off the frame (flag
-        256) and below the cut (flag 4096) too.
-    joint : bool
-        One fit per galaxy over all the frames (one FILTER, with WCS and EXPTIME).
-    psf : str
-        'roman' or a PSF image (:func:`perscli.measure.psf.psf_model`).
-    psf_pixel : {'included', 'excluded'} or None
-        Whether the PSF image includes the pixel response (None: its
-        PSFPIXEL keyword, else inferred with a warning).
-    psf_oversampling : float or None
-        PSF pixels per frame pixel of the PSF image (None: its header).
-    allow_undersampled_psf : bool
-        Use an undersampled PSF image with a warning instead of refusing it.
+    options : perscli.measure.settings.MeasureOptions, optional
+        How to select and fit: the command's options (default:
+        ``MeasureOptions()``, the command's defaults).  ``joint``: one fit per
+        galaxy over all the frames (one FILTER, with WCS and EXPTIME);
+        ``columns``: the catalogue's column names (:func:`read_positions`).
     write_psf : str or None
         Also write the PSF images used there, one HDU per PSF
-        (:func:`perscli.measure.psf.psf_hdus`), readable as ``psf``.
-    columns : dict, optional
-        Column mapping {perscli name: catalogue column} for a catalogue
-        another tool wrote (``--columns``; see :func:`read_positions`).
-    method, stamp, sky, read_noise, blend_radius, workers, overwrite, progress
-        As the command's options.
+        (:func:`perscli.measure.psf.psf_hdus`), readable as ``options.psf``.
+    workers, overwrite, progress
+        As the command's options (progress: a callback of
+        :func:`perscli.executor.run`).
 
     Returns
     -------
@@ -131,24 +112,26 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
     from ..io.frames import open_frame
     from ..io.output import add_provenance, check_output, write_hdus
 
+    o = options if options is not None else MeasureOptions()
+    psf, method, stamp, joint, psf_pixel = o.psf, o.method, o.stamp, o.joint, o.psf_pixel
     if method not in ("exp", "hsm"):
         raise PerscliError(f"--method must be exp or hsm, not {method!r}")
     if stamp < 16 or stamp % 2:
         raise PerscliError(f"--stamp {stamp} must be an even number of pixels >= 16")
-    min_snr = _check_min_snr(min_snr)
+    min_snr = _check_min_snr(o.min_snr)
     if joint and method != "exp":
         raise PerscliError("--joint fits the exponential model: it does not go with --method hsm")
     frames = list(frames)
     if frames.count("-") > 1:
         raise PerscliError("only one frame can be standard input ('-')")
     if psf == "roman":
-        given = [name for name, value in (("--psf-pixel", psf_pixel), ("--psf-oversampling", psf_oversampling),
-                                           ("--allow-undersampled-psf", allow_undersampled_psf)) if value]
+        given = [name for name, value in (("--psf-pixel", psf_pixel), ("--psf-oversampling", o.psf_oversampling),
+                                           ("--allow-undersampled-psf", o.allow_undersampled_psf)) if value]
         if given:
             raise PerscliError(f"{' and '.join(given)} describe{'s' if len(given) == 1 else ''} a PSF image: "
                                "give --psf PSF.fits, or leave it out with --psf roman")
-    psf_options = PsfOptions(pixel=psf_pixel, oversampling=psf_oversampling,
-                             allow_undersampled=allow_undersampled_psf)
+    # one for the run: its frames share the record of the warnings given
+    psf_options = o.psf_options()
     read = [catalog, *frames, psf if psf != "roman" else None]
     check_output(dest, overwrite=overwrite, inputs=read)
     if write_psf is not None:
@@ -158,32 +141,30 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
         if write_psf != "-" and dest != "-" and os.path.abspath(write_psf) == os.path.abspath(dest):
             raise PerscliError(f"{write_psf}: --write-psf and -o name the same file: choose another name for the PSF")
     psf_used = []
-    cat = read_positions(catalog, columns=columns)
-    _, kinds_text = select_kinds(cat, kinds)       # bad --kinds fail here, before any frame is read
+    cat = read_positions(catalog, columns=o.columns)
+    _, kinds_text = select_kinds(cat, o.kinds)       # bad --kinds fail here, before any frame is read
     inputs = [("CAT", catalog, cat["datasum"])]
     params = {"METHOD": (method, "exp (mixture fit) or hsm (REGAUSS)"),
               "PSF": (psf if psf == "roman" else psf.split("/")[-1], "PSF source"),
               "STAMP": (stamp, "[pix] largest stamp side"),
               "STAMPRUL": (f"{STAMP_HLR:g} hlr+{STAMP_MARGIN:g}px" if method == "exp" else "fixed",
                            f"exp stamp: smallest {STAMP_MIN},{STAMP_MIN + 8},.. holding it"),
-              "RDNOISE": (read_noise if read_noise is not None else "model",
+              "RDNOISE": (o.read_noise if o.read_noise is not None else "model",
                                                             "[e-] read noise ('model': the frame's)"),
               "NFRAMES": (len(frames), "frames measured"), "XTOL": (1e-10, "relative step tolerance"),
-              "BLENDRAD": (blend_radius, "[pix] neighbour distance flagged as a blend"),
+              "BLENDRAD": (o.blend_radius, "[pix] neighbour distance flagged as a blend"),
               "KINDS": (kinds_text, "catalogue kinds fitted"),
               "MINSNR": (min_snr, "cut on the S/N predicted from the catalogue"),
               "SNRPRED": ("mag,hlr,PSF,noise", "predicted S/N from (never the pixels)"),
-              "ALLROWS": (bool(all_rows), "rows off the frame (256) / below cut (4096)"),
+              "ALLROWS": (bool(o.all_rows), "rows off the frame (256) / below cut (4096)"),
               "JOINT": (bool(joint), "one fit per galaxy over all frames"),
               "PSFPIXEL": (psf_pixel or "header", "PSF image includes the pixel (--psf-pixel)"),
               "PSFOVERS": (psf_options.oversampling or "header", "PSF pixels per frame pixel (option)"),
-              "PSFUNDER": (bool(allow_undersampled_psf), "undersampled PSF image allowed")}
+              "PSFUNDER": (bool(o.allow_undersampled_psf), "undersampled PSF image allowed")}
     hdus = [OutHDU([])]
     if joint:
-        cols = measure_joint(frames, cat, psf=psf, stamp=stamp, sky=sky, read_noise=read_noise,
-                             blend_radius=blend_radius, progress=progress, workers=workers, kinds=kinds,
-                             min_snr=min_snr, all_rows=all_rows, inputs=inputs, psf_options=psf_options,
-                             psf_used=psf_used)
+        cols = measure_joint(frames, cat, options=o, progress=progress, workers=workers, inputs=inputs,
+                             psf_options=psf_options, psf_used=psf_used)
         noise_sources = cols.pop("_noise")
         counts = cols.pop("_counts")
         order = ("id", "ra", "dec", "g1", "g2", "T", "flux", "ra_err", "dec_err", "g1_err", "g2_err", "T_err",
@@ -204,9 +185,7 @@ def measure_files(frames, catalog: str, dest: str, *, psf="roman", method="exp",
         good = int(np.sum(table["flags"] == 0))
     else:
         tables, noise_sources, frame_counts = [], [], []
-        kwargs = dict(psf=psf, method=method, stamp=stamp, sky=sky, read_noise=read_noise,
-                      blend_radius=blend_radius, kinds=kinds, min_snr=min_snr, all_rows=all_rows,
-                      psf_options=psf_options, psf_used=psf_used)
+        kwargs = dict(options=o, psf_options=psf_options, psf_used=psf_used)
         models = {}
         for k, name in enumerate(frames):
             frame = open_frame(name)

@@ -34,7 +34,8 @@ from ..detector.blocks import NOISE_BLOCK, BlockStack, active_pixels, block_grid
 from ..detector.chain import run_chains
 from ..detector.effects import Persistence
 from ..detector.model import DetectorModel
-from .exposure import Exposure, Optics, draw_sources, plan_objects, read_truth
+from ..optics import Optics
+from .exposure import Exposure, draw_sources, plan_objects, read_truth
 
 log = logging.getLogger(__name__)
 
@@ -117,7 +118,7 @@ def psf_envelope(sca: int, filter_name: str, n: int) -> np.ndarray:
     A star of flux F lights no pixel at distance d above floor when
     F E[d] <= floor.
     """
-    from .exposure import stamp_drawer
+    from ..optics import stamp_drawer
 
     key = (int(sca), filter_name, int(n))
     if key not in _ENVELOPES:

@@ -1,16 +1,17 @@
 """Render one Roman SCA exposure of a truth catalog.
 
-The optics come from GalSim's Roman module: the WCS of the SCA for the
-pointing (``galsim.roman.getWCS``, with the observatory position angle), the
-PSF of that SCA and filter (``galsim.roman.getPSF`` at the SCA centre and the
-filter's effective wavelength: it varies from SCA to SCA and filter to filter,
-not across one SCA), the filter's AB zeropoint and the zodiacal sky of
-``galsim.roman.getSkyLevel`` (at the exposure's date: the zodiacal light
+The optics (:class:`perscli.optics.Optics`, which measure shares) come from
+GalSim's Roman module: the WCS of the SCA for the pointing
+(``galsim.roman.getWCS``, with the observatory position angle), the PSF of
+that SCA and filter (``galsim.roman.getPSF`` at the SCA centre and the
+filter's effective wavelength: it varies from SCA to SCA and filter to
+filter, not across one SCA), the filter's AB zeropoint and the zodiacal sky
+of ``galsim.roman.getSkyLevel`` (at the exposure's date: the zodiacal light
 depends on where the Sun is) plus the thermal background.  Every error of
 the exposure's geometry (a coordinate out of range, a position Roman cannot
 observe on that date, an object GalSim's WCS cannot place) is a one-line
-:class:`~perscli.PerscliError` naming the fix.  Objects are drawn
-by :class:`perscli.render.draw.StampDrawer`; the detector chain of
+:class:`~perscli.PerscliError` naming the fix.  Objects are drawn by
+:class:`perscli.optics.StampDrawer`; the detector chain of
 :mod:`perscli.detector.effects` turns the expected electrons into a frame.
 """
 
@@ -18,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -28,7 +28,8 @@ import numpy as np
 from .. import PerscliError
 from ..executor import imap
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
-from .draw import StampDrawer, galaxy_stamp_size, star_stamp_size
+# the optics moved to perscli.optics (render and measure draw through them); names kept here for callers
+from ..optics import Optics, StampDrawer, galaxy_stamp_size, roman_psf, stamp_drawer, star_stamp_size  # noqa: F401
 
 log = logging.getLogger(__name__)
 
@@ -126,122 +127,6 @@ class Exposure:
     @property
     def end(self) -> float:
         return self.mjd + self.exptime / 86400.0
-
-
-@functools.lru_cache(maxsize=1)
-def _bandpasses():
-    """GalSim's Roman bandpasses with AB zeropoints (read from GalSim's files: ~0.25 s, so once a process)."""
-    import galsim.roman as roman
-
-    return roman.getBandpasses(AB_zeropoint=True)
-
-
-@functools.lru_cache(maxsize=8)
-def roman_psf(sca: int, filter_name: str):
-    """GalSim's Roman PSF of an SCA and filter at the filter's effective wavelength (sky units).
-
-    It depends on nothing else (one PSF per SCA and filter, the one at the
-    SCA centre), and ``galsim.roman.getPSF`` takes ~0.7 s: a process that
-    renders many exposures (a study's worker) makes it once per SCA and filter.
-    """
-    import galsim.roman as roman
-
-    return roman.getPSF(int(sca), filter_name, wavelength=_bandpasses()[filter_name].effective_wavelength)
-
-
-#: the stamp drawers kept by :func:`stamp_drawer`: their PSF tables of large stamps are the costly part
-#: of drawing a bright star (2.2 s for the 1024 and 2048 tables, ~0.35 GB): drawers are kept, least
-#: recently used dropped first, while their tables hold less than this many bytes (a study's earlier
-#: exposures come in every filter)
-_DRAWERS: dict = {}
-_DRAWER_BYTES = 1.5e9
-
-
-def stamp_drawer(sca: int, filter_name: str) -> StampDrawer:
-    """The :class:`StampDrawer` of an SCA and filter's PSF, kept with its tables for later exposures."""
-    import galsim
-    import galsim.roman as roman
-
-    key = (int(sca), filter_name)
-    drawer = _DRAWERS.pop(key, None)
-    if drawer is None:
-        drawer = StampDrawer(galsim.PixelScale(roman.pixel_scale).toImage(roman_psf(sca, filter_name)))
-    _DRAWERS[key] = drawer          # most recently used last
-    while len(_DRAWERS) > 1 and sum(d.nbytes for d in _DRAWERS.values()) > _DRAWER_BYTES:
-        _DRAWERS.pop(next(iter(_DRAWERS)))
-    return drawer
-
-
-class Optics:
-    """WCS, PSF, zeropoint and sky of one exposure (the GalSim Roman objects).
-
-    The PSF is made when first asked for (``psf_world``, ``psf_pixels``):
-    where objects land (``perscli render --dry-run``) needs only the WCS.
-    """
-
-    def __init__(self, exposure: Exposure):
-        import galsim
-        import galsim.roman as roman
-
-        from ..scene.footprints import sca_wcs
-
-        self.exposure = exposure
-        self.bandpass = _bandpasses()[exposure.filter]
-        # getWCS, with a clear error for a position Roman cannot observe at that date
-        self.wcs = sca_wcs(exposure, exposure.sca)
-        self.zeropoint = self.bandpass.zeropoint
-        self.electrons_per_unit_flux = roman.collecting_area * exposure.exptime
-        self.centre = galsim.PositionD(SCA_SIZE / 2 + 0.5, SCA_SIZE / 2 + 0.5)
-        self.world_centre = self.wcs.toWorld(self.centre)
-
-    @functools.cached_property
-    def psf_world(self):
-        """GalSim's Roman PSF of the SCA and filter, at the filter's effective wavelength (sky units)."""
-        return roman_psf(self.exposure.sca, self.exposure.filter)
-
-    @functools.cached_property
-    def psf_pixels(self):
-        """The PSF in pixel units (0.11" pixels)."""
-        import galsim
-        import galsim.roman as roman
-
-        return galsim.PixelScale(roman.pixel_scale).toImage(self.psf_world)
-
-    def electrons(self, mag) -> np.ndarray:
-        """Expected electrons over the exposure for AB magnitudes in this filter."""
-        return 10.0 ** (-0.4 * (np.asarray(mag, dtype=np.float64) - self.zeropoint)) * self.electrons_per_unit_flux
-
-    def sky_rate(self) -> float:
-        """Zodiacal (at the SCA centre, on the exposure's date) plus thermal background, e-/pixel/s.
-
-        Raises
-        ------
-        PerscliError
-            GalSim's sky table has no value there (too close to the Sun).
-        """
-        import galsim
-        import galsim.roman as roman
-
-        try:
-            # the date places the Sun; without it GalSim puts the Sun at the vernal equinox
-            zodi = roman.getSkyLevel(self.bandpass, world_pos=self.world_centre, exptime=1.0,
-                                     date=self.exposure.date)
-        except galsim.GalSimError as exc:
-            e = self.exposure
-            raise PerscliError(f"GalSim's Roman sky level at SCA {e.sca} (ra={self.world_centre.ra.deg:.5f} "
-                               f"dec={self.world_centre.dec.deg:.5f}) on MJD {e.mjd:.5f}: "
-                               f"{str(exc).splitlines()[0]}; choose another date (--mjd)") from None
-        return float(zodi * self.wcs.pixelArea(self.centre) + roman.thermal_backgrounds[self.exposure.filter])
-
-    def positions(self, ra_deg, dec_deg):
-        """Image positions (x, y) of sky positions, GalSim convention (pixel centres at integers).
-
-        NaN for positions too far from the SCA to land on it
-        (:func:`perscli.scene.pointings.sky_to_pixels`).
-        """
-        from ..scene.footprints import sky_to_pixels
-
-        return sky_to_pixels(self.wcs, ra_deg, dec_deg)
 
 
 # -- the catalogue --------------------------------------------------------------------------------

@@ -36,7 +36,9 @@ from ..detector.model import DetectorModel, model_table
 from ..io.cards import format_card
 from ..io.fitsfile import OutHDU
 from ..io.output import add_provenance, check_output, write_hdus
-from .exposure import SCA_SIZE, Exposure, Optics, draw_sources, plan_objects, read_truth
+from ..optics import Optics
+from .exposure import SCA_SIZE, Exposure, draw_sources, plan_objects, read_truth
+from .settings import DEFAULT_HDUS, HDU_NAMES, RenderOptions
 
 log = logging.getLogger(__name__)
 
@@ -86,15 +88,6 @@ def _exposure_cards(exposure: Exposure, optics, seed: int, bunit: str, gain: flo
         format_card("LTV2", float(1 - ymin), "cutout offset: image y = SCA y + LTV2"),
         format_card("SEED", int(seed), "random seed"),
     ]
-
-
-#: the HDUs a rendered frame can hold, in the order they are written
-HDU_NAMES = ("SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL")
-
-#: what ``perscli render`` writes unless told otherwise (PERSIST only with earlier exposures)
-#: STARFLU among them: a frame rendered with the defaults is the history of later ones under the default
-#: persistence source (stars)
-DEFAULT_HDUS = ("SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL")
 
 
 def check_hdus(hdus) -> tuple:
@@ -578,10 +571,9 @@ def history_persistences(opened, exposure: Exposure, laws: dict):
     return charges, gaps or []
 
 
-def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, seed: int,
-                previous=(), overwrite: bool = False, workers: int = 1, progress=None,
-                plot: str | None = None, compress: str = "none", persistence_source=None,
-                hdus=None, strict: bool = False, columns=None) -> dict:
+def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOptions | None = None, *,
+                model: DetectorModel, seed: int, previous=(), overwrite: bool = False, workers: int = 1,
+                progress=None, plot: str | None = None) -> dict:
     """Render ``exposure`` of the truth catalogue ``truth`` and write ``dest``.
 
     Parameters
@@ -592,6 +584,11 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         E.g. ``Exposure.from_pointing(schedule_pointing(schedule, row), sca=7)``.
     dest : str
         Output path or '-'.
+    options : RenderOptions, optional
+        What to write (the HDUs, their compression), what of the earlier
+        exposures persists, ``strict`` and the catalogue's column mapping
+        (:class:`~perscli.render.settings.RenderOptions`, where their
+        defaults are written; None: those defaults).
     model : DetectorModel
         Not changed (``persistence_source`` acts on a copy).
     seed : int
@@ -605,24 +602,6 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
         As for every command.
     plot : str, optional
         Also write a PNG of the frame and its persistence.
-    compress : {'none', 'gzip', 'rice'}
-        Lossless tile compression of the images (a full SCA: ~40% of the plain size with gzip).
-    persistence_source : {'all', 'stars'} or float, optional
-        What of the earlier exposures persists (the persistence effect's
-        ``source``; None: the model's, 'all' by default): 'all' their FLUENCE,
-        'stars' their STARFLU, a number of electrons: only pixels whose
-        FLUENCE exceeds it.  The fluence is then capped at the effect's
-        ``fluence_cap`` (default: the saturation full well).
-    hdus : sequence of str or str, optional
-        The HDUs to write, among :data:`HDU_NAMES` (default
-        :data:`DEFAULT_HDUS`); written in that order, PERSIST only when
-        earlier exposures were given.  A frame that is to be the history of
-        later ones needs FLUENCE, and STARFLU for the 'stars' source.
-    strict : bool
-        No object of the catalogue drawn on the frame is an error (before
-        anything is drawn or written) rather than a warning.
-    columns : dict, optional
-        Column mapping of the truth catalogue (``--columns``; :func:`read_truth`).
 
     Returns
     -------
@@ -638,6 +617,8 @@ def render_file(truth: str, exposure: Exposure, dest: str, *, model: DetectorMod
     """
     from ..detector.effects import Persistence
 
+    o = options if options is not None else RenderOptions()
+    hdus, compress, persistence_source, strict, columns = o.hdus, o.compress, o.persistence_source, o.strict, o.columns
     check_output(dest, overwrite=overwrite, inputs=[truth, *previous])
     if plot:
         check_output(plot, overwrite=overwrite, inputs=[truth, *previous])

@@ -23,10 +23,10 @@ often a typo than a wish for RA 10.
 
 from __future__ import annotations
 
-
 import math
 
-import numpy as np
+# numpy is imported inside the functions that need it: the commands' option defaults live in
+# perscli.scene.settings, below this package, and ``--help`` must not wait for numpy
 
 from .. import PerscliError
 from ..instrument import ROMAN_FILTERS
@@ -100,6 +100,8 @@ def check_positions(label: str, ra, dec) -> None:
     PerscliError
         One line naming ``label``, how many rows and the first.
     """
+    import numpy as np
+
     ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
     with np.errstate(invalid="ignore"):
         bad = ~((ra >= RA_RANGE[0]) & (ra <= RA_RANGE[1]) & (dec >= DEC_RANGE[0]) & (dec <= DEC_RANGE[1]))
@@ -185,6 +187,8 @@ def check_catalog(label: str, cols: dict, *, header=None) -> None:
     PerscliError
         One line naming the file, the column, how many rows and the first.
     """
+    import numpy as np
+
     if header is not None:
         check_column_scaling(label, header)
     ids = np.asarray(cols["id"]) if "id" in cols else None
@@ -285,6 +289,8 @@ def sky_extent(ra, dec) -> tuple:
         The direction of the mean unit vector (degrees; RA in [0, 360)) and the
         largest great-circle distance from it (degrees); NaNs for no positions.
     """
+    import numpy as np
+
     ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
     if ra.size == 0:
         return math.nan, math.nan, math.nan
@@ -306,12 +312,16 @@ def sky_extent(ra, dec) -> tuple:
 
 def unit_vector(ra, dec) -> np.ndarray:
     """Unit vectors (..., 3) of positions in degrees."""
+    import numpy as np
+
     ra, dec = np.radians(ra), np.radians(dec)
     return np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], axis=-1)
 
 
 def tangent_basis(ra: float, dec: float) -> tuple:
     """The centre, east and north unit vectors of the tangent plane at (ra, dec) in degrees."""
+    import numpy as np
+
     a, d = np.radians(ra), np.radians(dec)
     centre = np.array([np.cos(d) * np.cos(a), np.cos(d) * np.sin(a), np.sin(d)])
     east = np.array([-np.sin(a), np.cos(a), 0.0])
@@ -335,6 +345,8 @@ def deproject(ra0: float, dec0: float, xi, eta) -> tuple:
     ra, dec : ndarray
         Degrees, RA in [0, 360).
     """
+    import numpy as np
+
     centre, east, north = tangent_basis(ra0, dec0)
     xi, eta = np.asarray(xi, dtype=np.float64), np.asarray(eta, dtype=np.float64)
     v = centre + xi[..., None] * east + eta[..., None] * north
@@ -353,6 +365,8 @@ def project(ra0: float, dec0: float, ra, dec) -> tuple:
         Radians; NaN for points 90 degrees or more from the tangent point,
         which have no gnomonic projection.
     """
+    import numpy as np
+
     centre, east, north = tangent_basis(ra0, dec0)
     v = unit_vector(ra, dec)
     cos_c = v @ centre
@@ -365,6 +379,8 @@ def project(ra0: float, dec0: float, ra, dec) -> tuple:
 
 def separation(ra1, dec1, ra2, dec2) -> np.ndarray:
     """Great-circle distance in degrees (Vincenty's formula: accurate at all distances)."""
+    import numpy as np
+
     a1, d1, a2, d2 = (np.radians(np.asarray(x, dtype=np.float64)) for x in (ra1, dec1, ra2, dec2))
     da = a2 - a1
     num = np.hypot(np.cos(d2) * np.sin(da), np.cos(d1) * np.sin(d2) - np.sin(d1) * np.cos(d2) * np.cos(da))

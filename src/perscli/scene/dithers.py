@@ -29,20 +29,20 @@ from . import check_filter, check_mjd, check_pa, deproject, mjd_datetime
 from .observability import (OBSERVABLE_SEARCH_DAYS, _first_unobservable, _never_observable, _when, best_pa,
                             first_observable_start, sun_angle, sun_limits)
 from .schedule import DAY, Pointing, _check_centre, _check_sca
+from .settings import PLAN_REFERENCE_MJD, PlanOptions
 
 #: Roman Wide Area Survey cadence (the public WAS schedule, Roman_WAS_obseq_11_1_23.fits): exposure time and gap between exposures, s
 WAS_EXPTIME = ROMAN_EXPTIME
 WAS_GAP = ROMAN_WAS_GAP
 
-#: [MJD] where a plan without a start looks for its first observable date: the start of the first exposure
-#: of the public Roman Wide Area Survey schedule (Roman_WAS_obseq_11_1_23.fits), 2027-05-16 23:20:18 UTC.
-#: A fixed date, not today's, so that the same inputs give the same plan
-PLAN_REFERENCE_MJD = 61541.972429
+
+#: the defaults of a plan, written once (perscli.scene.settings)
+_D = PlanOptions()
 
 
-def plan_dithers(ra: float, dec: float, n: int, *, dither: float = 10.0, filter: str = "J129",
-                 start: float | None = None, exptime: float = WAS_EXPTIME, gap: float = WAS_GAP,
-                 pa: float | None = None, sca: int = 0, seed: int = 1,
+def plan_dithers(ra: float, dec: float, n: int, *, dither: float = _D.dither, filter: str = _D.filter,
+                 start: float | None = _D.start, exptime: float = _D.exptime, gap: float = _D.gap,
+                 pa: float | None = _D.pa, sca: int = _D.sca, seed: int = _D.seed,
                  reference: float = PLAN_REFERENCE_MJD) -> list:
     """A dithered sequence of ``n`` exposures on (ra, dec), every one of which Roman can take.
 

@@ -68,8 +68,8 @@ def sca_wcs(pointing, sca: int):
     date = _date(mjd)
     world = galsim.CelestialCoord(ra * galsim.degrees, dec * galsim.degrees)
     if not roman.allowedPos(world, date):
-        raise PerscliError(unobservable_message(ra, dec, mjd) + " (perscli pointings --plan chooses an "
-                           "observable date; render --mjd, pointings --start)")
+        raise PerscliError(unobservable_message(ra, dec, mjd) + " (perscli pointings plan chooses an "
+                           "observable date; render --mjd, pointings plan --start)")
     try:
         return roman.getWCS(world_pos=world, PA=pa * galsim.degrees, date=date, SCAs=int(sca))[int(sca)]
     except galsim.GalSimError as exc:

@@ -67,6 +67,7 @@ import logging
 import numpy as np
 
 from .. import PerscliError
+from ..instrument import ROMAN_SCA_SIZE
 from ..io.tables import read_table
 from . import check_filter, check_positions
 
@@ -79,6 +80,7 @@ from .observability import (OBSERVABLE_SEARCH_DAYS, OBSERVABLE_SEARCH_STEP, best
                             first_observable_start, observable, sun_angle, sun_limits, unobservable_message)
 from .schedule import (DAY, FPA_REACH_DEG, SCHEDULE_COLUMNS, Pointing, Schedule, _check_sca,  # noqa: F401
                        check_exptimes, previous_exposures, read_schedule, schedule_pointing, select_covering)
+from .settings import PlanOptions, SelectOptions
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +98,8 @@ POINTING_COLUMNS = {
 
 #: the optional columns of :func:`pointings_hdulist` with ``footprints=True``
 FOOTPRINT_COLUMNS = {
-    "corner_ra": ("4D", "deg", "SCA corners (pixel edges) (0.5,0.5) (4088.5,0.5) (4088.5,4088.5) (0.5,4088.5): RA"),
+    "corner_ra": ("4D", "deg", "SCA corners (pixel edges) (0.5,0.5) ({e},0.5) ({e},{e}) (0.5,{e}): RA".format(
+        e=ROMAN_SCA_SIZE + 0.5)),
     "corner_dec": ("4D", "deg", "SCA corners, same order: Dec"),
 }
 
@@ -269,22 +272,46 @@ def _with_counts(chosen, catalog, sca, params, inputs, *, stdin=None, columns=No
     return counts, params, [*inputs, ("TRUTH", catalog, datasum)]
 
 
-def select_covering_file(dest: str, schedule: str, ra: float, dec: float, radius: float, *,
-                         filter: str | None = None, after: float | None = None, limit: int | None = None,
-                         sca: int = 0, footprints: bool = False, catalog: str | None = None,
-                         overwrite: bool = False, stdin=None, stdout=None, columns=None,
-                         schedule_columns=None) -> list:
-    """Check ``dest``, select from the schedule file (:func:`select_covering`) and write the pointings
-    (with each row's SCA corners when ``footprints``, and how many objects of the truth catalogue
-    ``catalog`` land on each row's SCA, :func:`count_on_sca`).  ``columns`` and ``schedule_columns``
-    map perscli's column names to those of the catalogue and of the schedule (``--columns``,
-    ``--schedule-columns``)."""
+def select_covering_file(dest: str, schedule: str, ra: float, dec: float, radius: float,
+                         options: SelectOptions | None = None, *, catalog: str | None = None,
+                         overwrite: bool = False, stdin=None, stdout=None) -> list:
+    """``perscli pointings select`` as a function: the exposures of a schedule file that look at a field.
+
+    Checks ``dest``, selects from the schedule (:func:`select_covering`) and
+    writes the pointings (:func:`write_pointings`), with each row's SCA
+    corners when ``options.footprints``, and how many objects of the truth
+    catalogue ``catalog`` land on each row's SCA (:func:`count_on_sca`).
+
+    Parameters
+    ----------
+    dest : str
+        Output path, '-' for standard output.
+    schedule : str
+        The schedule file ('-': ``stdin``).
+    ra, dec, radius : float
+        The field: the circle of ``radius`` degrees about (ra, dec).
+    options : SelectOptions, optional
+        The settings (:class:`~perscli.scene.settings.SelectOptions`, where
+        their defaults are written): filter, after, limit, the SCA, its
+        footprints, the column names of the catalogue and of the schedule.
+    catalog : str, optional
+        A truth catalogue whose objects are counted on each row's SCA.
+    overwrite, stdin, stdout
+        Replace an existing output; the streams read and written for '-'.
+
+    Returns
+    -------
+    list of Pointing
+        The exposures selected, in time order.
+    """
     from ..io.output import check_output
 
+    o = options if options is not None else SelectOptions()
+    filter, after, limit, sca = o.filter, o.after, o.limit, o.sca
     check_output(dest, overwrite=overwrite, inputs=[schedule, catalog])
     if filter is not None:
         filter = check_filter(filter)
-    sched = read_schedule(schedule, stdin=stdin, columns=schedule_columns)
+    sched = read_schedule(schedule, stdin=stdin, columns=o.schedule_columns)
     chosen = select_covering(sched, ra, dec, radius, filter=filter, after=after, limit=limit, sca=sca)
     params = {
         "PTMODE": ("schedule", "pointings: selected from a schedule"),
@@ -303,9 +330,9 @@ def select_covering_file(dest: str, schedule: str, ra: float, dec: float, radius
     step = (f"pointings schedule ra={ra} dec={dec} radius={radius} filter={filter or 'any'} "
             f"{'sca=' + str(sca) + ' footprint' if sca else 'boresight'} selected={len(chosen)} of {len(sched)}")
     counts, params, inputs = _with_counts(chosen, catalog, sca, params, [("SCHED", schedule, sched.datasum)],
-                                          columns=columns)
+                                          columns=o.columns)
     write_pointings(chosen, dest, overwrite=overwrite, stdout=stdout, step=step, params=params,
-                    inputs=inputs, footprints=footprints, counts=counts)
+                    inputs=inputs, footprints=o.footprints, counts=counts)
     return chosen
 
 
@@ -335,18 +362,44 @@ def previous_exposures_file(dest: str, schedule: str, row: int, n: int, *, sca: 
     return chosen
 
 
-def plan_dithers_file(dest: str, ra: float, dec: float, n: int, *, dither: float = 10.0, filter: str = "J129",
-                      start: float | None = None, exptime: float = WAS_EXPTIME, gap: float = WAS_GAP,
-                      pa: float | None = None, sca: int = 0, seed: int = 1, footprints: bool = False,
-                      catalog: str | None = None, overwrite: bool = False, stdout=None, columns=None) -> list:
-    """Check ``dest``, plan a dithered sequence (:func:`plan_dithers`) and write it (with its SCA
-    corners when ``footprints``, and the objects of ``catalog`` on each, as :func:`select_covering_file`).
+def plan_dithers_file(dest: str, ra: float, dec: float, n: int, options: PlanOptions | None = None, *,
+                      catalog: str | None = None, overwrite: bool = False, stdout=None) -> list:
+    """``perscli pointings plan`` as a function: plan a dithered sequence and write it.
 
-    The header says how the start and the PA were chosen (PTSTFROM, PTPAFROM),
-    with GalSim's best PA (PTBESTPA) and the Sun's angle (PTSUNANG) at the start.
+    Checks ``dest``, plans the sequence (:func:`plan_dithers`) and writes it
+    (:func:`write_pointings`), with its SCA corners when
+    ``options.footprints``, and the objects of ``catalog`` on each row's SCA,
+    as :func:`select_covering_file`.  The header says how the start and the
+    PA were chosen (PTSTFROM, PTPAFROM), with GalSim's best PA (PTBESTPA)
+    and the Sun's angle (PTSUNANG) at the start.
+
+    Parameters
+    ----------
+    dest : str
+        Output path, '-' for standard output.
+    ra, dec : float
+        Field centre, degrees.
+    n : int
+        Number of exposures.
+    options : PlanOptions, optional
+        The settings (:class:`~perscli.scene.settings.PlanOptions`, where
+        their defaults are written): dither, filter, start, exposure time,
+        gap, PA, seed, the SCA, its footprints, the catalogue's column names.
+    catalog : str, optional
+        A truth catalogue whose objects are counted on each row's SCA.
+    overwrite, stdout
+        Replace an existing output; the stream written for '-'.
+
+    Returns
+    -------
+    list of Pointing
+        The plan, ``expid`` 0 to n-1.
     """
     from ..io.output import check_output
 
+    o = options if options is not None else PlanOptions()
+    dither, filter, start, exptime, gap, pa, sca, seed = (o.dither, o.filter, o.start, o.exptime, o.gap, o.pa,
+                                                          o.sca, o.seed)
     check_output(dest, overwrite=overwrite, inputs=[catalog])
     chosen = plan_dithers(ra, dec, n, dither=dither, filter=filter, start=start, exptime=exptime, gap=gap,
                           pa=pa, sca=sca, seed=seed)
@@ -376,7 +429,7 @@ def plan_dithers_file(dest: str, ra: float, dec: float, n: int, *, dither: float
                               "[deg] Sun to exposure 0 at PTSTART (54 to 126)")
     step = (f"pointings plan ra={ra} dec={dec} n={n} dither={dither} filter={check_filter(filter)} "
             f"start={first_mjd} pa={first_pa} seed={seed}")
-    counts, params, inputs = _with_counts(chosen, catalog, sca, params, [], columns=columns)
+    counts, params, inputs = _with_counts(chosen, catalog, sca, params, [], columns=o.columns)
     write_pointings(chosen, dest, overwrite=overwrite, stdout=stdout, step=step, params=params, seed=seed,
-                    footprints=footprints, counts=counts, inputs=inputs)
+                    footprints=o.footprints, counts=counts, inputs=inputs)
     return chosen

@@ -17,6 +17,8 @@ import os
 import yaml
 
 from .. import PerscliError
+from ..instrument import ROMAN_SCA_SIZE
+from ..measure.settings import MeasureOptions
 from ..stats.settings import CorrelateOptions
 
 #: where the public schedule lives beside a clone (tests and the presets use it when present)
@@ -85,7 +87,7 @@ SCHEMA = {
     "measure": {
         "joint": True,           # one shape per galaxy from all its final exposures (the paper's pipeline)
         "min_snr": None,         # predicted-S/N cut (None: measure's default)
-        "stamp": 48,
+        "stamp": MeasureOptions.stamp,   # measure's own default (perscli.measure.settings)
         # differential joint fits: the galaxies spread over this many strips of the sky (one task each),
         # each fitting the reference once for every variant
         "parts": 2,
@@ -311,8 +313,9 @@ def check(s: dict) -> None:
     if s["bounds"] is not None:
         b = s["bounds"]
         if not (isinstance(b, list) and len(b) == 4 and all(isinstance(v, int) for v in b)
-                and 1 <= b[0] < b[1] <= 4088 and 1 <= b[2] < b[3] <= 4088):
-            raise PerscliError(f"bounds {b!r}: [xmin, xmax, ymin, ymax], 1-indexed pixels of the 4088x4088 SCA")
+                and 1 <= b[0] < b[1] <= ROMAN_SCA_SIZE and 1 <= b[2] < b[3] <= ROMAN_SCA_SIZE):
+            raise PerscliError(f"bounds {b!r}: [xmin, xmax, ymin, ymax], 1-indexed pixels of the "
+                               f"{ROMAN_SCA_SIZE}x{ROMAN_SCA_SIZE} SCA")
     p = s["persistence"]
     # YAML reads 1e5 as a string (it wants 1.0e5): a threshold may be written either way
     p["sources"] = [_number_or_text(v) for v in p["sources"]]

@@ -12,20 +12,23 @@ import io
 
 import numpy as np
 
+from ..instrument import ROMAN_EXPTIME, ROMAN_FULL_WELL, ROMAN_WAS_GAP
+
 STAR_MAGS = (7, 11, 15, 17, 19, 21)
 GALAXY_MAGS = (22, 24)
 STAMP = 256
 
 
 def _optics():
-    from ..render.exposure import Exposure, Optics
+    from ..optics import Optics
+    from ..render.exposure import Exposure
 
     # SCA 1 at the field of the bundled examples; the PSF and zeropoint are what matter here
     return Optics(Exposure(ra=10.0, dec=-44.0, pa=30.0, sca=1, filter="J129", mjd=61541.97))
 
 
 def _drawer(optics):
-    from ..render.draw import StampDrawer
+    from ..optics import StampDrawer
 
     return StampDrawer(optics.psf_pixels)
 
@@ -35,24 +38,27 @@ def star_fluence(optics, drawer, mag: float, n: int = STAMP) -> np.ndarray:
     return drawer.stamp(n, 0.0, 0.0, float(optics.electrons(mag)))
 
 
-def ghost(fluence: np.ndarray, *, model: str = "typical", gap: float = 30.0, exptime: float = 139.8,
-          full_well: float = 1.0e5) -> np.ndarray:
+def ghost(fluence: np.ndarray, *, model: str = "typical", gap: float = ROMAN_WAS_GAP, exptime: float = ROMAN_EXPTIME,
+          full_well: float = ROMAN_FULL_WELL) -> np.ndarray:
     """Persistence charge (e-) in the next exposure from one earlier exposure's fluence.
 
     The fluence is capped at the full well, as a saturated pixel's is in the
     study's frames.
     """
-    from ..detector.persistence import load_model, persistence_charge
+    from ..detector.model import load_persistence_model
+    from ..detector.persistence import persistence_charge
 
     x = np.minimum(fluence, full_well)
-    return persistence_charge([x], [0.0], gap, [exptime], load_model(model))[0]
+    return persistence_charge([x], [0.0], gap, [exptime], load_persistence_model(model))[0]
 
 
 def galaxy(optics, drawer, mag: float, hlr: float = 0.3, g1: float = 0.2, n: int = STAMP) -> np.ndarray:
     import galsim
 
+    from ..optics import to_pixels
+
     prof = galsim.Exponential(half_light_radius=hlr, flux=1.0).shear(g1=g1, g2=0.0)
-    prof = galsim.PixelScale(0.11).toImage(prof)
+    prof = to_pixels(prof)
     return drawer.stamp(n, 0.0, 0.0, float(optics.electrons(mag)), prof)
 
 

@@ -98,9 +98,9 @@ def model_settings(model: str) -> list:
     """
     if model in ("typical", "pessimistic"):
         return [f"persistence.base={model}"]
-    from ..detector.persistence import load_model
+    from ..detector.model import load_persistence_model
 
-    pm = load_model(model)
+    pm = load_persistence_model(model)
     if pm.kind == "linear":
         return ["persistence.kind=linear",
                 "persistence.coefficients=[" + ", ".join(repr(float(c)) for c in pm.coefficients) + "]"]

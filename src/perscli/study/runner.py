@@ -13,7 +13,6 @@ import dataclasses
 import logging
 import os
 import sys
-import time
 
 from .. import PerscliError
 from .config import fingerprint
@@ -31,24 +30,6 @@ def task_dicts(tasks) -> list:
         fps[t.key] = d["fingerprint"]
         out.append(d)
     return out
-
-
-class Progress:
-    """One line on stderr per finished task: ``study: [k/n] key (seconds)``."""
-
-    def __init__(self, total: int, *, quiet: bool = False, stream=None):
-        self.total, self.done, self.quiet = total, 0, quiet
-        self.stream = stream or sys.stderr
-        self.t0 = time.perf_counter()
-
-    def __call__(self, rec: dict) -> None:
-        self.done += 1
-        if self.quiet:
-            return
-        what = "already made" if rec.get("skipped") else f"{rec['wall_s']:.1f} s"
-        elapsed = time.perf_counter() - self.t0
-        print(f"study: [{self.done}/{self.total}] {rec['key']} ({what}; {elapsed:.0f} s elapsed)",
-              file=self.stream, flush=True)
 
 
 def run_serial(tasks: list, study_dir: str, progress) -> list:
@@ -87,10 +68,15 @@ def run_dask(tasks: list, study_dir: str, progress, *, scheduler: str = "local",
             print(f"study: {len(todo)} tasks on Dask ({scheduler}, "
                   f"{len(client.scheduler_info().get('workers', {}))} workers)"
                   + (f"; dashboard {link}" if link else ""), file=sys.stderr, flush=True)
+        from ..io.checksum import carrying_read_options
+
+        # a worker (maybe on another machine) knows nothing of this command line: each task carries
+        # the read options (--no-checksum) with it
+        task = carrying_read_options(run_task)
         futures = {}
         for t in todo:
             deps = [futures[k] for k in t["deps"] if k in futures]
-            futures[t["key"]] = client.submit(run_task, t, study_dir, *deps, key=_dask_key(t),
+            futures[t["key"]] = client.submit(task, t, study_dir, *deps, key=_dask_key(t),
                                               pure=False, retries=2)
         recs = []
         for fut in as_completed(list(futures.values())):
@@ -160,7 +146,16 @@ def run(tasks: list, study_dir: str, *, scheduler: str = "local", workers: int =
     os.makedirs(study_dir, exist_ok=True)
     if remove_stale_parts(study_dir):
         log.info("removed the half-written files of an earlier run")
-    progress = Progress(len(tasks), quiet=quiet)
+    from ..progress import lines
+
+    step, done = lines("study", quiet=quiet), [0]
+
+    def progress(rec: dict) -> None:
+        # one line per finished task (a cluster's log keeps them), through the one progress callback
+        done[0] += 1
+        what = "already made" if rec.get("skipped") else f"{rec['wall_s']:.1f} s"
+        step(done[0], len(tasks), f"{rec['key']} ({what})")
+
     if scheduler == "serial":
         return run_serial(tasks, study_dir, progress)
     return run_dask(tasks, study_dir, progress, scheduler=scheduler, workers=workers, quiet=quiet)

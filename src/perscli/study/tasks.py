@@ -133,6 +133,7 @@ def _render(study_dir, p, out):
     from ..detector.model import load_detector_model
     from ..render.exposure import Exposure
     from ..render.run import render_file
+    from ..render.settings import RenderOptions
 
     pt = p["pointing"]
     exposure = Exposure(ra=pt["ra"], dec=pt["dec"], pa=pt["pa"], sca=p["sca"], filter=pt["filter"],
@@ -140,20 +141,21 @@ def _render(study_dir, p, out):
                         bounds=tuple(p["bounds"]) if p["bounds"] else None, expid=pt["expid"])
     model = load_detector_model("roman", [*p["model"], *p["set"]])
     previous = [os.path.join(study_dir, q) for q in p["previous"]]
-    summary = render_file(os.path.join(study_dir, p["truth"]), exposure, out, model=model, seed=p["seed"],
-                          previous=previous, overwrite=True, compress=p["compress"],
-                          persistence_source=p["source"], hdus=tuple(p["hdus"]))
+    options = RenderOptions(hdus=tuple(p["hdus"]), compress=p["compress"], persistence_source=p["source"])
+    summary = render_file(os.path.join(study_dir, p["truth"]), exposure, out, options, model=model, seed=p["seed"],
+                          previous=previous, overwrite=True)
     return {"objects": int(summary.get("drawn", summary.get("objects", 0)) or 0), "hdus": list(p["hdus"])}
 
 
 def _measure(study_dir, p, out):
+    from ..measure.settings import MeasureOptions
     from ..measure.shapes import measure_files
 
     frames = [os.path.join(study_dir, f) for f in p["frames"]]
-    kw = dict(stamp=p["stamp"], joint=p["joint"])
+    options = MeasureOptions(stamp=p["stamp"], joint=p["joint"])
     if p["min_snr"] is not None:
-        kw["min_snr"] = p["min_snr"]
-    summary = measure_files(frames, os.path.join(study_dir, p["truth"]), out, overwrite=True, **kw)
+        options = dataclasses.replace(options, min_snr=p["min_snr"])
+    summary = measure_files(frames, os.path.join(study_dir, p["truth"]), out, options=options, overwrite=True)
     return {"galaxies": int(summary.get("rows", 0)), "usable": int(summary.get("unflagged", 0)),
             "frames": len(frames)}
 

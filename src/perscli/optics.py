@@ -1,0 +1,332 @@
+"""Roman's optics, the one home of what render and measure both draw with.
+
+- :func:`bandpasses`, :func:`roman_wavelength`: GalSim's Roman filters (with
+  their AB zeropoints) and their effective wavelengths;
+- :func:`roman_psf`: GalSim's Roman PSF of an SCA and filter, with the
+  project's settings (the PSF at the SCA centre and the filter's effective
+  wavelength), made once a process; :func:`quick_roman_psf`, the coarser one
+  of the sample frames; :func:`to_pixels`, a profile in Roman pixel units;
+- :class:`StampDrawer` (with :func:`star_stamp_size`, :func:`galaxy_stamp_size`
+  and the cache :func:`stamp_drawer`): objects drawn through a fixed PSF,
+  exactly sampled, fast;
+- :class:`Optics`: the WCS of an SCA for an exposure (``galsim.roman.getWCS``,
+  through :func:`perscli.scene.footprints.sca_wcs`), its PSF, zeropoint and
+  sky.
+
+Why a module of its own: ``perscli render`` draws frames through this PSF and
+``perscli measure --psf roman`` fits shapes through the same one, with the
+same drawing code; with the PSF built here once, a frame and its fits cannot
+drift apart, and measure does not reach into render.  It sits below render and
+measure and imports neither; GalSim is imported only when first used.
+
+Drawing: why not GalSim's ``Convolve(galaxy, psf).drawImage()`` per object: it
+recomputes the PSF's Fourier transform (an interpolated image, the expensive
+part) for every object, on an FFT grid sized by the PSF's wide wings.  Here the
+PSF times the pixel response (the PSF alone, with ``pixel=False``, for one that
+includes it: shape fits through an effective PSF) is tabulated once per stamp
+size; each object then costs its own analytic Fourier transform (GalSim's,
+exact), a phase ramp for its sub-pixel position, a fold of the frequencies
+above Nyquist onto the sampled band (the Poisson summation that makes pixel
+values exact for an undersampled PSF), and one small inverse FFT.
+
+Conventions: the PSF and the objects are in pixel coordinates of the detector
+(GalSim's Roman PSFs are oriented with the SCA); an object's profile is mapped
+from the sky with the WCS Jacobian at its own position; the PSF is the same
+everywhere on the detector (the one at the SCA centre).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+from . import PerscliError
+from .instrument import ROMAN_SCA_SIZE
+
+# -- filters and the PSF --------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=1)
+def bandpasses() -> dict:
+    """GalSim's Roman bandpasses with AB zeropoints (read from GalSim's files: ~0.25 s, so once a process)."""
+    import galsim.roman as roman
+
+    return roman.getBandpasses(AB_zeropoint=True)
+
+
+def roman_wavelength(filt) -> float | None:
+    """Effective wavelength (nm) of a Roman filter name, None for any other."""
+    name = str(filt or "").strip()
+    table = bandpasses()
+    return float(table[name].effective_wavelength) if name in table else None
+
+
+@functools.lru_cache(maxsize=8)
+def roman_psf(sca: int, filter_name: str):
+    """GalSim's Roman PSF of an SCA and filter at the filter's effective wavelength (sky units).
+
+    It depends on nothing else (one PSF per SCA and filter, the one at the
+    SCA centre), and ``galsim.roman.getPSF`` takes ~0.7 s: a process that
+    renders many exposures (a study's worker), or measures many frames,
+    makes it once per SCA and filter.
+    """
+    import galsim.roman as roman
+
+    return roman.getPSF(int(sca), filter_name, wavelength=bandpasses()[filter_name].effective_wavelength)
+
+
+def quick_roman_psf(sca: int, filter_name: str):
+    """The sample frames' PSF (:mod:`perscli.samples`): :func:`roman_psf` from a pupil binned 8x (GalSim's
+    default 4x), at the filter's effective wavelength.
+
+    Coarser and quicker to make; the demo and the documentation's frames were
+    drawn with it, so it stays as it is (their pixels would change).
+    """
+    import galsim.roman as roman
+
+    return roman.getPSF(sca, filter_name, n_waves=5, pupil_bin=8, wavelength=bandpasses()[filter_name])
+
+
+def to_pixels(profile):
+    """A profile in sky units (arcsec) in Roman pixel units (``galsim.roman.pixel_scale``)."""
+    import galsim
+    import galsim.roman as roman
+
+    return galsim.PixelScale(roman.pixel_scale).toImage(profile)
+
+
+# -- drawing through the PSF ----------------------------------------------------------------------
+
+def _centred_freqs(n: int, m: int) -> np.ndarray:
+    """Angular frequencies (rad/pixel) of an m*n-point grid spaced 2 pi / n, zero at index m*n/2.
+
+    This is the order of GalSim's k-images.  With m even, summing the m blocks of n
+    (the aliasing fold) gives the n-point grid in FFT order directly: the block of a
+    frequency changes in the centred order, its place within the block does not.
+    """
+    return 2.0 * np.pi / n * (np.arange(m * n) - m * n // 2)
+
+
+class StampDrawer:
+    """Draws objects convolved with one PSF into an image.
+
+    Parameters
+    ----------
+    psf : galsim.GSObject
+        The PSF in pixel coordinates (unit = one pixel), normalised to 1.
+    pixel : bool
+        Multiply by the pixel response (the default: ``psf`` is an optical
+        PSF).  False when ``psf`` already includes it (an effective PSF, e.g.
+        interpolated from a PSF image that was integrated over pixels):
+        applying the pixel twice would widen the PSF by a pixel's variance.
+    """
+
+    def __init__(self, psf, pixel: bool = True):
+        self.psf = psf
+        self.pixel = bool(pixel)
+        # alias factor: the grid must reach the PSF's maxk; an even factor keeps blocks aligned
+        alias = max(1, math.ceil(psf.maxk / np.pi))
+        self.alias = alias + (alias % 2)
+        self._tables = {}
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the tables made so far."""
+        return sum(t.nbytes + k.nbytes for t, k in self._tables.values())
+
+    def table(self, n: int):
+        """(T, k) for stamp size n: PSF x pixel transfer (PSF only without ``pixel``) on the extended grid,
+        and the frequencies."""
+        table = self._tables.get(n)
+        if table is None:
+            m = self.alias
+            k = _centred_freqs(n, m)
+            psf_k = self.psf.drawKImage(nx=m * n, ny=m * n, scale=2.0 * np.pi / n).array
+            if self.pixel:
+                pix = np.sinc(k / (2.0 * np.pi))
+                table = self._tables[n] = (psf_k * pix[:, None] * pix[None, :], k)
+            else:
+                table = self._tables[n] = (psf_k, k)
+        return table
+
+    def stamp(self, n: int, dx: float, dy: float, flux: float, profile=None) -> np.ndarray:
+        """An n x n stamp of an object centred at (n/2 + dx, n/2 + dy) (array indices).
+
+        Parameters
+        ----------
+        n : int
+            Stamp size (even).
+        dx, dy : float
+            Sub-pixel offset of the centre, pixels.
+        flux : float
+            Total flux (electrons).
+        profile : galsim.GSObject, optional
+            The object's intrinsic profile in pixel coordinates, flux 1
+            (None: a point source).
+        """
+        transfer, k = self.table(n)
+        m = self.alias
+        if profile is not None:
+            field = profile.drawKImage(nx=m * n, ny=m * n, scale=2.0 * np.pi / n).array
+            field *= transfer
+        else:
+            field = transfer.copy()
+        field *= np.exp(-1j * k * dy)[:, None]
+        field *= np.exp(-1j * k * dx)[None, :]
+        folded = field.reshape(m, n, m, n).sum(axis=(0, 2))
+        return np.fft.fftshift(np.fft.ifft2(folded).real) * flux
+
+    def add(self, image: np.ndarray, x: float, y: float, flux: float, n: int, profile=None,
+            origin=(1, 1)) -> bool:
+        """Add an object at image position (x, y) (GalSim convention, pixel centres at integers).
+
+        Parameters
+        ----------
+        image : ndarray
+            Target array; ``image[0, 0]`` is pixel ``origin`` = (xmin, ymin).
+        x, y : float
+            Position of the centre.
+        flux, n, profile
+            See :meth:`stamp`.
+
+        Returns
+        -------
+        bool
+            Whether the stamp overlapped the image.
+        """
+        xmin, ymin = origin
+        ix, iy = int(math.floor(x + 0.5)), int(math.floor(y + 0.5))
+        # stamp array index [n/2, n/2] is pixel (ix, iy)
+        x0, y0 = ix - n // 2, iy - n // 2
+        ny, nx = image.shape
+        a0, a1 = max(x0, xmin), min(x0 + n, xmin + nx)
+        b0, b1 = max(y0, ymin), min(y0 + n, ymin + ny)
+        if a0 >= a1 or b0 >= b1:
+            return False
+        st = self.stamp(n, x - ix, y - iy, flux, profile)
+        image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += st[b0 - y0:b1 - y0, a0 - x0:a1 - x0]
+        return True
+
+
+def star_stamp_size(flux: float) -> int:
+    """Stamp side for a point source, a power of two from 16 to 2048, growing as flux^(1/3).
+
+    The halo of the Roman PSF falls as r^-3, so this keeps the edge of the
+    stamp near a fixed level (~1 e-/pixel, far below where persistence
+    matters) while the diffraction spikes of bright stars, which cause their
+    ghosts, stay inside: 64 pixels for 1e5 e-, 16 for 1.6e3 e- and fainter
+    (a J129 = 24 star leaves ~0.1 e-/pixel at the edge of its 16-pixel
+    stamp; the 4% of its light beyond wraps into the stamp's edges).  A
+    larger floor would only spread the faint stars' light, and with it their
+    persistence, over pixels where it is a thousandth of an electron.
+    """
+    n = 64.0 * (max(flux, 1.0) / 1.0e5) ** (1.0 / 3.0)
+    return int(min(2048, max(16, 2 ** math.ceil(math.log2(n)))))
+
+
+def galaxy_stamp_size(hlr_pixels: float) -> int:
+    """Stamp side for a galaxy: ~12 half-light radii plus the PSF core, a power of two >= 64.
+
+    Powers of two keep the number of tabulated PSF transfers small (one per size).
+    """
+    n = 12.0 * hlr_pixels + 24.0
+    return int(max(64, 2 ** math.ceil(math.log2(n))))
+
+
+#: the stamp drawers kept by :func:`stamp_drawer`: their PSF tables of large stamps are the costly part
+#: of drawing a bright star (2.2 s for the 1024 and 2048 tables, ~0.35 GB): drawers are kept, least
+#: recently used dropped first, while their tables hold less than this many bytes (a study's earlier
+#: exposures come in every filter)
+_DRAWERS: dict = {}
+_DRAWER_BYTES = 1.5e9
+
+
+def stamp_drawer(sca: int, filter_name: str) -> StampDrawer:
+    """The :class:`StampDrawer` of an SCA and filter's PSF, kept with its tables for later exposures."""
+    key = (int(sca), filter_name)
+    drawer = _DRAWERS.pop(key, None)
+    if drawer is None:
+        drawer = StampDrawer(to_pixels(roman_psf(sca, filter_name)))
+    _DRAWERS[key] = drawer          # most recently used last
+    while len(_DRAWERS) > 1 and sum(d.nbytes for d in _DRAWERS.values()) > _DRAWER_BYTES:
+        _DRAWERS.pop(next(iter(_DRAWERS)))
+    return drawer
+
+
+# -- one exposure's optics ------------------------------------------------------------------------
+
+class Optics:
+    """WCS, PSF, zeropoint and sky of one exposure (the GalSim Roman objects).
+
+    The PSF is made when first asked for (``psf_world``, ``psf_pixels``):
+    where objects land (``perscli render --dry-run``) needs only the WCS.
+
+    Parameters
+    ----------
+    exposure : perscli.render.exposure.Exposure
+        Or anything with its ``ra``, ``dec``, ``pa``, ``mjd``, ``sca``,
+        ``filter``, ``exptime`` and ``date``.
+    """
+
+    def __init__(self, exposure):
+        import galsim
+        import galsim.roman as roman
+
+        from .scene.footprints import sca_wcs
+
+        self.exposure = exposure
+        self.bandpass = bandpasses()[exposure.filter]
+        # getWCS, with a clear error for a position Roman cannot observe at that date
+        self.wcs = sca_wcs(exposure, exposure.sca)
+        self.zeropoint = self.bandpass.zeropoint
+        self.electrons_per_unit_flux = roman.collecting_area * exposure.exptime
+        self.centre = galsim.PositionD(ROMAN_SCA_SIZE / 2 + 0.5, ROMAN_SCA_SIZE / 2 + 0.5)
+        self.world_centre = self.wcs.toWorld(self.centre)
+
+    @functools.cached_property
+    def psf_world(self):
+        """GalSim's Roman PSF of the SCA and filter, at the filter's effective wavelength (sky units)."""
+        return roman_psf(self.exposure.sca, self.exposure.filter)
+
+    @functools.cached_property
+    def psf_pixels(self):
+        """The PSF in pixel units (0.11" pixels)."""
+        return to_pixels(self.psf_world)
+
+    def electrons(self, mag) -> np.ndarray:
+        """Expected electrons over the exposure for AB magnitudes in this filter."""
+        return 10.0 ** (-0.4 * (np.asarray(mag, dtype=np.float64) - self.zeropoint)) * self.electrons_per_unit_flux
+
+    def sky_rate(self) -> float:
+        """Zodiacal (at the SCA centre, on the exposure's date) plus thermal background, e-/pixel/s.
+
+        Raises
+        ------
+        PerscliError
+            GalSim's sky table has no value there (too close to the Sun).
+        """
+        import galsim
+        import galsim.roman as roman
+
+        try:
+            # the date places the Sun; without it GalSim puts the Sun at the vernal equinox
+            zodi = roman.getSkyLevel(self.bandpass, world_pos=self.world_centre, exptime=1.0,
+                                     date=self.exposure.date)
+        except galsim.GalSimError as exc:
+            e = self.exposure
+            raise PerscliError(f"GalSim's Roman sky level at SCA {e.sca} (ra={self.world_centre.ra.deg:.5f} "
+                               f"dec={self.world_centre.dec.deg:.5f}) on MJD {e.mjd:.5f}: "
+                               f"{str(exc).splitlines()[0]}; choose another date (--mjd)") from None
+        return float(zodi * self.wcs.pixelArea(self.centre) + roman.thermal_backgrounds[self.exposure.filter])
+
+    def positions(self, ra_deg, dec_deg):
+        """Image positions (x, y) of sky positions, GalSim convention (pixel centres at integers).
+
+        NaN for positions too far from the SCA to land on it
+        (:func:`perscli.scene.footprints.sky_to_pixels`).
+        """
+        from .scene.footprints import sky_to_pixels
+
+        return sky_to_pixels(self.wcs, ra_deg, dec_deg)

@@ -1,0 +1,58 @@
+"""The settings of ``perscli render``, with their defaults written once.
+
+:class:`RenderOptions` is the one home of render's output settings, as
+:class:`perscli.stats.settings.CorrelateOptions` is of correlate's: the
+library (:func:`perscli.render.run.render_file`) takes one, the command's
+options show and use its defaults, and a study's render tasks make one.
+What a call renders (the catalogue, the exposure, the detector model, the
+seed, the earlier frames) and how it runs (workers, overwriting, a figure)
+stay arguments of the call.  This module imports nothing heavy, so that
+``perscli render --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+#: the HDUs a rendered frame can hold, in the order they are written
+HDU_NAMES = ("SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL")
+
+#: what ``perscli render`` writes unless told otherwise (PERSIST only with earlier exposures)
+#: STARFLU among them: a frame rendered with the defaults is the history of later ones under the default
+#: persistence source (stars)
+DEFAULT_HDUS = ("SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL")
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderOptions:
+    """What ``perscli render`` writes, and from which catalogue columns and earlier light.
+
+    Attributes
+    ----------
+    hdus : sequence of str or str
+        The HDUs to write, among :data:`HDU_NAMES` (a comma-separated string
+        too); written in that order, PERSIST only when earlier exposures are
+        given.  A frame that is to be the history of later ones needs
+        FLUENCE, and STARFLU for the 'stars' source.
+    compress : {'none', 'gzip', 'rice'}
+        Lossless tile compression of the images (a full SCA: ~40% of the
+        plain size with gzip).
+    persistence_source : {'all', 'stars'} or float or None
+        What of the earlier exposures persists (the persistence effect's
+        ``source``; None: the detector model's, 'stars' by default): 'all'
+        their FLUENCE, 'stars' their STARFLU, a number of electrons: only
+        pixels whose FLUENCE exceeds it.  The fluence is then capped at the
+        effect's ``fluence_cap`` (default: the saturation full well).
+    strict : bool
+        No object of the catalogue drawn on the frame is an error (before
+        anything is drawn or written) rather than a warning.
+    columns : dict or None
+        Column mapping {perscli name: file column} of the truth catalogue
+        (``--columns``; :func:`perscli.render.exposure.read_truth`).
+    """
+
+    hdus: tuple | str = DEFAULT_HDUS
+    compress: str = "none"
+    persistence_source: str | float | None = None
+    strict: bool = False
+    columns: dict | None = None
