@@ -94,8 +94,12 @@ def _variant_view(path: str, variant: str):
     return read
 
 
-def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp: int = MeasureOptions.stamp,
-                    min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1, pixels=None) -> dict:
+#: what the study measures with unless told: one fit per galaxy over all its finals (the paper's pipeline)
+CHANGES_OPTIONS = MeasureOptions(joint=True)
+
+
+def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions = CHANGES_OPTIONS, expids=None,
+                    part=None, workers: int = 1, pixels=None) -> dict:
     """De of every galaxy of the sample between each variant and the reference, fitting only those that changed.
 
     Parameters
@@ -108,11 +112,10 @@ def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp
         for the galaxies any of them changed.
     catalog : str
         The truth catalogue.
-    joint : bool
-        One fit per galaxy over all its finals (the paper's pipeline), or one
-        per galaxy and final.
-    stamp, min_snr
-        As for ``perscli measure``.
+    options : MeasureOptions
+        How to measure, as for ``perscli measure``: ``joint`` (one fit per
+        galaxy over all its finals, the paper's pipeline, the default here;
+        or one per galaxy and final), ``stamp`` and ``min_snr`` are used.
     expids : sequence of int, optional
         Per final, its exposure id (the ``expid`` column of per-final rows).
     pixels : sequence of dict, optional
@@ -157,7 +160,8 @@ def measure_changes(finals, variants, catalog: str, *, joint: bool = True, stamp
                 ids = read_changed(path, v)
             mask[[index[int(i)] for i in ids if int(i) in index]] = True
             changed[v].append(mask & subset)
-    kw = dict(options=MeasureOptions(stamp=stamp, min_snr=min_snr), workers=workers)
+    joint = options.joint
+    kw = dict(options=MeasureOptions(stamp=options.stamp, min_snr=options.min_snr), workers=workers)
     parts = {v: [] for v in variants}
     if joint:
         refs = [f"{p}[SCI]" for p in finals]
@@ -234,9 +238,9 @@ def _rows_of(cat, ids) -> np.ndarray:
     return np.array([index[int(i)] for i in ids], dtype=np.int64)
 
 
-def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = True, stamp: int = MeasureOptions.stamp,
-                  min_snr=MIN_SNR_DEFAULT, expids=None, part=None, workers: int = 1, overwrite: bool = True,
-                  header=None, pixels=None) -> dict:
+def write_changes(finals, variants, catalog: str, dest: str, *, options: MeasureOptions = CHANGES_OPTIONS,
+                  expids=None, part=None, workers: int = 1, overwrite: bool = True, header=None,
+                  pixels=None) -> dict:
     """:func:`measure_changes` of each variant, written into ``dest``: one table per variant, named after it.
 
     Parameters
@@ -266,8 +270,9 @@ def write_changes(finals, variants, catalog: str, dest: str, *, joint: bool = Tr
         "fit_flags": "flags of the two fits (ORed): kept, as every galaxy of the sample counts"}
     primary = OutHDU([])
     hdus, counts = [primary], {}
-    measured = measure_changes(finals, variants, catalog, joint=joint, stamp=stamp, min_snr=min_snr, expids=expids,
-                               part=part, workers=workers, pixels=pixels)
+    joint, min_snr = options.joint, options.min_snr
+    measured = measure_changes(finals, variants, catalog, options=options, expids=expids, part=part, workers=workers,
+                               pixels=pixels)
     for variant in variants:
         cols = measured[variant]
         c = counts[variant] = cols.pop("_counts")

@@ -18,6 +18,7 @@ import time
 import numpy as np
 
 from .. import PerscliError
+from ..measure.settings import MeasureOptions
 
 STATE = ".state"
 
@@ -148,7 +149,6 @@ def _render(study_dir, p, out):
 
 
 def _measure(study_dir, p, out):
-    from ..measure.settings import MeasureOptions
     from ..measure.shapes import measure_files
 
     frames = [os.path.join(study_dir, f) for f in p["frames"]]
@@ -197,7 +197,6 @@ def _floor(model) -> float:
 
 
 def write_regions_table(out: str, table: dict, counts: dict) -> None:
-    from ..io.cards import format_card
     from ..io.fitsfile import OutHDU, table_hdu
     from ..io.output import write_hdus
 
@@ -273,8 +272,9 @@ def _final(study_dir, p, out):
                   "NREACH": (reach["reached"], "of them reached by earlier star light"),
                   "FPIXRCH": (round(float(np.mean(reach["fractions"])), 6),
                               "mean fraction of the finals' pixels persistence can reach")}
-        counts = write_changes(frames, list(variants), truth, out, joint=False, stamp=measure["stamp"],
-                               min_snr=measure["min_snr"], expids=list(rows_of), header=header, pixels=arrays)
+        options = MeasureOptions(joint=False, stamp=measure["stamp"], min_snr=measure["min_snr"])
+        counts = write_changes(frames, list(variants), truth, out, options=options, expids=list(rows_of),
+                               header=header, pixels=arrays)
         rec.update(sample=counts["sample"], fitted=counts["fitted"])
         return rec
     finally:
@@ -287,8 +287,9 @@ def _changes(study_dir, p, out):
     from ..measure.changes import write_changes
 
     finals = [os.path.join(study_dir, f) for f in p["finals"]]
-    summary = write_changes(finals, p["variants"], os.path.join(study_dir, p["truth"]), out, joint=p["joint"],
-                            stamp=p["stamp"], min_snr=p["min_snr"], expids=p["expids"], part=p["part"])
+    options = MeasureOptions(joint=p["joint"], stamp=p["stamp"], min_snr=p["min_snr"])
+    summary = write_changes(finals, p["variants"], os.path.join(study_dir, p["truth"]), out, options=options,
+                            expids=p["expids"], part=p["part"])
     return {"galaxies": summary["sample"], "fitted": summary["fitted"], "frames": len(finals)}
 
 
