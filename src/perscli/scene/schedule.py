@@ -42,6 +42,21 @@ FPA_REACH_DEG = 0.5
 SCHEDULE_COLUMNS = {"date": "number", "exptime": "number", "ra": "number", "dec": "number", "pa": "number",
                     "filter": "text"}
 
+#: the name that stands for the schedule shipped with perscli (wherever a schedule file is asked for)
+BUNDLED_SCHEDULE = "roman-was"
+#: the bundled file: the public Roman Wide Area Survey observing sequence Roman_WAS_obseq_11_1_23.fits
+#: (version of 2023-11-01: 16,956 exposures), gzipped, unchanged
+BUNDLED_SCHEDULE_FILE = "Roman_WAS_obseq_11_1_23.fits.gz"
+
+
+def schedule_path(name: str) -> str:
+    """The file a schedule name stands for: :data:`BUNDLED_SCHEDULE` is the bundled one, anything else a path."""
+    if name != BUNDLED_SCHEDULE:
+        return name
+    import os
+
+    return os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "data", BUNDLED_SCHEDULE_FILE)
+
 
 @dataclass(frozen=True)
 class Pointing:
@@ -122,7 +137,9 @@ def read_schedule(path: str, *, stdin=None, columns=None) -> Schedule:
     Parameters
     ----------
     path : str
-        FITS file, '-' for standard input.
+        FITS file (gzipped or not), '-' for standard input, or
+        :data:`BUNDLED_SCHEDULE` for the public Roman WAS schedule shipped
+        with perscli.
     columns : dict, optional
         Column mapping {perscli name: file column} for another survey's
         schedule (names of :data:`SCHEDULE_COLUMNS`).
@@ -134,6 +151,7 @@ def read_schedule(path: str, *, stdin=None, columns=None) -> Schedule:
         holding the wrong type (the message names it), or an exposure time
         <= 0 (:func:`check_exptimes`).
     """
+    path = schedule_path(path)
     table = read_table(path, what="schedule", stdin=stdin, columns=columns or {}, known=tuple(SCHEDULE_COLUMNS))
     cols = {name: table.column(name, kind=kind, needed=tuple(SCHEDULE_COLUMNS))
             for name, kind in SCHEDULE_COLUMNS.items()}

@@ -21,8 +21,8 @@ from ..instrument import ROMAN_SCA_SIZE
 from ..measure.settings import MeasureOptions
 from ..stats.settings import CorrelateOptions
 
-#: where the public schedule lives beside a clone (tests and the presets use it when present)
-DEFAULT_SCHEDULE = os.path.join("..", "shared", "data", "roman", "Roman_WAS_obseq_11_1_23.fits")
+#: the public Roman WAS schedule shipped with perscli (perscli.scene.schedule.BUNDLED_SCHEDULE)
+DEFAULT_SCHEDULE = "roman-was"
 
 def _galactic_defaults() -> dict:
     """The Galactic star model's parameters with their defaults (written once, in the model's dataclass)."""
@@ -268,9 +268,10 @@ def load_study(path: str | None, *, preset: str | None = None, overrides=()) -> 
 
 
 def _resolve_paths(settings: dict, base: str, given: dict) -> None:
-    # paths written in the file are relative to the file; the default schedule is relative to the clone
+    # paths written in the file are relative to the file (the bundled schedule's name is not a path)
     exp = given.get("exposures", {}) or {}
-    if "schedule" in exp and not os.path.isabs(settings["exposures"]["schedule"]):
+    if "schedule" in exp and not os.path.isabs(settings["exposures"]["schedule"]) \
+            and settings["exposures"]["schedule"] != DEFAULT_SCHEDULE:
         settings["exposures"]["schedule"] = os.path.normpath(os.path.join(base, settings["exposures"]["schedule"]))
     models = (given.get("persistence", {}) or {}).get("models") or []
     settings["persistence"]["models"] = [
