@@ -10,8 +10,8 @@ from astropy.io import fits
 from fits_factory import invoke, one_line_error
 from perscli import PerscliError
 from perscli.cli.budget import BAND_NAMES
-from perscli.stats.budget import (BANDS, L_BANDS, LMAX, amplitudes, budget_at, compare, power_spectrum, read_xi,
-                                  xi_plus)
+from perscli.stats.budget import (BANDS, L_BANDS, LMAX, amplitudes, bin_verdicts, budget_at, compare,
+                                  power_spectrum, read_xi, xi_plus)
 
 ARCMIN = math.pi / 180 / 60
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -117,11 +117,38 @@ def test_unknown_bands_or_modes_in_the_library():
 def test_far_below_the_budget(tmp_path):
     path = xi_file(tmp_path / "xi.fits", THETA, BUDGET * 10 ** -1.8, BUDGET * 1e-3)
     result = compare(read_xi(path))
-    assert result.n_exceeding == 0
-    assert result.orders == pytest.approx(1.8, abs=1e-9)
-    assert result.verdict.startswith("below budget by 1.8 orders of magnitude at worst (theta = ")
+    assert result.n_exceeding == 0 and list(result.verdicts) == ["below"] * 12
+    # orders below at 2 sigma: log10(budget / (|xi+| + 2 sigma))
+    assert result.orders == pytest.approx(-np.log10(10 ** -1.8 + 2e-3), abs=1e-9)
+    assert result.verdict.startswith("below budget at 12 of 12 bins (|xi+| + 2 sigma), by 1.7 orders of magnitude "
+                                     "at worst (theta = ")
     np.testing.assert_allclose(result.ratio, 10 ** -1.8, rtol=1e-12)
     np.testing.assert_allclose(result.sigma_ratio, 1e-3, rtol=1e-12)
+
+
+def test_a_strongly_negative_xi_is_no_better_than_a_positive_one(tmp_path):
+    # |xi+| + 2 sigma decides: -0.6 budget with sigma 0.5 budget is 1.6 budgets at 2 sigma, not "below"
+    xip, sigma = BUDGET * 0.01, BUDGET * 1e-3
+    xip[3], sigma[3] = -0.6 * BUDGET[3], 0.5 * BUDGET[3]
+    xip[4], sigma[4] = -0.2 * BUDGET[4], 0.1 * BUDGET[4]
+    result = compare(read_xi(xi_file(tmp_path / "xi.fits", THETA, xip, sigma)))
+    assert result.verdicts[3] == "cannot tell" and result.verdicts[4] == "below"
+    assert f"cannot tell at {THETA[3]:.3g} arcmin" in result.verdict
+    assert result.verdict.startswith("below budget at 11 of 12 bins")
+    assert bin_verdicts([-3.0], [0.5], [1.0])[0] == "above"
+
+
+def test_separations_beyond_the_jackknife_patches_cannot_be_told(tmp_path):
+    path = tmp_path / "xi.fits"
+    xi_file(path, THETA, BUDGET * 0.01, BUDGET * 1e-3)
+    with fits.open(path, mode="update") as hdul:
+        hdul["XI"].header["VAR_METH"] = "jackknife"
+        hdul["XI"].header["PATCHSIZ"] = 10.0           # arcmin: patches 10' wide support separations up to 10'
+    result = compare(read_xi(str(path)))
+    beyond = THETA > 10.0
+    assert not result.supported[beyond].any() and result.supported[~beyond].all()
+    assert set(result.verdicts[beyond]) == {"cannot tell"} and set(result.verdicts[~beyond]) == {"below"}
+    assert f"{beyond.sum()} bins beyond the jackknife patches' width (10 arcmin): cannot tell there" in result.verdict
 
 
 def test_separation_units_and_meanr_fallback(tmp_path):
@@ -153,18 +180,19 @@ def test_cli_below_budget_writes_the_table_and_says_so(tmp_path):
     result = invoke("budget", xi, "-o", out, "--check")
     assert result.exit_code == 0, (result.output, result.stderr)
     assert result.stdout == ""
-    assert "below budget by 2.0 orders of magnitude at worst" in result.stderr
+    assert "below budget at 12 of 12 bins (|xi+| + 2 sigma), by 1.9 orders of magnitude at worst" in result.stderr
     with fits.open(out, checksum=True) as hdul:
         table, header = hdul["BUDGET"].data, hdul["BUDGET"].header
         assert table.columns.names == ["theta", "xip_budget", "xip", "sigma_xip", "ratio", "sigma_ratio",
-                                       "exceeds"]
+                                       "exceeds", "verdict", "supported"]
+        assert list(table["verdict"]) == ["below"] * 12 and table["supported"].all()
         assert table.columns["theta"].unit == "arcmin"
         np.testing.assert_allclose(table["xip_budget"], BUDGET, rtol=1e-12)
         np.testing.assert_allclose(table["ratio"], 0.01, rtol=1e-12)
         assert not table["exceeds"].any()
         assert header["BUDBANDS"] == "dore2018" and header["BUDMODES"] == "E" and header["BUDSIGMA"] == 2.0
         assert header["BUDNEXC"] == 0
-        assert header["VERDICT"].startswith("below budget by 2.0 orders")
+        assert header["VERDICT"].startswith("below budget at 12 of 12 bins") and header["BUDNBEL"] == 12
         assert header["CREATOR"].startswith("perscli ") and header["XI"] == "xi.fits" and "XIDS" in header
         assert any("budget bands=dore2018" in h for h in header["HISTORY"])
 
@@ -224,7 +252,7 @@ def test_verdict_says_when_errors_are_shot_noise(tmp_path):
         hdul["XI"].header["VAR_METH"] = "shot"
     result = invoke("budget", path, "-o", tmp_path / "cmp.fits")
     assert result.exit_code == 0, result.stderr
-    assert result.stderr.strip().endswith("over 12 bins; errors are shot noise (no jackknife)")
+    assert result.stderr.strip().endswith("at the median; errors are shot noise (no jackknife)")
     with fits.open(tmp_path / "cmp.fits") as hdul:
         header = hdul["BUDGET"].header
         assert header["BUDVARM"] == "shot"
@@ -250,7 +278,7 @@ def test_cli_above_but_within_errors_passes_check(tmp_path):
     xi = xi_file(tmp_path / "xi.fits", THETA, 1.5 * BUDGET, BUDGET)
     result = invoke("budget", xi, "-o", tmp_path / "cmp.fits", "--check")
     assert result.exit_code == 0, (result.output, result.stderr)
-    assert "within 2 sigma of the budget" in result.stderr
+    assert "cannot tell at any of 12 bins: |xi+| +- 2 sigma straddles the budget" in result.stderr
     # a tighter --sigma makes it a finding: 1.5 - 0.4 > 1
     tight = invoke("budget", xi, "-o", tmp_path / "cmp2.fits", "--check", "--sigma", "0.4")
     assert tight.exit_code == 3 and "+ 0.4 sigma" in tight.stderr
@@ -366,7 +394,7 @@ def test_real_pipe_stdin_to_stdout(tmp_path):
     run = subprocess.run([sys.executable, "-c", "from perscli.cli.budget import budget; budget()", "-", "-o", "-",
                           "--check"], input=open(xi, "rb").read(), capture_output=True, timeout=120)
     assert run.returncode == 0, run.stderr
-    assert run.stderr.decode().strip().startswith("stdin: below budget by 2.0 orders of magnitude")
+    assert run.stderr.decode().strip().startswith("stdin: below budget at 12 of 12 bins (|xi+| + 2 sigma), by 1.9")
     with fits.open(io.BytesIO(run.stdout)) as hdul:
         assert hdul["BUDGET"].header["XI"] == "stdin"
         np.testing.assert_allclose(hdul["BUDGET"].data["ratio"], 0.01, rtol=1e-12)

@@ -469,7 +469,7 @@ def pairs(work, pers_truth):
     sky0.write_text("effects: []\n")
     p["e1_bare"] = render(work / "e1_bare.fits", pers_truth, "--model", sky0, bounds=PERS, seed=1)
     ra2 = RA + 0.0012
-    every = ["--persistence-source", "all"]         # the earlier exposure's FLUENCE persists (default: stars)
+    every = ["--persistence-source", "all"]         # the earlier exposure's FLUENCE persists (default: drawn)
     simple = ["--set", "nonlinearity=off", "--set", "ipc=off", "--set", "quantize=off", "--set", "saturation=off",
               "--set", "gain.gain=2"]
     p["with"] = render(work / "e2_with.fits", pers_truth, "--previous", p["e1"], *every, *simple,
@@ -477,7 +477,7 @@ def pairs(work, pers_truth):
     p["off"] = render(work / "e2_off.fits", pers_truth, "--previous", p["e1"], *every, "--set", "persistence=off",
                       *simple, bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
     p["none"] = render(work / "e2_none.fits", pers_truth, *simple, bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
-    p["stars"] = render(work / "e2_stars.fits", pers_truth, "--previous", p["e1"], *simple,      # the default
+    p["drawn"] = render(work / "e2_drawn.fits", pers_truth, "--previous", p["e1"], *simple,      # the default
                         bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
     p["full_with"] = render(work / "e2_full_with.fits", pers_truth, "--previous", p["e1_bare"], *every,
                             bounds=PERS, mjd=MJD2, ra=ra2, seed=2)
@@ -561,19 +561,19 @@ def test_persistence_provenance(pairs):
     assert "previous=1" in " ".join(prim["HISTORY"])
     assert "PRV01" not in load(pairs["off"])["PRIMARY"][1]
     assert prim["PS_SRC"] == "all"
-    # the default source: the stars' light of the earlier exposure (its STARFLU) persists
-    stars = load(pairs["stars"])["PRIMARY"][1]
-    assert stars["PS_SRC"] == "stars" and stars["PRV01"] == "e1.fits"
+    # the default source: the light drawn on the earlier exposure (its DRAWN) persists
+    drawn = load(pairs["drawn"])["PRIMARY"][1]
+    assert drawn["PS_SRC"] == "drawn" and drawn["PRV01"] == "e1.fits"
     with fits.open(pairs["e1"]) as hdul:
-        assert stars["PRV01DS"] == hdul["STARFLU"].header["DATASUM"] != hdul["FLUENCE"].header["DATASUM"]
+        assert drawn["PRV01DS"] == hdul["DRAWN"].header["DATASUM"] != hdul["FLUENCE"].header["DATASUM"]
 
 
 # -- output structure -----------------------------------------------------------------------------
 
 def test_hdus_and_headers(pairs):
-    # the default HDUs: STARFLU among them (the default persistence source is the stars' light)
-    for name, ext in (("with", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL"]),
-                      ("none", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "STARFLU", "MODEL"])):
+    # the default HDUs: DRAWN among them (the default persistence source is the light drawn)
+    for name, ext in (("with", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "DRAWN", "PERSIST", "MODEL"]),
+                      ("none", ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "DRAWN", "MODEL"])):
         with fits.open(pairs[name]) as hdul:
             assert [h.name for h in hdul] == ext
             assert all(h.data.dtype == np.dtype(">f4") and h.data.shape == (128, 128) for h in hdul[1:-1])

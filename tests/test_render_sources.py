@@ -1,8 +1,8 @@
-"""perscli render: what persists (--persistence-source all|stars|ELECTRONS), the fluence cap at the
-full well, the stars' fluence (STARFLU), the choice of HDUs (--hdus), compressed history frames, frames
-without objects, and the Exposure of a schedule row.
+"""perscli render: what persists (--persistence-source drawn|stars|all|ELECTRONS), the fluence cap,
+the light drawn (DRAWN) and the stars' (STARFLU), the choice of HDUs (--hdus), compressed history frames,
+frames without objects, and the Exposure of a schedule row.
 
-One earlier exposure (the history, rendered once with FLUENCE and STARFLU) and a later one 30 s after it,
+One earlier exposure (the history, rendered once with FLUENCE, DRAWN and STARFLU) and a later one 30 s after it,
 dithered by ~3", rendered with and without persistence from it under each source.  Every PERSIST is
 checked against the paper's law by hand: F(x) times the integral of (t / 1000 s)^-1 over the later
 exposure, 1000 ln((gap + T) / gap).
@@ -105,10 +105,10 @@ def truth(work, optics):
 def hist(work, truth):
     """The earlier exposure rendered once with everything (full chain), once without saturation, once
     tile-compressed; and the later exposure without persistence (the reference)."""
-    every = "SCI,IDEAL,FLUENCE,STARFLU,MODEL"
+    every = "SCI,IDEAL,FLUENCE,DRAWN,STARFLU,MODEL"
     h = {}
     h["full"] = render(work / "h_full.fits", truth, "--hdus", every)
-    h["nosat"] = render(work / "h_nosat.fits", truth, "--set", "saturation=off", "--hdus", "FLUENCE,STARFLU")
+    h["nosat"] = render(work / "h_nosat.fits", truth, "--set", "saturation=off", "--hdus", "FLUENCE,DRAWN,STARFLU")
     h["gz"] = render(work / "h_gz.fits", truth, "--hdus", every, "--compress", "gzip")
     h["ref"] = later(work, truth, "ref.fits")
     return h
@@ -118,7 +118,7 @@ def hist(work, truth):
 
 def test_starflu_is_the_light_of_the_stars_alone(work, truth, optics, hist):
     h = images(hist["full"])
-    assert h["names"] == ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "STARFLU", "MODEL"]
+    assert h["names"] == ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "DRAWN", "STARFLU", "MODEL"]
     stars_only = write_catalog(work / "stars_only.fits", optics, [o for o in OBJECTS if o[0] == "star"])
     bare = work / "bare.yaml"
     bare.write_text("effects: []\n")
@@ -135,14 +135,27 @@ def test_starflu_is_the_light_of_the_stars_alone(work, truth, optics, hist):
     assert "stars" in hdr["CONTENT"] and h["headers"]["FLUENCE"]["SATWELL"] == WELL
 
 
-def test_starflu_by_default_and_workers_give_the_same_bytes(work, truth):
-    a = render(work / "w1.fits", truth, "--hdus", "SCI,FLUENCE,STARFLU")
-    b = render(work / "w2.fits", truth, "--hdus", "SCI,FLUENCE,STARFLU", "--workers", 2)
-    c = render(work / "w3.fits", truth, "--hdus", "SCI,FLUENCE,STARFLU")
+def test_drawn_is_the_light_of_every_object(hist):
+    h = images(hist["full"])
+    # every object's expected electrons: IDEAL without its sky, not clipped at the well
+    sky = h["headers"]["PRIMARY"]["SKYRATE"] * T
+    np.testing.assert_allclose(h["DRAWN"], h["IDEAL"] - sky, rtol=1e-6, atol=1e-3)
+    assert h["DRAWN"].max() > 3 * WELL and h["DRAWN"].min() >= 0
+    gx, gy = OBJECTS[1][1] - BOUNDS[0], OBJECTS[1][2] - BOUNDS[2]
+    core = (slice(int(gy) - 1, int(gy) + 2), slice(int(gx) - 1, int(gx) + 2))
+    assert h["DRAWN"][core].max() > 5e4 > 100 > h["STARFLU"][core].max()
+    assert "every object" in h["headers"]["DRAWN"]["CONTENT"]
+
+
+def test_drawn_by_default_and_workers_give_the_same_bytes(work, truth):
+    a = render(work / "w1.fits", truth, "--hdus", "SCI,FLUENCE,DRAWN,STARFLU")
+    b = render(work / "w2.fits", truth, "--hdus", "SCI,FLUENCE,DRAWN,STARFLU", "--workers", 2)
+    c = render(work / "w3.fits", truth, "--hdus", "SCI,FLUENCE,DRAWN,STARFLU")
     assert raw_cards_masked(a) == raw_cards_masked(b) == raw_cards_masked(c)
-    # the default persistence source is the stars' light: a frame made with the default HDUs is a history
-    assert "STARFLU" in images(render(work / "w4.fits", truth))["names"]
-    assert "STARFLU" not in images(render(work / "w5.fits", truth, "--hdus", "SCI,FLUENCE"))["names"]
+    # the default persistence source is the light drawn: a frame made with the default HDUs is a history
+    names = images(render(work / "w4.fits", truth))["names"]
+    assert "DRAWN" in names and "STARFLU" not in names
+    assert "DRAWN" not in images(render(work / "w5.fits", truth, "--hdus", "SCI,FLUENCE"))["names"]
 
 
 # -- what persists --------------------------------------------------------------------------------
@@ -151,9 +164,10 @@ def test_starflu_by_default_and_workers_give_the_same_bytes(work, truth):
 def persisted(work, truth, hist):
     p = {}
     p["all"] = later(work, truth, "all.fits", "--previous", hist["full"], "--persistence-source", "all")
-    p["stars"] = later(work, truth, "stars.fits", "--previous", hist["full"])
-    p["stars_flag"] = later(work, truth, "stars_flag.fits", "--previous", hist["full"], "--persistence-source",
-                            "stars")
+    p["drawn"] = later(work, truth, "drawn.fits", "--previous", hist["full"])
+    p["drawn_flag"] = later(work, truth, "drawn_flag.fits", "--previous", hist["full"], "--persistence-source",
+                            "drawn")
+    p["stars"] = later(work, truth, "stars.fits", "--previous", hist["full"], "--persistence-source", "stars")
     p["thr"] = later(work, truth, "thr.fits", "--previous", hist["full"], "--persistence-source", "5e4")
     p["stars_set"] = later(work, truth, "stars_set.fits", "--previous", hist["full"],
                            "--set", "persistence.source=stars")
@@ -164,21 +178,35 @@ def test_source_all_is_every_photon(hist, persisted):
     h, a = images(hist["full"]), images(persisted["all"])
     np.testing.assert_allclose(a["PERSIST"], law(h["FLUENCE"]), rtol=1e-5, atol=1e-6)
     assert a["PERSIST"].min() > 0                       # the earlier exposure's sky persists everywhere
-    # 'stars' is the default (render and study alike)
-    assert raw_cards_masked(persisted["stars"]) == raw_cards_masked(persisted["stars_flag"])
+    # 'drawn' is the default (render and study alike)
+    assert raw_cards_masked(persisted["drawn"]) == raw_cards_masked(persisted["drawn_flag"])
 
 
-def test_source_stars_is_the_light_of_stars_capped_at_the_well(hist, persisted):
+def test_source_drawn_is_the_light_of_every_object_uncapped(hist, persisted):
+    h, d = images(hist["full"]), images(persisted["drawn"])
+    np.testing.assert_allclose(d["PERSIST"], law(h["DRAWN"]), rtol=1e-5, atol=1e-6)
+    a = images(persisted["all"])
+    # no sky persists (the drawn light has none): far from the objects, nothing; the galaxy's light does
+    gx, gy = OBJECTS[1][1] - BOUNDS[0], OBJECTS[1][2] - BOUNDS[2]
+    core = (slice(int(gy) - 1, int(gy) + 2), slice(int(gx) - 1, int(gx) + 2))
+    sky = law(h["headers"]["PRIMARY"]["SKYRATE"] * T)
+    assert d["PERSIST"][core].max() > 10 and np.median(d["PERSIST"]) < np.median(a["PERSIST"]) - 0.5 * sky
+    # the saturated core of the star leaves more than the well would (no cap by default, as GalSim)
+    sx, sy = int(round(OBJECTS[0][1] - BOUNDS[0])), int(round(OBJECTS[0][2] - BOUNDS[2]))
+    assert d["PERSIST"][sy, sx] > a["PERSIST"][sy, sx] * (1 + 1e-4)
+
+
+def test_source_stars_is_the_light_of_stars(hist, persisted):
     h, s = images(hist["full"]), images(persisted["stars"])
-    np.testing.assert_allclose(s["PERSIST"], law(np.minimum(h["STARFLU"], WELL)), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(s["PERSIST"], law(h["STARFLU"]), rtol=1e-5, atol=1e-6)
     a = images(persisted["all"])
     # no sky and no galaxy light persists: the bright galaxy's core leaves next to nothing
     gx, gy = OBJECTS[1][1] - BOUNDS[0], OBJECTS[1][2] - BOUNDS[2]
     core = (slice(int(gy) - 1, int(gy) + 2), slice(int(gx) - 1, int(gx) + 2))
     assert a["PERSIST"][core].max() > 10 and s["PERSIST"][core].max() < 0.5
-    # the saturated core of the star leaves the same in both (capped at the well)
+    # the star's uncapped core leaves more than the collected (saturated) charge of source all
     sx, sy = int(round(OBJECTS[0][1] - BOUNDS[0])), int(round(OBJECTS[0][2] - BOUNDS[2]))
-    assert s["PERSIST"][sy, sx] == pytest.approx(a["PERSIST"][sy, sx], rel=1e-5)
+    assert s["PERSIST"][sy, sx] > a["PERSIST"][sy, sx]
     # --set persistence.source=stars is the same model
     np.testing.assert_array_equal(images(persisted["stars_set"])["SCI"], s["SCI"])
 
@@ -191,7 +219,7 @@ def test_source_threshold_keeps_only_pixels_above_it(hist, persisted):
     assert np.all(t["PERSIST"][~above] == 0)
 
 
-@pytest.mark.parametrize("source", ["all", "stars", "thr"])
+@pytest.mark.parametrize("source", ["all", "drawn", "stars", "thr"])
 def test_paired_frames_share_their_noise(hist, persisted, source):
     """With and without persistence, same seed: SCI differs only by the persistence through nonlinearity
     and IPC, rounded; FLUENCE by PERSIST; IDEAL not at all."""
@@ -213,16 +241,18 @@ def test_paired_frames_share_their_noise(hist, persisted, source):
 
 
 def test_source_is_recorded(persisted):
-    for name, src, thr in (("all", "all", None), ("stars", "stars", None), ("thr", "threshold", 5e4)):
+    for name, src, thr in (("all", "all", None), ("drawn", "drawn", None), ("stars", "stars", None),
+                           ("thr", "threshold", 5e4)):
         f = images(persisted[name])
         for ext in ("PRIMARY", "PERSIST"):
             hdr = f["headers"][ext]
-            assert hdr["PS_SRC"] == src and hdr["PS_CAP"] == WELL
+            assert hdr["PS_SRC"] == src and hdr["PS_CAP"] == "none"
             assert hdr.get("PS_THR") == thr
         with fits.open(persisted[name]) as hdul:
             rows = {(r["EFFECT"], r["PARAM"]): r["VALUE"] for r in hdul["MODEL"].data}
-        assert rows[("persistence", "source")] == {"all": '"all"', "stars": '"stars"', "thr": "50000.0"}[name]
-        assert rows[("persistence", "fluence_cap")] == '"well"'
+        assert rows[("persistence", "source")] == {"all": '"all"', "drawn": '"drawn"', "stars": '"stars"',
+                                                   "thr": "50000.0"}[name]
+        assert rows[("persistence", "fluence_cap")] == '"none"'
     assert "PS_SRC" not in images(persisted["all"])["headers"]["SCI"]
 
 
@@ -245,7 +275,7 @@ def test_library_render_file_with_a_source(work, truth, hist, persisted):
                           model=model, seed=2, previous=[hist["full"]], overwrite=True)
     assert model.describe() == before                                  # the caller's model is not changed
     assert summary["hdus"] == ("SCI", "PERSIST") and summary["persistence_source"] == "stars"
-    assert summary["fluence_cap"] == WELL and summary["objects"] == 4
+    assert summary["fluence_cap"] is None and summary["objects"] == 4
     np.testing.assert_array_equal(images(out)["PERSIST"], images(persisted["stars"])["PERSIST"])
     thr = render_file(truth, exposure, str(work / "lib_thr.fits"), RenderOptions(persistence_source=5e4,
                       hdus="SCI,PERSIST"), model=model, seed=2, previous=[hist["full"]], overwrite=True)
@@ -264,10 +294,11 @@ def test_bad_source_is_one_line(work, truth, hist, value, needle):
 
 def test_fluence_above_the_well_persists_as_the_well(work, truth, hist):
     h = images(hist["nosat"])
-    assert h["names"] == ["PRIMARY", "FLUENCE", "STARFLU"]
+    assert h["names"] == ["PRIMARY", "FLUENCE", "DRAWN", "STARFLU"]
     assert h["FLUENCE"].max() > 3 * WELL                             # no saturation in the earlier frame
     every = ("--persistence-source", "all")                         # the FLUENCE persists (not the default)
-    capped = images(later(work, truth, "cap_well.fits", "--previous", hist["nosat"], *every))
+    capped = images(later(work, truth, "cap_well.fits", "--previous", hist["nosat"], *every,
+                          "--set", "persistence.fluence_cap=well"))
     np.testing.assert_allclose(capped["PERSIST"], law(np.minimum(h["FLUENCE"], WELL)), rtol=1e-5, atol=1e-6)
     none = images(later(work, truth, "cap_none.fits", "--previous", hist["nosat"], *every,
                         "--set", "persistence.fluence_cap=none"))
@@ -280,28 +311,31 @@ def test_fluence_above_the_well_persists_as_the_well(work, truth, hist):
                         "--set", "persistence.fluence_cap=none"))["headers"]["PERSIST"]["PS_CAP"] == "none"
     # a model without a well has nothing to clip at: 'well' then means no cap
     nosat = images(later(work, truth, "cap_nosat.fits", "--previous", hist["nosat"], *every,
-                         "--set", "saturation=off"))
+                         "--set", "saturation=off", "--set", "persistence.fluence_cap=well"))
     np.testing.assert_allclose(nosat["PERSIST"], law(h["FLUENCE"]), rtol=1e-5, atol=1e-6)
     assert nosat["headers"]["PRIMARY"]["PS_CAP"] == "none"
 
 
-def test_stars_beyond_the_well_persist_uncapped_with_cap_none(work, truth, hist):
+def test_stars_beyond_the_well_persist_as_the_well_with_cap_well(work, truth, hist):
     h = images(hist["full"])
-    none = images(later(work, truth, "stars_none.fits", "--previous", hist["full"], "--persistence-source", "stars",
-                        "--set", "persistence.fluence_cap=none"))
-    np.testing.assert_allclose(none["PERSIST"], law(h["STARFLU"]), rtol=1e-5, atol=1e-6)
+    well = images(later(work, truth, "stars_well.fits", "--previous", hist["full"], "--persistence-source", "stars",
+                        "--set", "persistence.fluence_cap=well"))
+    np.testing.assert_allclose(well["PERSIST"], law(np.minimum(h["STARFLU"], WELL)), rtol=1e-5, atol=1e-6)
 
 
 def test_fluence_input_of_a_model():
     from perscli.detector.effects import Persistence
     from perscli.detector.model import load_detector_model
 
-    # the default source is the stars' light (STARFLU), render and study alike
-    assert Persistence.fluence_input(load_detector_model("roman")) == ("stars", None, WELL)
+    # the default source is the light drawn (DRAWN), uncapped, render and study alike
+    assert Persistence.fluence_input(load_detector_model("roman")) == ("drawn", None, None)
     assert Persistence.fluence_input(load_detector_model("roman", ["saturation.full_well=8e4",
-                                                                   "persistence.source=all"])) == \
+                                                                   "persistence.source=all",
+                                                                   "persistence.fluence_cap=well"])) == \
         ("all", None, 8e4)
-    assert Persistence.fluence_input(load_detector_model("roman", ["saturation=off"])) == ("stars", None, None)
+    assert Persistence.fluence_input(load_detector_model("roman", ["saturation=off",
+                                                                   "persistence.fluence_cap=well"])) == \
+        ("drawn", None, None)
     assert Persistence.fluence_input(load_detector_model("roman", ["saturation=off", "persistence.source=all"])) == \
         ("all", None, None)
     assert Persistence.fluence_input(load_detector_model("roman", ["persistence.source=1000",
@@ -332,33 +366,32 @@ def test_a_frame_without_fluence_is_refused_as_previous(work, truth, hist):
     lines = result.stderr.splitlines()
     assert len(lines) == 1 and "sci_only.fits: no FLUENCE extension" in lines[0] and "FLUENCE in --hdus" in lines[0]
     assert listing(work) == before
-    # the STARFLU case: the default source (stars), with both ways out
+    # the DRAWN case: the default source (drawn), with its ways out
     result = later(work, truth, "refused.fits", "--previous", sci_only, expect=1)
     lines = result.stderr.splitlines()
-    assert len(lines) == 1 and "sci_only.fits: no STARFLU extension" in lines[0]
-    assert "STARFLU in --hdus" in lines[0] and "or use --persistence-source all" in lines[0]
+    assert len(lines) == 1 and "sci_only.fits: no DRAWN extension" in lines[0]
+    assert "DRAWN in --hdus" in lines[0] and "--persistence-source" in lines[0]
     assert listing(work) == before
     no_stars = render(work / "no_stars.fits", truth, "--hdus", "FLUENCE")
     before = listing(work)
-    for flag in ((), ("--persistence-source", "stars")):
-        result = later(work, truth, "refused.fits", "--previous", no_stars, *flag, expect=1)
-        lines = result.stderr.splitlines()
-        assert len(lines) == 1 and "no_stars.fits: no STARFLU extension" in lines[0], flag
-        assert "STARFLU in --hdus" in lines[0] and "or use --persistence-source all" in lines[0], flag
+    result = later(work, truth, "refused.fits", "--previous", no_stars, "--persistence-source", "stars", expect=1)
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and "no_stars.fits: no STARFLU extension" in lines[0]
+    assert "STARFLU in --hdus" in lines[0] and "or use --persistence-source drawn" in lines[0]
     # an explicit HDU must be the one that persists
     result = later(work, truth, "refused.fits", "--previous", hist["full"] + "[SCI]", "--persistence-source", "all",
                    expect=1)
     assert "FLUENCE" in result.stderr and len(result.stderr.splitlines()) == 1
     result = later(work, truth, "refused.fits", "--previous", hist["full"] + "[FLUENCE]", expect=1)
-    assert "comes from its STARFLU" in result.stderr and len(result.stderr.splitlines()) == 1
+    assert "comes from its DRAWN" in result.stderr and len(result.stderr.splitlines()) == 1
     assert listing(work) == before
-    # the way out works: a frame without STARFLU is a history under --persistence-source all
+    # the way out works: a frame without DRAWN or STARFLU is a history under --persistence-source all
     later(work, truth, "way_out.fits", "--previous", no_stars, "--persistence-source", "all")
 
 
 def test_history_without_sci_and_explicit_extension(work, truth, hist, persisted):
     # FLUENCE and STARFLU only (no SCI): still an earlier exposure, for either source
-    light = render(work / "light.fits", truth, "--hdus", "FLUENCE,STARFLU")
+    light = render(work / "light.fits", truth, "--hdus", "FLUENCE,STARFLU,DRAWN")
     a = images(later(work, truth, "light_all.fits", "--previous", light, "--persistence-source", "all"))
     np.testing.assert_array_equal(a["PERSIST"], images(persisted["all"])["PERSIST"])
     s = images(later(work, truth, "light_stars.fits", "--previous", light, "--persistence-source", "stars"))
@@ -366,9 +399,12 @@ def test_history_without_sci_and_explicit_extension(work, truth, hist, persisted
     e = images(later(work, truth, "explicit.fits", "--previous", hist["full"] + "[FLUENCE]",
                      "--persistence-source", "all"))
     np.testing.assert_array_equal(e["PERSIST"], images(persisted["all"])["PERSIST"])
-    # under the default source (stars), the explicit extension is STARFLU
-    es = images(later(work, truth, "explicit_stars.fits", "--previous", hist["full"] + "[STARFLU]"))
+    # under source stars, the explicit extension is STARFLU; under the default, DRAWN
+    es = images(later(work, truth, "explicit_stars.fits", "--previous", hist["full"] + "[STARFLU]",
+                      "--persistence-source", "stars"))
     np.testing.assert_array_equal(es["PERSIST"], images(persisted["stars"])["PERSIST"])
+    ed = images(later(work, truth, "explicit_drawn.fits", "--previous", hist["full"] + "[DRAWN]"))
+    np.testing.assert_array_equal(ed["PERSIST"], images(persisted["drawn"])["PERSIST"])
     prim = a["headers"]["PRIMARY"]
     assert prim["PRV01"] == "light.fits"
     with fits.open(light) as hdul:
@@ -381,13 +417,13 @@ def test_history_without_sci_and_explicit_extension(work, truth, hist, persisted
 
 def test_compressed_history_serves_every_source(work, truth, hist, persisted):
     with fits.open(hist["gz"]) as hdul:
-        assert [h.name for h in hdul] == ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "STARFLU", "MODEL"]
+        assert [h.name for h in hdul] == ["PRIMARY", "SCI", "IDEAL", "FLUENCE", "DRAWN", "STARFLU", "MODEL"]
         assert isinstance(hdul["STARFLU"], fits.CompImageHDU)
         with fits.open(hist["full"]) as plain:
-            for name in ("SCI", "IDEAL", "FLUENCE", "STARFLU"):
+            for name in ("SCI", "IDEAL", "FLUENCE", "DRAWN", "STARFLU"):
                 np.testing.assert_array_equal(hdul[name].data, plain[name].data)
     assert os.path.getsize(hist["gz"]) < os.path.getsize(hist["full"])
-    for source, name in (("all", "all"), ("stars", "stars"), ("5e4", "thr")):
+    for source, name in (("all", "all"), ("drawn", "drawn"), ("stars", "stars"), ("5e4", "thr")):
         f = images(later(work, truth, f"gz_{name}.fits", "--previous", hist["gz"], "--persistence-source", source,
                          "--compress", "gzip"))
         np.testing.assert_array_equal(f["PERSIST"], images(persisted[name])["PERSIST"])

@@ -78,24 +78,26 @@ def test_differential_plan_renders_each_final_once_for_every_variant(joint):
     keys = [t.key for t in tasks]
     assert len(keys) == len(set(keys))
     finals = [t for t in tasks if t.kind == "final"]
-    # fitted per exposure, consecutive finals of an SCA go together (measure.chunk, 8 by default)
-    assert len(finals) == (3 if joint else 1)
-    each = [t.params for t in finals] if joint else finals[0].params["finals"]
+    # consecutive finals of an SCA go together (measure.chunk, 32 by default): their earlier exposures are
+    # drawn once
+    assert len(finals) == 1
+    each = finals[0].params["finals"]
     assert len(each) == 3 and all(len(f["history"]) == 2 for f in each)
-    # earlier exposures are drawn inside each final (their stars alone): no frame of theirs is rendered or kept
+    assert len({f["seed"] for f in each}) == 3
+    # earlier exposures are drawn inside each final (the light drawn on them): no frame of theirs is rendered
     assert not any(t.kind == "render" for t in tasks)
     for t in finals:
-        assert set(t.params["variants"]) == {"stars-typical", "stars-pessimistic"}   # one render for all
+        assert set(t.params["variants"]) == {"drawn-typical", "drawn-pessimistic"}   # one render for all
         assert ("regions" if joint else "catalog") in t.deps
         assert all(dep in keys[:keys.index(t.key)] for dep in t.deps)
         assert t.output.startswith("frames/" if joint else "shapes/")
     assert [t.kind for t in tasks].count("changes") == (2 if joint else 0)          # measure.parts
     corr = [t for t in tasks if t.kind == "correlate"]
     assert all(len(t.params["tables"]) == (2 if joint else 1) for t in corr)   # parts or chunks pooled
-    if not joint:
-        chunked = build(load_study(None, preset="ci", overrides=CI + ["exposures.count=3", "exposures.history=2",
-                                                                      "measure.joint=false", "measure.chunk=2"]))
-        assert [len(t.params["finals"]) for t in chunked if t.kind == "final"] == [2, 1]
+    chunked = build(load_study(None, preset="ci", overrides=CI + ["exposures.count=3", "exposures.history=2",
+                                                                  f"measure.joint={str(joint).lower()}",
+                                                                  "measure.chunk=2"]))
+    assert [len(t.params["finals"]) for t in chunked if t.kind == "final"] == [2, 1]
 
 
 def test_realisations_repeat_the_study_with_their_own_seeds():
@@ -104,8 +106,8 @@ def test_realisations_repeat_the_study_with_their_own_seeds():
     cats = [t for t in tasks if t.kind == "catalog"]
     assert [t.output for t in cats] == ["r0005/truth.fits", "r0006/truth.fits", "r0007/truth.fits"]
     assert [t.params["seed"] for t in cats] == [5, 6, 7]
-    finals = [t for t in tasks if t.kind == "final"]
-    assert len({t.params["seed"] for t in finals}) == len(finals)
+    seeds = [f["seed"] for t in tasks if t.kind == "final" for f in t.params["finals"]]
+    assert len(set(seeds)) == len(seeds)
     summary = tasks[-1]
     assert summary.kind == "summary" and [r["seed"] for r in summary.params["realisations"]] == [5, 6, 7]
     with pytest.raises(PerscliError, match="realisations"):
@@ -239,18 +241,19 @@ def full_study(tmp_path_factory):
 def test_ci_study_makes_every_product(serial_study):
     out = serial_study
     summary = json.loads((out / "summary.json").read_text())
-    assert [r["variant"] for r in summary["results"]] == ["stars-typical"]
+    assert [r["variant"] for r in summary["results"]] == ["drawn-typical"]
     res = summary["results"][0]
     assert res["n"] > 0 and "frac_ge" in res and "frac_dabs_ge" in res and res["catalogue"] >= res["sample"]
     assert summary["differential"] is True
     for rel in ["truth.fits", "pointings.fits", "regions.fits", "shapes/part1of2.fits", "shapes/part2of2.fits",
-                "xi/stars-typical.fits", "budget/stars-typical.fits", "summary.md",
-                "frames/sca01/e000003_final.fits",
+                "xi/drawn-typical.fits", "budget/drawn-typical.fits", "summary.md",
+                "frames/sca01/c000003/e000003_final.fits", "frames/sca01/c000003/e000004_final.fits",
                 "figures/ghosts_by_magnitude.png", "figures/galaxy_beside_ghost.png", "cost.json"]:
         assert (out / rel).exists(), rel
     assert not list((out / "frames").glob("*/*_stars.fits")) and not list((out / "frames").glob("*/*_ref.fits"))
     cost = json.loads((out / "cost.json").read_text())
-    assert cost["final"]["tasks"] == 2 and cost["changes"]["tasks"] == 2 and cost["regions"]["tasks"] == 1
+    # the two finals of SCA 1 in one task (measure.chunk): their earlier exposures drawn once
+    assert cost["final"]["tasks"] == 1 and cost["changes"]["tasks"] == 2 and cost["regions"]["tasks"] == 1
     assert cost["final"]["bytes"] > 0
     # a rerun makes nothing
     result = run("study", "--preset", "ci", "-o", out, "--scheduler", "serial", *sum([["--set", c] for c in CI], []))
@@ -260,7 +263,7 @@ def test_ci_study_makes_every_product(serial_study):
 @pytest.mark.slow
 def test_full_ci_study_makes_every_product(full_study):
     out = full_study
-    for rel in ["shapes/ref.fits", "shapes/stars-typical.fits", "xi/stars-typical.fits", "summary.md"]:
+    for rel in ["shapes/ref.fits", "shapes/drawn-typical.fits", "xi/drawn-typical.fits", "summary.md"]:
         assert (out / rel).exists(), rel
     cost = json.loads((out / "cost.json").read_text())
     assert cost["render_ref_final"]["tasks"] == 2 and cost["render_ref_history"]["tasks"] == 3
@@ -316,7 +319,7 @@ def test_the_makefile_of_single_commands_agrees_with_the_study(full_study, tmp_p
                             capture_output=True, text=True)
     assert result.returncode == 0, result.stderr[-2000:]
     made = [os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs if f.endswith(".fits")]
-    assert len(made) >= 12 and "xi/stars-typical.fits" in made and "shapes/ref.fits" in made
+    assert len(made) >= 12 and "xi/drawn-typical.fits" in made and "shapes/ref.fits" in made
     for rel in made:
         assert _fits_data(out / rel) == _fits_data(full_study / rel), rel
 
@@ -330,7 +333,7 @@ def test_persistence_models_by_name_or_file_are_checked_before_anything_runs(tmp
     assert s["persistence"]["models"][1] == str(model)
     tasks = build(s)
     finals = [t for t in tasks if t.kind == "final"]
-    assert finals and "persistence.A=0.03" in finals[0].params["variants"]["stars-strong"]
+    assert finals and "persistence.A=0.03" in finals[0].params["variants"]["drawn-strong"]
     with pytest.raises(PerscliError, match="unknown persistence model 'nomodel'"):
         load_study(None, preset="ci", overrides=["persistence.models=[nomodel]"])
     with pytest.raises(PerscliError, match="read_noise"):

@@ -592,6 +592,241 @@ done:
     return result;
 }
 
+
+/* expmix_batch(spec, work, transfers, k, L, M, nfield, params, phase_x, phase_y, resid, hess, wcol): expmix_eval
+ * for S stamps of one size at once (one galaxy on S frames, each with its own PSF transfer).
+ *   spec:      complex, S x nfield x L x (L/2 + 1), out
+ *   work:      doubles, 2 (nfield + 1) L (L/2 + 1), scratch
+ *   transfers: sequence of S pairs (tr_re, tr_im), each (L M)^2 doubles
+ *   params:    S rows of 17 doubles: Cxx, Cxy, Cyy, flux, dpos (4, row-major), dshape (9, row-major)
+ *   phase_x, phase_y: complex, S x (L M)
+ *   resid:     None, or complex S x L x (L/2 + 1) (the weighted residuals' rfft2): then hess (S x 21 doubles)
+ *              receives each stamp's Hessian sums (summed over columns), as expmix_eval's caller sums them */
+static PyObject *
+expmix_batch(PyObject *self, PyObject *args)
+{
+    Py_buffer sb, ob, kb, pb, pxb, pyb, wb, mpb, mfb;
+    PyObject *transfers, *robj, *hobj;
+    int L, M, nfield;
+    if (!PyArg_ParseTuple(args, "w*w*Oy*iiiy*y*y*OOy*y*y*", &sb, &ob, &transfers, &kb, &L, &M, &nfield, &pb, &pxb,
+                          &pyb, &robj, &hobj, &wb, &mpb, &mfb))
+        return NULL;
+    PyObject *result = NULL, *seq = NULL;
+    Py_buffer rb = {0}, hb = {0};
+    int have_r = 0;
+    Py_buffer *trs = NULL;
+    Py_ssize_t ntr = 0;
+    const Py_ssize_t big = (Py_ssize_t)L * M, half = L / 2 + 1, plane = (Py_ssize_t)L * half;
+    const Py_ssize_t S = pb.len / (Py_ssize_t)(17 * sizeof(double));
+    if (robj != Py_None) {
+        if (PyObject_GetBuffer(robj, &rb, PyBUF_C_CONTIGUOUS) < 0) goto release;
+        if (PyObject_GetBuffer(hobj, &hb, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE) < 0) { PyBuffer_Release(&rb); goto release; }
+        have_r = 1;
+    }
+    seq = PySequence_Fast(transfers, "expmix_batch: transfers must be a sequence of (tr_re, tr_im) pairs");
+    if (!seq) goto release;
+    if (PySequence_Fast_GET_SIZE(seq) != S) {
+        PyErr_SetString(PyExc_ValueError, "expmix_batch: one transfer pair per stamp");
+        goto release;
+    }
+    trs = PyMem_Calloc(2 * (size_t)(S ? S : 1), sizeof(Py_buffer));
+    if (!trs) { PyErr_NoMemory(); goto release; }
+    for (Py_ssize_t i = 0; i < S; i++) {
+        PyObject *pair = PySequence_Fast_GET_ITEM(seq, i);
+        PyObject *re, *im;
+        if (!PyArg_ParseTuple(pair, "OO", &re, &im)) goto release;
+        if (PyObject_GetBuffer(re, &trs[2 * i], PyBUF_C_CONTIGUOUS) < 0) goto release;
+        ntr = 2 * i + 1;
+        if (PyObject_GetBuffer(im, &trs[2 * i + 1], PyBUF_C_CONTIGUOUS) < 0) goto release;
+        ntr = 2 * i + 2;
+        if (trs[2 * i].len != (Py_ssize_t)sizeof(double) * big * big || trs[2 * i + 1].len != trs[2 * i].len) {
+            PyErr_SetString(PyExc_ValueError, "expmix_batch: a transfer table's size does not match L and the alias");
+            goto release;
+        }
+    }
+    if ((nfield != 1 && nfield != 7) || L < 2 || L % 2 || M < 1 || pb.len != S * 17 * (Py_ssize_t)sizeof(double) ||
+        kb.len != (Py_ssize_t)sizeof(double) * big ||
+        pxb.len != (Py_ssize_t)sizeof(double) * 2 * big * S || pyb.len != pxb.len ||
+        sb.len != (Py_ssize_t)sizeof(double) * 2 * nfield * plane * S ||
+        ob.len < (Py_ssize_t)sizeof(double) * 2 * (nfield + 1) * plane ||
+        wb.len != (Py_ssize_t)sizeof(double) * half ||
+        mpb.len != (Py_ssize_t)sizeof(double) * NCOMP || mfb.len != mpb.len ||
+        (have_r && (nfield != 7 || rb.len != (Py_ssize_t)sizeof(double) * 2 * plane * S ||
+                    hb.len != (Py_ssize_t)sizeof(double) * NHESS * S))) {
+        PyErr_SetString(PyExc_ValueError, "expmix_batch: buffer sizes do not match L, alias, stamps and fields");
+        goto release;
+    }
+    {
+        const double *k = (const double *)kb.buf, *par = (const double *)pb.buf, *wcol = (const double *)wb.buf;
+        const double *P_EXP_C = (const double *)mpb.buf, *F_EXP_C = (const double *)mfb.buf;
+        const double *pxall = (const double *)pxb.buf, *pyall = (const double *)pyb.buf;
+        const double *rall = have_r ? (const double *)rb.buf : NULL;
+        double *hall = have_r ? (double *)hb.buf : NULL;
+        double *out = (double *)ob.buf, *specall = (double *)sb.buf;
+        double *hrow = NULL;
+        if (have_r) {
+            hrow = PyMem_Malloc(sizeof(double) * NHESS * half);
+            if (!hrow) { PyErr_NoMemory(); goto release; }
+        }
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t st = 0; st < S; st++) {
+            const double *p = par + 17 * st;
+            const double *trr = (const double *)trs[2 * st].buf, *tri = (const double *)trs[2 * st + 1].buf;
+            const double *px = pxall + 2 * big * st, *py = pyall + 2 * big * st;
+            double *vr = have_r ? out + 2 * nfield * plane : NULL, *vi = have_r ? out + (2 * nfield + 1) * plane : NULL;
+            memset(out, 0, sizeof(double) * 2 * nfield * plane);
+            if (have_r) {
+                const double *v = rall + 2 * plane * st;
+                for (Py_ssize_t i = 0; i < plane; i++) {
+                    vr[i] = v[2 * i];
+                    vi[i] = v[2 * i + 1];
+                }
+                memset(hrow, 0, sizeof(double) * NHESS * half);
+            }
+            for (Py_ssize_t cy = 0; cy < big; cy++) {
+                const Py_ssize_t row = cy % L;
+                for (Py_ssize_t cx0 = 0; cx0 < big; cx0 += L) {
+                    const double *kxs = k + cx0, *rr = trr + cy * big + cx0, *ri = tri + cy * big + cx0;
+                    const double *pxs = px + 2 * cx0, ky = k[cy], pyr = py[2 * cy], pyi = py[2 * cy + 1];
+                    double *o = out + row * half;
+                    if (have_r)
+                        expmix_row_hess(half, plane, kxs, rr, ri, pxs, ky, pyr, pyi, P_EXP_C, F_EXP_C, p[0], p[1],
+                                        p[2], p[3], p + 4, p + 8, vr + row * half, vi + row * half, wcol, o, hrow);
+                    else if (nfield == 7)
+                        expmix_row_jac(half, plane, kxs, rr, ri, pxs, ky, pyr, pyi, P_EXP_C, F_EXP_C, p[0], p[1],
+                                       p[2], p[3], p + 4, p + 8, NULL, NULL, wcol, o, NULL);
+                    else
+                        expmix_row_model(half, plane, kxs, rr, ri, pxs, ky, pyr, pyi, P_EXP_C, F_EXP_C, p[0], p[1],
+                                         p[2], p[3], p + 4, p + 8, NULL, NULL, wcol, o, NULL);
+                }
+            }
+            double *spec = specall + 2 * nfield * plane * st;
+            for (int fld = 0; fld < nfield; fld++) {
+                const double *re = out + 2 * fld * plane, *im = out + (2 * fld + 1) * plane;
+                double *dst = spec + 2 * fld * plane;
+                for (Py_ssize_t i = 0; i < plane; i++) {
+                    dst[2 * i] = re[i];
+                    dst[2 * i + 1] = im[i];
+                }
+            }
+            if (have_r) {
+                double *h = hall + NHESS * st;
+                for (int q = 0; q < NHESS; q++) {
+                    double acc = 0.0;
+                    for (Py_ssize_t j = 0; j < half; j++) acc += hrow[q * half + j];
+                    h[q] = acc;
+                }
+            }
+        }
+        Py_END_ALLOW_THREADS
+        PyMem_Free(hrow);
+    }
+    result = Py_None;
+    Py_INCREF(result);
+release:
+    if (trs) {
+        for (Py_ssize_t i = 0; i < ntr; i++) PyBuffer_Release(&trs[i]);
+        PyMem_Free(trs);
+    }
+    Py_XDECREF(seq);
+    if (have_r) { PyBuffer_Release(&rb); PyBuffer_Release(&hb); }
+    PyBuffer_Release(&sb); PyBuffer_Release(&ob); PyBuffer_Release(&kb); PyBuffer_Release(&pb);
+    PyBuffer_Release(&pxb); PyBuffer_Release(&pyb); PyBuffer_Release(&wb); PyBuffer_Release(&mpb);
+    PyBuffer_Release(&mfb);
+    return result;
+}
+
+/* ---- perscli render: objects through a tabulated PSF, folded -------------------------------------- */
+
+/* One row of the extended frequency grid for one object: the columns [0, half) of each block of L
+ * (those that fold into the half plane) times the PSF transfer, the object's transform and the phase of
+ * its centre, added into the folded row (split real and imaginary planes).  galaxy: the exponential's
+ * transform 1/(1 + k^T C k)^(3/2), C = (a, b; b, c); else a point. */
+PERSCLI_CLONES static void
+fold_row(Py_ssize_t half, Py_ssize_t L, Py_ssize_t big, const double *restrict kxs, const double *restrict trr,
+         const double *restrict tri, const double *restrict pxr, const double *restrict pxi, double ky, double pyr,
+         double pyi, double a, double b, double c, int galaxy, double *restrict ore, double *restrict oim)
+{
+    const double kyy = c * ky * ky, kyb = 2.0 * b * ky;
+    for (Py_ssize_t cx0 = 0; cx0 < big; cx0 += L) {
+#pragma GCC ivdep
+        for (Py_ssize_t j = 0; j < half; j++) {
+            const Py_ssize_t x = cx0 + j;
+            const double kx = kxs[x];
+            double g = 1.0;
+            if (galaxy) {
+                const double s = 1.0 + a * kx * kx + kyb * kx + kyy;
+                g = 1.0 / (s * sqrt(s));
+            }
+            /* phase of the centre: exp(-i kx dx) exp(-i ky dy) */
+            const double phr = pxr[x] * pyr - pxi[x] * pyi, phi = pxr[x] * pyi + pxi[x] * pyr;
+            const double vr = g * (trr[x] * phr - tri[x] * phi), vi = g * (trr[x] * phi + tri[x] * phr);
+            ore[j] += vr;
+            oim[j] += vi;
+        }
+    }
+}
+
+/* fold_objects(out, work, tr_re, tr_im, k, L, M, params): the folded half-plane spectra of B objects of one
+ * stamp size L through one PSF transfer (tabulated on the extended (L M)^2 grid, centred order), into out
+ * (complex, B x L x (L/2 + 1), rfft layout: irfft2 gives each stamp, centred at index L/2 after a shift).
+ * params: B rows of (dx, dy, a, b, c, galaxy): the sub-pixel offset of the centre, the exponential's
+ * covariance form in pixel^2 (unused for a point), 1 for a galaxy.  work: 2 (L M + L (L/2 + 1)) doubles. */
+static PyObject *
+fold_objects(PyObject *self, PyObject *args)
+{
+    Py_buffer ob, wb, trb, tib, kb, pb;
+    int L, M;
+    if (!PyArg_ParseTuple(args, "w*w*y*y*y*iiy*", &ob, &wb, &trb, &tib, &kb, &L, &M, &pb))
+        return NULL;
+    PyObject *result = NULL;
+    const Py_ssize_t big = (Py_ssize_t)L * M, half = L / 2 + 1, plane = (Py_ssize_t)L * half;
+    const Py_ssize_t nobj = pb.len / (Py_ssize_t)(6 * sizeof(double));
+    if (L < 2 || L % 2 || M < 1 || M % 2 && M != 1 || pb.len != nobj * 6 * (Py_ssize_t)sizeof(double) ||
+        trb.len != (Py_ssize_t)sizeof(double) * big * big || tib.len != trb.len ||
+        kb.len != (Py_ssize_t)sizeof(double) * big ||
+        ob.len != (Py_ssize_t)sizeof(double) * 2 * nobj * plane ||
+        wb.len < (Py_ssize_t)sizeof(double) * 2 * (2 * big + plane)) {
+        PyErr_SetString(PyExc_ValueError, "fold_objects: buffer sizes do not match L, the alias and the objects");
+        goto release;
+    }
+    {
+        const double *trr = (const double *)trb.buf, *tri = (const double *)tib.buf, *k = (const double *)kb.buf;
+        const double *par = (const double *)pb.buf;
+        double *out = (double *)ob.buf, *w = (double *)wb.buf;
+        double *pxr = w, *pxi = w + big, *pyr = w + 2 * big, *pyi = w + 3 * big;
+        double *ore = w + 4 * big, *oim = ore + plane;
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t o = 0; o < nobj; o++) {
+            const double *p = par + 6 * o;
+            for (Py_ssize_t j = 0; j < big; j++) {
+                pxr[j] = cos(k[j] * p[0]);
+                pxi[j] = -sin(k[j] * p[0]);
+                pyr[j] = cos(k[j] * p[1]);
+                pyi[j] = -sin(k[j] * p[1]);
+            }
+            memset(ore, 0, sizeof(double) * 2 * plane);
+            for (Py_ssize_t cy = 0; cy < big; cy++) {
+                const Py_ssize_t row = cy % L;
+                fold_row(half, L, big, k, trr + cy * big, tri + cy * big, pxr, pxi, k[cy], pyr[cy], pyi[cy],
+                         p[2], p[3], p[4], p[5] != 0.0, ore + row * half, oim + row * half);
+            }
+            double *dst = out + 2 * o * plane;
+            for (Py_ssize_t i = 0; i < plane; i++) {
+                dst[2 * i] = ore[i];
+                dst[2 * i + 1] = oim[i];
+            }
+        }
+        Py_END_ALLOW_THREADS
+    }
+    result = Py_None;
+    Py_INCREF(result);
+release:
+    PyBuffer_Release(&ob); PyBuffer_Release(&wb); PyBuffer_Release(&trb); PyBuffer_Release(&tib);
+    PyBuffer_Release(&kb); PyBuffer_Release(&pb);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"accumulate", accumulate, METH_VARARGS,
      "accumulate(x, acc, time_factors, scale, combine_max, linear_only, A, x0, dx, alpha,\n"
@@ -604,6 +839,12 @@ static PyMethodDef methods[] = {
      "            dpos (4), dshape (9), v, hess, wcol): folded half-plane spectra of the\n"
      "exponential mixture through the PSF transfer (and 6 parameter derivatives with nfield=7); with\n"
      "v (the weighted residual's rfft2, complex) the 21 sums of the Hessian's second-order term into hess."},
+    {"expmix_batch", expmix_batch, METH_VARARGS,
+     "expmix_batch(spec, work, transfers, k, L, alias, nfield, params, phase_x, phase_y, resid, hess, wcol, p, f):\n"
+     "expmix_eval for several stamps of one size, each with its own PSF transfer (one galaxy on several frames)."},
+    {"fold_objects", fold_objects, METH_VARARGS,
+     "fold_objects(out, work, tr_re, tr_im, k, L, alias, params): folded half-plane spectra of objects\n"
+     "(points or exponentials, params rows dx, dy, a, b, c, galaxy) through a tabulated PSF transfer."},
     {"exp_nonpos", exp_nonpos_py, METH_VARARGS,
      "exp_nonpos(x, out): out = exp(min(x, 0)) with the fitter's vectorisable exp (float64 buffers)."},
     {"datasum", datasum, METH_VARARGS,

@@ -130,26 +130,88 @@ class StampDrawer:
         alias = max(1, math.ceil(psf.maxk / np.pi))
         self.alias = alias + (alias % 2)
         self._tables = {}
+        self._splits = {}
 
     @property
     def nbytes(self) -> int:
         """Bytes held by the tables made so far."""
-        return sum(t.nbytes + k.nbytes for t, k in self._tables.values())
+        return sum(t.nbytes + k.nbytes for t, k in self._tables.values()) + \
+            sum(a.nbytes + b.nbytes + k.nbytes for a, b, k in self._splits.values())
 
     def table(self, n: int):
         """(T, k) for stamp size n: PSF x pixel transfer (PSF only without ``pixel``) on the extended grid,
         and the frequencies."""
         table = self._tables.get(n)
         if table is None:
-            m = self.alias
-            k = _centred_freqs(n, m)
-            psf_k = self.psf.drawKImage(nx=m * n, ny=m * n, scale=2.0 * np.pi / n).array
-            if self.pixel:
-                pix = np.sinc(k / (2.0 * np.pi))
-                table = self._tables[n] = (psf_k * pix[:, None] * pix[None, :], k)
-            else:
-                table = self._tables[n] = (psf_k, k)
+            table = self._tables[n] = self._transfer(n)
         return table
+
+    def _transfer(self, n: int):
+        m = self.alias
+        k = _centred_freqs(n, m)
+        psf_k = self.psf.drawKImage(nx=m * n, ny=m * n, scale=2.0 * np.pi / n).array
+        if self.pixel:
+            pix = np.sinc(k / (2.0 * np.pi))
+            return psf_k * pix[:, None] * pix[None, :], k
+        return psf_k, k
+
+    def _split(self, n: int):
+        """The PSF transfer of side n as two contiguous float64 planes and the frequencies (for the kernel)."""
+        split = self._splits.get(n)
+        if split is None:
+            # the complex table is kept only if something asked for it (a 2048-pixel star's is 270 MB)
+            transfer, k = self._tables[n] if n in self._tables else self._transfer(n)
+            split = self._splits[n] = (np.ascontiguousarray(transfer.real), np.ascontiguousarray(transfer.imag),
+                                       np.ascontiguousarray(k, dtype=np.float64))
+        return split
+
+    def batch(self, n: int, dx, dy, forms=None) -> np.ndarray:
+        """Stamps of unit flux for several objects of one stamp side: points, or exponential galaxies.
+
+        The Fourier transform of each object (1 for a point; for an
+        exponential of scale radius r0 seen through the Jacobian of the
+        detector, 1 / (1 + k^T C k)^(3/2) with C its covariance form in
+        pixel^2, :func:`exponential_forms`) times the tabulated PSF, the
+        phase of its sub-pixel centre and the fold onto the sampled band, in
+        one compiled pass per object (:func:`perscli._kernels.fold_objects`),
+        then one batched inverse FFT: the pixel values of :meth:`stamp`
+        without a Python step per object.
+
+        Parameters
+        ----------
+        n : int
+            Stamp side (even).
+        dx, dy : array_like
+            Sub-pixel offsets of the centres from (n/2, n/2), pixels.
+        forms : ndarray, shape (B, 3), optional
+            Per object (Cxx, Cxy, Cyy) of an exponential, or NaN in a row
+            for a point; None: all points.
+
+        Returns
+        -------
+        ndarray, shape (B, n, n)
+        """
+        import scipy.fft
+
+        from . import _kernels
+
+        dx = np.atleast_1d(np.asarray(dx, dtype=np.float64))
+        dy = np.atleast_1d(np.asarray(dy, dtype=np.float64))
+        params = np.zeros((len(dx), 6))
+        params[:, 0], params[:, 1] = dx, dy
+        if forms is not None:
+            forms = np.asarray(forms, dtype=np.float64).reshape(len(dx), 3)
+            galaxy = np.all(np.isfinite(forms), axis=1)
+            params[galaxy, 2:5] = forms[galaxy]
+            params[:, 5] = galaxy
+        tr_re, tr_im, k = self._split(n)
+        m, half = self.alias, n // 2 + 1
+        spec = np.empty((len(dx), n, half), dtype=np.complex128)
+        work = np.empty(2 * (2 * m * n + n * half))
+        _kernels.fold_objects(spec, work, tr_re, tr_im, k, n, m, params)
+        images = scipy.fft.irfft2(spec, s=(n, n), axes=(-2, -1))
+        # stamp index [n/2, n/2] is the centre's pixel
+        return np.roll(images, (n // 2, n // 2), axis=(-2, -1))
 
     def stamp(self, n: int, dx: float, dy: float, flux: float, profile=None) -> np.ndarray:
         """An n x n stamp of an object centred at (n/2 + dx, n/2 + dy) (array indices).
@@ -166,6 +228,9 @@ class StampDrawer:
             The object's intrinsic profile in pixel coordinates, flux 1
             (None: a point source).
         """
+        if profile is None:
+            # a point: as :meth:`batch` draws it (the same values as the frames' stars)
+            return self.batch(n, [dx], [dy])[0] * flux
         transfer, k = self.table(n)
         m = self.alias
         if profile is not None:
@@ -210,6 +275,83 @@ class StampDrawer:
         return True
 
 
+def local_jacobians(wcs, x, y) -> np.ndarray:
+    """The WCS Jacobian d(u, v)/d(x, y) (arcsec per pixel) at image positions: shape (N, 2, 2).
+
+    ``wcs.local(PositionD(x, y))`` of GalSim's ``GSFitsWCS`` (the Roman
+    WCS: SIP distortion, CD matrix, gnomonic projection) for many positions
+    at once, by the same chain of Jacobians; u to the West, v to the North.
+    Other WCS types go through GalSim one position at a time.
+    """
+    import galsim
+    from galsim import fitswcs
+
+    x = np.atleast_1d(np.asarray(x, dtype=np.float64))
+    y = np.atleast_1d(np.asarray(y, dtype=np.float64))
+    if type(wcs) is not fitswcs.GSFitsWCS or wcs.pv is not None:
+        out = np.empty((len(x), 2, 2))
+        for i, (xx, yy) in enumerate(zip(x, y)):
+            out[i] = wcs.local(galsim.PositionD(float(xx), float(yy))).getMatrix()
+        return out
+    n = len(x)
+    jac = np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+    px, py = x - wcs.crpix[0], y - wcs.crpix[1]
+    if wcs.ab is not None:
+        order = len(wcs.ab[0]) - 1
+        powers = np.arange(order + 1)
+        xpow, ypow = px[:, None] ** powers, py[:, None] ** powers
+        dxpow = np.zeros_like(xpow)
+        dypow = np.zeros_like(ypow)
+        dxpow[:, 1:] = (powers[:-1] + 1.0) * xpow[:, :-1]
+        dypow[:, 1:] = (powers[:-1] + 1.0) * ypow[:, :-1]
+        # ab[c, i, j] multiplies x^i y^j in component c
+        p1 = np.einsum("cij,ni,nj->nc", wcs.ab, xpow, ypow)
+        j1 = np.stack([np.einsum("cij,ni,nj->nc", wcs.ab, dxpow, ypow),
+                       np.einsum("cij,ni,nj->nc", wcs.ab, xpow, dypow)], axis=2)
+        jac = j1 @ jac
+    else:
+        p1 = np.stack([px, py], axis=1)
+    p2 = p1 @ np.asarray(wcs.cd).T
+    jac = np.asarray(wcs.cd) @ jac
+    unit = np.array([-1.0, 1.0]) * (galsim.degrees / galsim.radians)
+    p2 = p2 * unit
+    jac = jac * unit[None, :, None]
+    j2 = wcs.center.jac_deproject_rad(p2[:, 0], p2[:, 1], projection=wcs.projection)
+    jac = np.moveaxis(j2, -1, 0) @ jac
+    return jac * (galsim.radians / galsim.arcsec)
+
+
+#: hlr / scale radius of an exponential profile (GalSim's Exponential)
+EXP_HLR_PER_SCALE = 1.6783469900166605
+
+
+def exponential_forms(jac, hlr, g1, g2) -> np.ndarray:
+    """The covariance forms (Cxx, Cxy, Cyy), pixel^2, of sheared exponentials seen through WCS Jacobians.
+
+    An exponential of half-light radius ``hlr`` (arcsec) sheared by (g1, g2)
+    (GalSim's ``Exponential(half_light_radius=hlr).shear(g1=g1, g2=g2)``) has
+    the Fourier transform 1 / (1 + q^T S^2 q r0^2)^(3/2) on the sky (S the
+    shear matrix, r0 the scale radius); through the detector's Jacobian J
+    (:func:`local_jacobians`, sky per pixel) it is 1 / (1 + k^T C k)^(3/2) in
+    pixel frequencies with C = r0^2 J^-1 S^2 J^-T.
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+    """
+    jac = np.asarray(jac, dtype=np.float64).reshape(-1, 2, 2)
+    g1, g2 = np.asarray(g1, dtype=np.float64), np.asarray(g2, dtype=np.float64)
+    r0 = np.asarray(hlr, dtype=np.float64) / EXP_HLR_PER_SCALE
+    norm = 1.0 / np.sqrt(1.0 - g1 * g1 - g2 * g2)
+    shear = np.empty((len(r0), 2, 2))
+    shear[:, 0, 0], shear[:, 0, 1] = norm * (1.0 + g1), norm * g2
+    shear[:, 1, 0], shear[:, 1, 1] = norm * g2, norm * (1.0 - g1)
+    inv = np.linalg.inv(jac)
+    a = inv @ shear
+    c = (a @ np.swapaxes(a, 1, 2)) * (r0 * r0)[:, None, None]
+    return np.stack([c[:, 0, 0], c[:, 0, 1], c[:, 1, 1]], axis=1)
+
+
 def star_stamp_size(flux: float) -> int:
     """Stamp side for a point source, a power of two from 16 to 2048, growing as flux^(1/3).
 
@@ -227,11 +369,16 @@ def star_stamp_size(flux: float) -> int:
 
 
 def galaxy_stamp_size(hlr_pixels: float) -> int:
-    """Stamp side for a galaxy: ~12 half-light radii plus the PSF core, a power of two >= 64.
+    """Stamp side for a galaxy: ~8 half-light radii plus the PSF core, a power of two >= 64.
 
-    Powers of two keep the number of tabulated PSF transfers small (one per size).
+    The stamp is periodic: what lies beyond its half-width comes back in at
+    the other side.  An exponential of half-light radius h holds all but
+    2.6e-4 of its light within 6.4 h, the half-width 4 h + 12 pixels reaches
+    for h <= 5 pixels (0.55"), and the PSF's wings beyond the 32 pixels of
+    the smallest stamp are the same for every object.  Powers of two keep the
+    number of tabulated PSF transfers small (one per size).
     """
-    n = 12.0 * hlr_pixels + 24.0
+    n = 8.0 * hlr_pixels + 24.0
     return int(max(64, 2 ** math.ceil(math.log2(n))))
 
 

@@ -83,6 +83,11 @@ def _numbers(ctx, param, value):
               show_default=True, metavar="E0,E1,...", help="|De| bin edges of the position-angle distribution.")
 @click.option("--nboot", type=click.IntRange(min=2), default=D.nboot, show_default=True, metavar="N",
               help="Bootstrap resamples for the errors of the position-angle distribution.")
+@click.option("--keep-flagged", "keep_flagged", is_flag=True, default=D.flagged == "keep",
+              help="Keep objects whose fits carry a flag, with their De (STATS counts the clean ones apart: "
+                   "n_clean, n_clean_ge), as a study's sample does; by default they are left out.")
+@click.option("--within", type=float, nargs=3, default=None, metavar="RA DEC RADIUS",
+              help="Only the objects within RADIUS degrees of (RA, DEC) (degrees): a study's field.")
 @columns_opt("the SHAPES tables", "ra=ALPHA_J2000,dec=DELTA_J2000,g1=E1,g2=E2")
 @no_checksum_opt
 @seed_opt
@@ -97,13 +102,14 @@ def _numbers(ctx, param, value):
 @report_errors
 def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, positions, pixel_scale, min_sep,
               max_sep, nbins, sep_units, bin_slop, npatch, patch_centers, var_method, cross_patch_weight, thresholds,
-              theta_bins, nboot, columns, seed, plot, plots_dir, output, overwrite, workers):
+              theta_bins, nboot, keep_flagged, within, columns, seed, plot, plots_dir, output, overwrite, workers):
     """Correlation function xi+/- and statistics of the shape changes De.
 
     De is the change of each object's shape between two measurements:
     De = g(A) - g(B), A measured with persistence and B without (the
     reference), objects matched by id and kept when unflagged (flags == 0)
-    in both.  A and B are two SHAPES tables (perscli measure), or two frames
+    in both (every one with --keep-flagged; only those within a circle with
+    --within).  A and B are two SHAPES tables (perscli measure), or two frames
     of one (--frames A B: `perscli measure exp.fits exp_nopersist.fits`
     writes them as frames 0 and 1, so --frames 0 1).  One table can also
     hold De itself: --de1 COL --de2 COL (rows with flags != 0, if it has a
@@ -192,6 +198,9 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
         raise click.UsageError("--patch-centers and --npatch: give one (the centres fix the number of patches)", ctx)
     if min_sep >= max_sep:
         raise click.UsageError(f"--min-sep {min_sep} must be less than --max-sep {max_sep}", ctx)
+    if within is not None and not (0 <= within[0] < 360 and -90 <= within[1] <= 90 and within[2] > 0):
+        raise click.UsageError(f"--within {' '.join(map(str, within))}: RA in [0, 360), Dec in [-90, 90] and a "
+                               "radius > 0, in degrees", ctx)
     pairs = None
     if pooled:
         from ..stats.pairs import read_pairs_file
@@ -204,7 +213,8 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
         de_columns=(de1, de2) if de1 is not None else None, common_ids=common_ids, positions=positions,
         pixel_scale=pixel_scale, columns=columns, min_sep=min_sep, max_sep=max_sep, nbins=nbins, sep_units=sep_units,
         bin_slop=bin_slop, npatch=npatch, cross_patch_weight=cross_patch_weight, var_method=var_method,
-        thresholds=thresholds, theta_edges=theta_bins, nboot=nboot, seed=seed)
+        thresholds=thresholds, theta_edges=theta_bins, nboot=nboot, seed=seed,
+        flagged="keep" if keep_flagged else "drop", within=tuple(within) if within else None)
     summary = correlate_files(shapes, output, options, pairs=pairs, frames=frames, patch_centers=patch_centers,
                               workers=workers, plot=plot, plots_dir=plots_dir, overwrite=overwrite)
     stats = summary["stats"]

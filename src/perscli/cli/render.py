@@ -57,17 +57,18 @@ def _list_effects(ctx, param, value):
 @click.option("--set", "settings", multiple=True, metavar="EFFECT.KEY=VALUE",
               help="Override the model: e.g. read_noise.sigma=5, persistence.base=pessimistic, ipc=off.")
 @click.option("--previous", multiple=True, metavar="FRAME", type=FILE,
-              help="An earlier exposure of the same SCA (a frame perscli rendered); repeatable. Its STARFLU "
-                   "(FLUENCE for --persistence-source all) leaves persistence in this one.")
-@click.option("--persistence-source", "persistence_source", metavar="all|stars|ELECTRONS",
+              help="An earlier exposure of the same SCA (a frame perscli rendered); repeatable. Its DRAWN "
+                   "(STARFLU for --persistence-source stars, FLUENCE for all) leaves persistence in this one.")
+@click.option("--persistence-source", "persistence_source", metavar="drawn|stars|all|ELECTRONS",
               default=D.persistence_source,
-              help="What of the --previous frames persists: stars (their STARFLU: the light of stars only, as in "
-                   "the paper and perscli study), all (their FLUENCE: every photon, the sky's too) or a number of "
+              help="What of the --previous frames persists: drawn (their DRAWN: the light drawn on them, galaxies "
+                   "and stars, no sky: the paper's pipeline and perscli study's headline), stars (their STARFLU: "
+                   "the light of stars only), all (their FLUENCE: every photon, the sky's too) or a number of "
                    "electrons (only pixels whose FLUENCE exceeds it); same as --set persistence.source=...  "
-                   "[default: the model's, stars]")
+                   "[default: the model's, drawn]")
 @click.option("--hdus", metavar="NAME,...", default=",".join(D.hdus),
-              help=f"The HDUs to write, among {','.join(HDU_NAMES)} (STARFLU: the stars' "
-                   "fluence, what later frames' persistence comes from by default)  "
+              help=f"The HDUs to write, among {','.join(HDU_NAMES)} (DRAWN: the light drawn, what later "
+                   "frames' persistence comes from by default)  "
                    f"[default: {','.join(DEFAULT_HDUS)}]")
 @click.option("--dry-run", "dry_run", is_flag=True, default=False,
               help="Draw nothing, write no frame or figure (no -o or --seed needed): print where the frame lands (its "
@@ -106,21 +107,24 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
 
     The output has SCI (the frame, DN after gain), IDEAL (noise-free electrons
     from sky and sources), FLUENCE (the charge collected, at most the full
-    well), STARFLU (the noise-free electrons of the stars alone, not clipped
-    at the well), with --previous PERSIST (electrons of persistence), and
+    well), DRAWN (the noise-free electrons of every object drawn, galaxies and
+    stars, no sky, not clipped at the well), STARFLU (the same of the stars
+    alone, on request), with --previous PERSIST (electrons of persistence), and
     MODEL (the resolved detector model, which --model FRAME.fits reads
     back); WCS, timing, SCA, FILTER and GAIN in the headers.  --hdus
     chooses among them.
 
     What of the --previous frames persists (--persistence-source): their
-    STARFLU (stars, the default: the bright-star ghosts the paper and
-    perscli study measure), all their FLUENCE (the sky's and the galaxies'
-    light too: in frames rounded to whole DN, a sky-level halo of ~1e-4 of
-    the sky that flips pixels by one DN), or the FLUENCE of pixels above a
-    number of electrons; the fluence fed to the persistence law is capped
-    at persistence.fluence_cap (default: the saturation full well, 1e5 e-).
-    A frame rendered with the default HDUs serves as the history of later
-    frames for any source.
+    DRAWN (drawn, the default: every object's light, galaxies and stars, no
+    sky, as the paper's pipeline persisted it), their STARFLU (stars: the
+    stars' light alone), all their FLUENCE (the sky's light too: in frames
+    rounded to whole DN, a sky-level halo of ~1e-4 of the sky that flips
+    pixels by one DN), or the FLUENCE of pixels above a number of
+    electrons; the fluence fed to the persistence law is capped at
+    persistence.fluence_cap when one is set (default none: the law
+    extrapolated beyond the well, as GalSim's applyPersistence does).  A
+    frame rendered with the default HDUs serves as the history of later
+    frames for the sources drawn and all; add STARFLU for stars.
 
     The exposure (pointing, PA, date, filter) comes from a row of
     --pointings or from --ra --dec --pa --mjd --filter; Roman must be able

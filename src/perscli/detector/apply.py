@@ -41,7 +41,7 @@ from ..executor import thread_map
 from ..io.fitsfile import OutHDU, format_card, ones_complement_add
 from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, require_timing
 from ..io.output import add_provenance
-from .persistence import GALSIM_EXPTIME, PersistenceModel, accumulate, time_factor
+from .persistence import GALSIM_EXPTIME, PersistenceModel, accumulate, round_charge, time_factor
 from .settings import DEFAULT_DQ_BIT, DEFAULT_MODEL_ERROR, MODES, ApplyOptions
 
 # re-exported for existing callers (``from perscli.detector.apply import check_earlier``): the checks
@@ -259,6 +259,8 @@ def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, b
                 sums.append(accumulate(fluence, acc, rec.factors, model, scale=scale, combine=model.combine))
             else:
                 sums.append(placed(rec, r0, r1, acc))
+        # per pixel: rounding a block of rows is rounding the frame
+        round_charge(acc, model.rounding)
         if the_plan.science is not None:
             # reference pixels see no light and hold no charge: they receive no persistence
             y0, y1, x0, x1 = the_plan.science

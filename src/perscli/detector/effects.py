@@ -313,7 +313,7 @@ class Dark(DetectorEffect):
 @register
 class Persistence(DetectorEffect):
     name = "persistence"
-    description = ("charge released by earlier exposures (--previous), from their FLUENCE or STARFLU "
+    description = ("charge released by earlier exposures (--previous), from their DRAWN, STARFLU or FLUENCE "
                    "(source, fluence_cap) (perscli.detector.persistence; added as its expectation)")
     schema = PERSISTENCE_SCHEMA
 
@@ -377,8 +377,9 @@ class Persistence(DetectorEffect):
 
         Returns
         -------
-        source : {'all', 'stars', 'threshold'}
-            Which image of the earlier frame: FLUENCE ('all', 'threshold') or STARFLU ('stars').
+        source : {'drawn', 'stars', 'all', 'threshold'}
+            Which image of the earlier frame: DRAWN ('drawn'), STARFLU ('stars') or FLUENCE ('all',
+            'threshold'): :data:`perscli.render.settings.SOURCE_HDU`.
         threshold : float or None
             Electrons: only pixels whose FLUENCE exceeds it persist ('threshold').
         cap : float or None

@@ -222,11 +222,11 @@ def _persistence_from_yaml(path: str) -> tuple:
         raise PerscliError(f"{path}: expected a mapping of persistence parameters (A, x0, dx, alpha, gamma, "
                            "half_well)")
     params = {("kind" if k == "model" else k): v for k, v in doc.items()}
-    known = ("base", "kind", "coefficients", "enabled", *FERMI_PARAMETERS, *SETTINGS)
+    known = ("base", "kind", "coefficients", "enabled", *FERMI_PARAMETERS, *SETTINGS, "rounding")
     unknown = [str(k) for k in params if k not in known]
     if unknown:
         raise PerscliError(f"{path}: unknown persistence parameter(s) {', '.join(unknown)}; valid are "
-                           f"{', '.join(known[:3])}, {', '.join(FERMI_PARAMETERS)}, {', '.join(SETTINGS)}")
+                           f"{', '.join(known[:3])}, {', '.join(FERMI_PARAMETERS)}, {', '.join(SETTINGS)}, rounding")
     base, kind = params.get("base"), params.get("kind", "fermi")
     law = [k for k in FERMI_PARAMETERS if k in params]
     missing = [k for k in FERMI_PARAMETERS if k not in params]
@@ -261,9 +261,9 @@ def _persistence_overrides(overrides, pmodel) -> dict:
             items.append((key, value))
     changes = {}
     for key, value in items:
-        if key not in FERMI_PARAMETERS and key not in SETTINGS:
+        if key not in FERMI_PARAMETERS and key not in SETTINGS and key != "rounding":
             raise PerscliError(f"unknown persistence parameter {key!r}: valid are "
-                               f"{', '.join([*FERMI_PARAMETERS, *SETTINGS])}")
+                               f"{', '.join([*FERMI_PARAMETERS, *SETTINGS, 'rounding'])}")
         if key in FERMI_PARAMETERS and pmodel.kind != "fermi":
             raise PerscliError(f"parameter {key} cannot be set for the linear model {pmodel.name!r}; use a Fermi "
                                "model (typical, pessimistic, wfc3 or a YAML file) to set the law's parameters")

@@ -30,7 +30,7 @@ import numpy as np
 
 from .. import PerscliError
 from .settings import (COMBINES, FERMI_PARAMETERS, GALSIM_EXPTIME, GALSIM_LINEAR_COEFFICIENTS,  # noqa: F401
-                       PRESET_SETTINGS, PRESETS, SETTINGS, TIME_MODELS, preset_settings)
+                       PRESET_SETTINGS, PRESETS, ROUNDINGS, SETTINGS, TIME_MODELS, preset_settings)
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,9 @@ class PersistenceModel:
         Most recent earlier exposures that count (0: all).
     lookback : float
         Hours: earlier exposures that ended longer ago are ignored (0: no limit).
+    rounding : {'none', 'round', 'floor'}
+        The charge as computed, or rounded (truncated) to whole electrons
+        (:func:`round_charge`).
     """
 
     name: str = "typical"
@@ -72,6 +75,7 @@ class PersistenceModel:
     combine: str = SETTINGS["combine"][2]
     max_previous: int = SETTINGS["max_previous"][2]
     lookback: float = SETTINGS["lookback"][2]
+    rounding: str = "none"
 
     def __post_init__(self):
         # the one schema of a persistence model (perscli.detector.settings.PERSISTENCE_SCHEMA) checks a
@@ -141,6 +145,8 @@ class PersistenceModel:
         else:
             out = {key: getattr(self, key) for key in FERMI_PARAMETERS}
         out.update({key: getattr(self, key) for key in SETTINGS})
+        if self.rounding != "none":
+            out["rounding"] = self.rounding
         return out
 
 
@@ -391,6 +397,34 @@ def order_earlier(ends, start: float, model: PersistenceModel, names=None, *, un
     return keep, [i for i in order if i in old] + recent[len(keep):]
 
 
+def round_charge(charge: np.ndarray, rounding: str) -> np.ndarray:
+    """The persistence charge as a frame receives it: as computed, or in whole electrons (in place).
+
+    Parameters
+    ----------
+    charge : ndarray of float
+        Electrons.
+    rounding : {'none', 'round', 'floor'}
+        'round': to the nearest whole electron (halves to even, numpy's
+        rule); 'floor': truncated, as storing the charge in an integer image
+        does (the charge is never negative, so truncation is the floor).
+
+    Notes
+    -----
+    A persistence image kept in whole electrons drops every pixel below one
+    electron (half an electron when rounded): only earlier pixels whose
+    charge reaches that leave anything, a floor on the fluence that rises with
+    the time since the earlier exposure.
+    """
+    if rounding == "round":
+        np.round(charge, out=charge)
+    elif rounding == "floor":
+        np.floor(charge, out=charge)
+    elif rounding != "none":
+        raise PerscliError(f"persistence.rounding {rounding!r}: use one of {', '.join(ROUNDINGS)}")
+    return charge
+
+
 def persistence_charge(fluences, ends, start: float, plane_ends, model: PersistenceModel, *, scales=None):
     """The persistence charge that earlier exposures leave in the current one: arrays in, array out.
 
@@ -419,7 +453,7 @@ def persistence_charge(fluences, ends, start: float, plane_ends, model: Persiste
     Returns
     -------
     ndarray of float64, shape ``(nplanes,) + fluence shape``
-        Electrons.
+        Electrons (rounded as ``model.rounding`` says, :func:`round_charge`).
     """
     fluences = [f if callable(f) else np.asarray(f) for f in fluences]
     if len(fluences) != len(ends):
@@ -443,4 +477,4 @@ def persistence_charge(fluences, ends, start: float, plane_ends, model: Persiste
             continue
         fluence = fluences[i]() if callable(fluences[i]) else fluences[i]
         accumulate(np.ascontiguousarray(fluence), acc, factors, model, scale=scales[i], combine=model.combine)
-    return acc
+    return round_charge(acc, model.rounding)

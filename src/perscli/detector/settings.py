@@ -72,6 +72,10 @@ FERMI_PARAMETERS = {
 
 TIME_MODELS = ("exact", "middle", "galsim")
 COMBINES = ("sum", "max")
+#: what of an earlier exposure persists (besides a number: its FLUENCE above that many electrons)
+SOURCES = ("drawn", "stars", "all")
+#: how the persistence charge is rounded before it is added (perscli.detector.persistence.round_charge)
+ROUNDINGS = ("none", "round", "floor")
 
 #: How a model is applied (not the law itself): name -> (description, allowed values, default).
 #: The one home of these settings: the persistence step's schema (perscli.detector.effects) is made
@@ -131,16 +135,22 @@ def _persistence_schema():
                                            ("max_previous", ("int", "", dict(lo=0))),
                                            ("lookback", ("float", "h", dict(lo=0.0))))
           for text in (SETTINGS[key][0],)),
-        Param("source", "float", "stars", "e-", "what of an earlier exposure persists: stars (its STARFLU: the "
-              "light of stars only; the paper's setting and the study's), all (its FLUENCE: every photon, sky and "
-              "galaxies too), or a number: only pixels whose FLUENCE exceeds that many electrons", lo=0.0,
-              choices=("all", "stars")),
-        Param("floor", "float", 0.0, "e-", "pixels of an earlier exposure whose persisting fluence (STARFLU or "
-              "FLUENCE) is at or below this leave nothing: how far faint light persists (0: all of it, the linear "
-              "law down to zero; the paper does not say)", lo=0.0),
-        Param("fluence_cap", "float", "well", "e-", "the fluence fed to the law is at most this: well = "
-              "saturation.full_well (no cap with saturation off), none = no cap (STARFLU beyond the well "
-              "persists: the law extrapolated)", lo=0.0, lo_open=True, choices=("well", "none")),
+        Param("source", "float", "drawn", "e-", "what of an earlier exposure persists: drawn (its DRAWN: the "
+              "expected light of every object drawn on it, galaxies and stars, no sky: the paper's pipeline and the "
+              "study's headline), stars (its STARFLU: the light of stars only), all (its FLUENCE: every photon "
+              "collected, the sky's too, after saturation), or a number: only pixels whose FLUENCE exceeds that many "
+              "electrons", lo=0.0, choices=SOURCES),
+        Param("floor", "float", 0.0, "e-", "pixels of an earlier exposure whose persisting fluence (DRAWN, STARFLU "
+              "or FLUENCE) is at or below this leave nothing: how far faint light persists (0: all of it, the linear "
+              "law down to zero, as the paper states it)", lo=0.0),
+        Param("fluence_cap", "float", "none", "e-", "the fluence fed to the law is at most this: none = no cap "
+              "(the paper's pipeline: GalSim's applyPersistence caps nothing, the law is extrapolated beyond the "
+              "well), well = saturation.full_well (no cap with saturation off), or electrons", lo=0.0,
+              lo_open=True, choices=("well", "none")),
+        Param("rounding", "choice", "none", "", "the persistence charge added to a frame: none = as computed; "
+              "round = rounded to whole electrons; floor = truncated to whole electrons, as a cast to integers "
+              "does (how a pipeline may have stored a persistence image: a bracket of the paper's numbers)",
+              choices=ROUNDINGS),
     )
 
 

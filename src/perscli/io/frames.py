@@ -351,6 +351,9 @@ class Frame:
 
     def planes(self) -> list:
         """The science arrays in time order, in the file's units (native byte order)."""
+        if self.layout == "stamps":
+            raise PerscliError(f"{self.label}: its SCI holds only a frame's header: the pixels are kept around some "
+                               "objects only (a study's final; perscli.study.differential.read_stamps reads them)")
         ny = self.shape[0]
         return [_native(self.rows(k, 0, ny)) for k in range(self.nreads)]
 
@@ -508,10 +511,16 @@ def _native(array: np.ndarray) -> np.ndarray:
     return np.asarray(array, dtype=array.dtype.newbyteorder("="))
 
 
+#: keywords of a header-only SCI HDU that declare the shape of the frame it describes (layout 'stamps')
+STAMPS_SHAPE_KEYWORDS = ("FRAMENX", "FRAMENY")
+
+
 def _science_hdus(name, hdus, selected=None):
     """Find the science arrays and the layout of a file (``selected``: the HDU of ``file[EXT]``)."""
     if selected is not None:
         hdu = hdus[selected]
+        if hdu.is_image and not hdu.shape and all(k in hdu.header for k in STAMPS_SHAPE_KEYWORDS):
+            return [selected], "stamps"
         if not hdu.is_image or not hdu.shape:
             raise PerscliError(f"{name}: the selected {hdu.label} holds no image")
         sci = [selected]
@@ -525,6 +534,10 @@ def _science_hdus(name, hdus, selected=None):
         raise PerscliError(
             f"{name}: {len(sci)} SCI extensions but no SAMPTIME keywords: not a MULTIACCUM ramp; "
             f"select one, e.g. '{name}[SCI,1]'")
+    if sci and not hdus[sci[0]].shape and all(k in hdus[sci[0]].header for k in STAMPS_SHAPE_KEYWORDS):
+        # the header of a frame whose pixels are kept only around some objects (a study's final): its shape
+        # is declared, its pixels are in other HDUs
+        return sci[:1], "stamps"
     if sci:
         index = sci[0]
     elif hdus[0].is_image and int(hdus[0].header.get("NAXIS", 0)) > 0:
@@ -546,6 +559,13 @@ def _science_hdus(name, hdus, selected=None):
     if ndim == 3:
         return [index], "cube"
     raise PerscliError(f"{name}: the image has {ndim} axes; expected 2 (an image) or 3 (reads, y, x)")
+
+
+def _shape_keyword(header, key: str, label: str) -> int:
+    value = header[key]
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise PerscliError(f"{label}: {key}={value!r} is not a number of pixels; the header is corrupt")
+    return int(value)
 
 
 def _read_times(name, hdus, sci, layout, nplanes):
@@ -628,7 +648,7 @@ def open_frame(name: str, *, units: str | None = None, gain: float | None = None
         sci, layout = _science_hdus(label, hdus, source.selected)
         hdrs = (hdus[sci[0]].header, hdus[0].header)
         nplanes = hdus[sci[0]].shape[0] if layout == "cube" else len(sci)
-        read_times = _read_times(label, hdus, sci, layout, nplanes) if layout != "image" else None
+        read_times = _read_times(label, hdus, sci, layout, nplanes) if layout not in ("image", "stamps") else None
         for i in sci:
             if hdus[i].shape[-2:] != hdus[sci[0]].shape[-2:]:
                 raise PerscliError(f"{label}: the reads of the ramp differ in shape")
@@ -680,10 +700,14 @@ def open_frame(name: str, *, units: str | None = None, gain: float | None = None
             fluence = []  # file[EXT] names the one image to use
         if fluence and hdus[fluence[0]].shape[-2:] != hdus[sci[0]].shape[-2:]:
             raise PerscliError(f"{label}: the FLUENCE extension's shape differs from the science image's")
+        declared = None
+        if layout == "stamps":
+            h = hdus[sci[0]].header
+            declared = (_shape_keyword(h, "FRAMENY", label), _shape_keyword(h, "FRAMENX", label))
         frame = Frame(name=name, hdus=hdus, sci=sci, layout=layout, unit=unit, gain=gain,
                       exptime=hdr_exptime, start=start, end=end, read_times=read_times,
                       timing_source=source_kw, source=source, fluence_hdu=fluence[0] if fluence else None,
-                      section=source.section)
+                      section=source.section, image_shape=declared)
         if source.section is not None:
             # a cutout of the detector: its offset moves as CFITSIO moves LTV1/LTV2 for a section
             rows, cols = source.section

@@ -64,6 +64,8 @@ MAX_NFEV = 100
 MIN_PIXELS = 20
 #: |g|^2 above which a trial step is refused, and at which |g| counts as having reached 1
 G2_LIMIT, G2_FLAG = 0.999, 0.998
+#: relative rounding of chi^2 (a float64 sum of up to ~1e5 squares): changes below it are not changes
+CHI2_ROUNDING = 1e-11
 
 
 def g_to_e(g1: float, g2: float):
@@ -287,6 +289,20 @@ def hessian_term(hsums, flux, dpos, dshape, d2shape, flux_scale: float = 1.0) ->
     return S
 
 
+def hessian_terms(hsums, flux, dpos, dshape, d2shape, flux_scale) -> np.ndarray:
+    """The sum over stamps of :func:`hessian_term`, for arrays of them (first axis: the stamp)."""
+    ns = len(flux)
+    H = np.concatenate([hsums, np.zeros((ns, 1))], axis=1)[:, _H_IDX] * \
+        (_H_FLUX[None] * np.asarray(flux)[:, None, None] + _H_CONST[None])
+    D = np.zeros((ns, 6, 6))
+    D[:, 0:2, 0:2] = dpos
+    D[:, 2:5, 2:5] = dshape
+    D[:, 5, 5] = flux_scale
+    S = np.einsum("sji,sjk,skl->il", D, H, D)
+    S[2:5, 2:5] += np.einsum("sc,scab->ab", -0.5 * np.asarray(flux)[:, None] * hsums[:, 17:20], d2shape)
+    return S
+
+
 @dataclass
 class FitResult:
     """The outcome of one fit."""
@@ -318,20 +334,36 @@ class _Problem:
 
     ``mapping(theta, second)`` gives, per stamp, (centre, cov, flux, dpos,
     dshape, d2shape, flux_scale): where theta puts the galaxy in that stamp.
+    Stamps of one size and grid (a galaxy's stamps on several frames) are
+    evaluated together: one compiled pass over all of them
+    (:func:`perscli._kernels.expmix_batch`), one batched inverse FFT, and
+    the sums over their pixels as array products.
     """
 
     def __init__(self, stamps, mapping):
         self.stamps = stamps
         self.mapping = mapping
         self.npix = sum(s.npix for s in stamps)
+        m0 = stamps[0].model if stamps else None
+        self.batch = len(stamps) > 1 and all(s.model.size == m0.size and s.model.n == m0.n and s.model.alias == m0.alias
+                                             and s.model.pad == m0.pad for s in stamps)
+        if self.batch:
+            self.sw = np.stack([s.sw for s in stamps])
+            self.swd = np.stack([s.swd for s in stamps])
+            self.transfers = [(s.model.tr_re, s.model.tr_im) for s in stamps]
 
-    def evaluate(self, theta, resid_spectra=None):
-        """chi^2, J^T W J, J^T W (data - model), the Hessian term (with spectra) and this point's residual spectra."""
+    def evaluate(self, theta, resid_spectra=None, jts=None):
+        """chi^2, J^T W J, J^T W (data - model), the Hessian term (with spectra) and this point's residuals.
+
+        With ``jts`` (a list), each stamp's sqrt(W) J (6 x pixels) is appended to it.
+        """
+        maps = self.mapping(theta, resid_spectra is not None)
+        if self.batch:
+            return self._evaluate_batch(maps, resid_spectra, jts)
         A = np.zeros((6, 6))
         b = np.zeros(6)
         S = np.zeros((6, 6)) if resid_spectra is not None else None
         chi2 = 0.0
-        maps = self.mapping(theta, resid_spectra is not None)
         us = []
         for k, (stamp, (centre, cov, flux, dpos, dshape, d2shape, scale)) in enumerate(zip(self.stamps, maps)):
             images, hs = stamp.model.evaluate(centre, cov, flux, dpos, dshape, 7,
@@ -346,11 +378,63 @@ class _Problem:
             us.append(r)
             if S is not None:
                 S += hessian_term(hs, flux, dpos, dshape, d2shape, scale)
+            if jts is not None:
+                jts.append(jt.copy())
         return chi2, A, b, S, us
+
+    def _evaluate_batch(self, maps, resid_spectra, jts):
+        """:meth:`evaluate` of stamps of one grid, together."""
+        from .. import _kernels
+
+        m0 = self.stamps[0].model
+        L, n, pad, half = m0.size, m0.n, m0.pad, m0.size // 2 + 1
+        ns = len(maps)
+        params = np.empty((ns, 17))
+        centres = np.empty((ns, 2))
+        flux, scale = np.empty(ns), np.empty(ns)
+        dpos, dshape = np.empty((ns, 2, 2)), np.empty((ns, 3, 3))
+        d2 = np.empty((ns, 3, 3, 3)) if resid_spectra is not None else None
+        for k, (centre, cov, fl, dp, ds, d2s, sc) in enumerate(maps):
+            centres[k] = centre
+            params[k, 0:3] = cov
+            flux[k], scale[k] = fl, sc
+            dpos[k], dshape[k] = dp, ds
+            if d2 is not None:
+                d2[k] = d2s
+        params[:, 3] = flux
+        params[:, 4:8] = dpos.reshape(ns, 4)
+        params[:, 8:17] = dshape.reshape(ns, 9)
+        phase_x = np.exp(-1j * m0.k[None, :] * (centres[:, 0:1] + pad))
+        phase_y = np.exp(-1j * m0.k[None, :] * (centres[:, 1:2] + pad))
+        spec = np.empty((ns, 7, L, half), dtype=np.complex128)
+        resid = None if resid_spectra is None else np.ascontiguousarray(resid_spectra)
+        hess = None if resid is None else np.empty((ns, 21))
+        _kernels.expmix_batch(spec, m0._work, self.transfers, m0.k, L, m0.alias, 7, params, phase_x, phase_y,
+                              resid, hess, m0.wcol, P_EXP, F_EXP)
+        images = scipy.fft.irfft2(spec, s=(L, L), axes=(-2, -1))[:, :, pad:pad + n, pad:pad + n]
+        r = self.swd - images[:, 0] * self.sw
+        jt = images[:, 1:] * self.sw[:, None]
+        jt[:, 5] *= scale[:, None, None]
+        jt = jt.reshape(ns, 6, -1)
+        rf = r.reshape(ns, -1)
+        chi2 = float(np.einsum("sp,sp->", rf, rf))
+        A = np.einsum("skp,slp->kl", jt, jt)
+        b = np.einsum("skp,sp->k", jt, rf)
+        S = None
+        if hess is not None:
+            S = hessian_terms(hess / (L * L), flux, dpos, dshape, d2, scale)
+        if jts is not None:
+            jts.extend(jt[k].copy() for k in range(ns))
+        return chi2, A, b, S, r
 
     def spectra(self, us):
         """The residual spectra of a point (for the Hessian term at the next trial points)."""
         # u = w (model - data) = -sqrt(w) r
+        if self.batch:
+            m0 = self.stamps[0].model
+            grid = np.zeros((len(self.stamps), m0.size, m0.size))
+            grid[:, m0.pad:m0.pad + m0.n, m0.pad:m0.pad + m0.n] = -self.sw * us
+            return scipy.fft.rfft2(grid, axes=(-2, -1))
         return [s.model.residual_spectrum(-s.sw * r) for s, r in zip(self.stamps, us)]
 
 
@@ -383,6 +467,16 @@ def _newton(problem: _Problem, theta0, floors, valid, *, max_nfev=MAX_NFEV, xtol
         diag = np.diag(A).copy()
         diag[diag <= 0] = 1.0
         scale = np.maximum(np.abs(theta), floors)
+        # converged when the undamped Newton step from here is below the tolerance: a step shrunk by the
+        # damping (after rejected trials) says nothing of how far the minimum is, and stopping on one left
+        # g up to ~1e-9 short of it
+        try:
+            full = np.linalg.solve(H, b)
+        except np.linalg.LinAlgError:
+            full = None
+        if full is not None and np.all(np.abs(full) <= xtol * scale):
+            converged = True
+            break
         spectra = None
         accepted = False
         while not accepted:
@@ -390,10 +484,6 @@ def _newton(problem: _Problem, theta0, floors, valid, *, max_nfev=MAX_NFEV, xtol
                 step = np.linalg.solve(H + lam * np.diag(diag), b)
             except np.linalg.LinAlgError:
                 step = None
-            if step is not None and np.all(np.abs(step) <= xtol * scale):
-                # the next step is below the tolerance: theta is the minimum to 1e-10
-                converged = True
-                break
             trial = theta + step if step is not None else None
             verdict = valid(trial, theta) if trial is not None else "reject"
             if verdict == "stop":
@@ -411,13 +501,14 @@ def _newton(problem: _Problem, theta0, floors, valid, *, max_nfev=MAX_NFEV, xtol
                 spectra = problem.spectra(us)
             chi2_new, A_new, b_new, S_new, us_new = problem.evaluate(trial, spectra)
             nfev += 1
-            if chi2_new <= chi2:
-                small = np.all(np.abs(step) <= xtol * scale)
+            # chi^2 is a sum of ~1e3 squares, good to ~1e-13 of itself: a step whose predicted gain
+            # (b . step) is below that cannot be judged by chi^2, and is taken when chi^2 does not rise
+            # beyond it (else the last 1e-9 of g would be refused on rounding alone)
+            noise = CHI2_ROUNDING * max(chi2, 1.0)
+            if chi2_new <= chi2 or (chi2_new <= chi2 + noise and abs(float(b @ step)) <= noise):
                 theta, chi2, A, b, S, us = trial, chi2_new, A_new, b_new, S_new, us_new
                 lam = max(lam / 10.0, 1e-12)
                 accepted = True
-                if small:
-                    converged = True
             else:
                 # a rejected Newton step says the local quadratic model is poor: damp at once
                 lam = max(lam * 10.0, 1e-3)
@@ -429,7 +520,7 @@ def _newton(problem: _Problem, theta0, floors, valid, *, max_nfev=MAX_NFEV, xtol
             break
     if not converged:
         flags |= FLAG_FAILED
-    return theta, chi2, A, nfev, flags
+    return theta, chi2, A, nfev, flags, us
 
 
 def _finish(theta, chi2, A, npix, nfev, flags, *, g=(2, 3), size=4, flux=5) -> FitResult:
@@ -499,7 +590,7 @@ def fit_exp(image: np.ndarray, weight: np.ndarray, model: ExpModel, start, *, ma
         return [((th[0], th[1]), cov, th[5], eye, dcov, d2, 1.0)]
 
     problem = _Problem([stamp], mapping)
-    theta, chi2, A, nfev, flags = _newton(problem, theta, _PIXEL_FLOORS, _valid, max_nfev=max_nfev, xtol=xtol)
+    theta, chi2, A, nfev, flags, _ = _newton(problem, theta, _PIXEL_FLOORS, _valid, max_nfev=max_nfev, xtol=xtol)
     return _finish(theta, chi2, A, stamp.npix, nfev, flags)
 
 
@@ -559,12 +650,21 @@ def fit_joint(stamps, start, *, max_nfev: int = MAX_NFEV, xtol: float = 1e-10) -
     FitResult
         theta and errors in the sky parameters; dof over all stamps.
     """
+    problem, npix, _ = joint_problem(stamps)
+    theta = np.array(start, dtype=np.float64)
+    if problem is None:
+        return FitResult(theta, np.full(6, np.nan), np.nan, 0, 0, FLAG_FEW_PIXELS, 0.0)
+    theta, chi2, A, nfev, flags, _ = _newton(problem, theta, _SKY_FLOORS, _valid, max_nfev=max_nfev, xtol=xtol)
+    return _finish(theta, chi2, A, npix, nfev, flags)
+
+
+def joint_problem(stamps):
+    """The :class:`_Problem` of :func:`fit_joint` for these stamps: (problem, usable pixels), or (None, npix)."""
     fits = [_Stamp(s.image, s.weight, s.model) for s in stamps]
     used = [(f, s) for f, s in zip(fits, stamps) if f.npix >= MIN_PIXELS]
-    theta = np.array(start, dtype=np.float64)
     npix = sum(f.npix for f, _ in used)
     if not used or npix < MIN_PIXELS:
-        return FitResult(theta, np.full(6, np.nan), np.nan, 0, 0, FLAG_FEW_PIXELS, 0.0)
+        return None, npix, []
     maps = [(np.asarray(s.ainv, dtype=np.float64), covariance_map(s.ainv), float(s.flux_scale),
              (float(s.origin[0]), float(s.origin[1]))) for _, s in used]
 
@@ -577,6 +677,5 @@ def fit_joint(stamps, start, *, max_nfev: int = MAX_NFEV, xtol: float = 1e-10) -
             out.append((centre, cmap @ cov, fscale * th[5], ainv, cmap @ dcov, d2pix, fscale))
         return out
 
-    problem = _Problem([f for f, _ in used], mapping)
-    theta, chi2, A, nfev, flags = _newton(problem, theta, _SKY_FLOORS, _valid, max_nfev=max_nfev, xtol=xtol)
-    return _finish(theta, chi2, A, npix, nfev, flags)
+    keep = [k for k, f in enumerate(fits) if f.npix >= MIN_PIXELS]
+    return _Problem([f for f, _ in used], mapping), npix, keep

@@ -7,8 +7,6 @@ its centre, shear and size in the tangent plane at its catalogue position
 reads the frames' headers first, then their pixels one at a time, keeping
 only the stamps of the galaxies fitted on each (:class:`~perscli.measure.perframe.Windows`).
 
-Split out of :mod:`perscli.measure.shapes`, which still re-exports the names
-other modules import from it.
 """
 
 from __future__ import annotations
@@ -118,14 +116,11 @@ def _joint_linear_flux(stamps, T0) -> float:
     return flux if np.isfinite(flux) and flux > 0 else 1.0
 
 
-def measure_joint_object(ctx: JointContext, j: int) -> dict:
-    """Joint fit of selected galaxy ``j`` over the frames it falls on: its columns, as 1-element arrays."""
-    cols = {k: np.full(1, np.nan) for k in _JOINT_FLOAT}
-    cols.update({k: np.zeros(1, dtype=np.int32) for k in _JOINT_INT})
-    i = int(ctx.rows[j])
+def _joint_stamps(ctx: JointContext, j: int):
+    """Selected galaxy ``j``'s stamps on the frames it falls on: (stamps, frame indices, off an edge, frames used)."""
     n = int(ctx.sizes[j])
-    stamps, edge, nframes = [], False, 0
-    for f in ctx.frames:
+    stamps, used, edge, nframes = [], [], False, 0
+    for k, f in enumerate(ctx.frames):
         if not f.on[j]:
             continue
         xi, yi = float(f.x[j]) - 1.0, float(f.y[j]) - 1.0
@@ -133,11 +128,25 @@ def measure_joint_object(ctx: JointContext, j: int) -> dict:
         edge |= off
         nframes += int(np.count_nonzero((wt > 0) & np.isfinite(img)) >= 20)
         stamps.append(JointStamp(img, wt, ctx.models[f.model][n], (xi - x0, yi - y0), f.ainv[j], f.per_rate))
+        used.append(k)
+    return stamps, used, edge, nframes
+
+
+def _joint_start(ctx: JointContext, j: int, stamps) -> tuple:
+    """The fit's start, from the catalogue alone: (du, dv, g1, g2, T, flux), round."""
+    i = int(ctx.rows[j])
     T0 = _start_size(ctx.cat, i, 1.0)               # arcsec^2
     F0 = catalogue_rate(ctx.cat, i, ctx.rate_frame)
     if not (np.isfinite(F0) and F0 > 0):
         F0 = _joint_linear_flux(stamps, T0)
-    res = fit_joint(stamps, (0.0, 0.0, 0.0, 0.0, T0, F0))
+    return (0.0, 0.0, 0.0, 0.0, T0, F0)
+
+
+def _joint_columns(ctx: JointContext, j: int, res, edge: bool, nframes: int) -> dict:
+    """One fit's columns, as 1-element arrays: the sky position, shape, errors and flags."""
+    cols = {k: np.full(1, np.nan) for k in _JOINT_FLOAT}
+    cols.update({k: np.zeros(1, dtype=np.int32) for k in _JOINT_INT})
+    i = int(ctx.rows[j])
     th, er = res.theta, res.errors
     ra0, dec0 = float(ctx.cat["ra"][i]), float(ctx.cat["dec"][i])
     # (du, dv) in the tangent plane, u to the West: back to ra, dec (offsets below arcseconds)
@@ -153,6 +162,67 @@ def measure_joint_object(ctx: JointContext, j: int) -> dict:
     cols["flags"][0] = (res.flags | (FLAG_EDGE if edge else 0) | (FLAG_BLEND if ctx.blends[j] else 0)
                         | (FLAG_MOVED if moved else 0) | (FLAG_LOW_SN if not res.s2n >= MIN_S2N else 0))
     return cols
+
+
+def measure_joint_object(ctx: JointContext, j: int) -> dict:
+    """Joint fit of selected galaxy ``j`` over the frames it falls on: its columns, as 1-element arrays."""
+    stamps, _, edge, nframes = _joint_stamps(ctx, j)
+    res = fit_joint(stamps, _joint_start(ctx, j, stamps))
+    return _joint_columns(ctx, j, res, edge, nframes)
+
+
+@dataclass
+class ChangesContext:
+    """A :class:`JointContext` and, per variant, per frame the windows of its pixel change (or None)."""
+
+    joint: JointContext
+    deltas: list               # per variant: per frame a Windows of (variant - reference), or None
+    changed: list              # per variant: per selected galaxy (index j) whether any of its stamps changed
+    cold: bool = False         # also fit every changed variant from the start (the check of the linear response)
+
+
+def measure_joint_changes_object(ctx: ChangesContext, j: int) -> dict:
+    """Galaxy ``j`` fitted on the reference and on every variant (:func:`perscli.measure.response.fit_joint_changes`).
+
+    Returns
+    -------
+    dict
+        'ref': the reference's columns; 'variants': per variant its columns
+        (with 'method', 'bound' and, with ``cold``, 'g1_cold', 'g2_cold').
+    """
+    from .response import CHANGE_METHODS, fit_joint_changes
+
+    jc = ctx.joint
+    stamps, used, edge, nframes = _joint_stamps(jc, j)
+    n = int(jc.sizes[j])
+    deltas = []
+    for v, per_frame in enumerate(ctx.deltas):
+        if not ctx.changed[v][j]:
+            deltas.append(None)
+            continue
+        per = []
+        for k in used:
+            w = per_frame[k]
+            f = jc.frames[k]
+            if w is None:
+                per.append(None)
+                continue
+            d, _, _, _, _ = cut_stamp(w, None, 1.0, 0.0, n, float(f.x[j]) - 1.0, float(f.y[j]) - 1.0)
+            per.append(d if np.any(d) else None)
+        deltas.append(per)
+    # the start of perscli measure's own fits (a start nearer the truth can find another minimum where the
+    # likelihood has two, and the shape changes must be those of the measure a user would run)
+    ref, changes, colds = fit_joint_changes(stamps, _joint_start(jc, j, stamps), deltas, cold=ctx.cold)
+    out = {"ref": _joint_columns(jc, j, ref, edge, nframes), "variants": []}
+    for change, cold in zip(changes, colds):
+        cols = _joint_columns(jc, j, change.result, edge, nframes)
+        cols["method"] = np.array([CHANGE_METHODS.index(change.method)], dtype=np.int16)
+        cols["bound"] = np.array([change.bound])
+        if ctx.cold:
+            cols["g1_cold"] = np.array([cold.theta[2] if cold is not None else np.nan])
+            cols["g2_cold"] = np.array([cold.theta[3] if cold is not None else np.nan])
+        out["variants"].append(cols)
+    return out
 
 
 def measure_joint(frames, cat, *, options: MeasureOptions | None = None, progress=None, workers: int = 1,
@@ -199,9 +269,83 @@ def measure_joint(frames, cat, *, options: MeasureOptions | None = None, progres
     catalogue rows selected for a fit).
     """
     from ..executor import run
-    from ..io.frames import open_frame
 
     o = options if options is not None else MeasureOptions()
+    setup = joint_setup(frames, cat, o, inputs=inputs, psf_options=psf_options, psf_used=psf_used, data=data,
+                        only=only)
+    ctx, todo = setup.ctx, setup.todo
+    setup.keep_windows(frames, data)
+    results = run(measure_joint_object, todo, context=ctx, workers=workers, progress=progress)
+    return setup.columns(results, o.all_rows)
+
+
+@dataclass
+class JointSetup:
+    """What a joint measurement reads before it fits: the frames' facts, the selection, the stamp sizes."""
+
+    ctx: JointContext
+    rows: np.ndarray           # catalogue rows of the kinds measured
+    todo: np.ndarray           # indices into rows of the galaxies to fit
+    selected: np.ndarray       # indices into rows passing the cut
+    on_any: np.ndarray
+    snr: np.ndarray
+    noises: list
+    nmodels: int
+
+    def windows_of(self, pixels, k: int) -> Windows:
+        """Frame k's pixels (an array of its shape) kept in the windows of the galaxies fitted on it."""
+        f = self.ctx.frames[k]
+        out = Windows(f.shape, pixels.dtype)
+        for j in self.todo[f.on[self.todo]]:
+            out.keep(pixels, stamp_window(f.shape, int(self.ctx.sizes[j]), float(f.x[j]) - 1.0,
+                                          float(f.y[j]) - 1.0))
+        return out
+
+    def keep_windows(self, frames, data=None) -> None:
+        """Each frame's pixels (its own, or ``data``'s) read once and kept only in its galaxies' windows."""
+        from ..io.frames import open_frame
+
+        for k, f in enumerate(self.ctx.frames):
+            given = data[k] if data is not None else None
+            pixels = f.data if given is None else (given() if callable(given) else given)
+            if pixels is None:
+                with open_frame(frames[k]) as frame:
+                    pixels = _float_pixels(frame)
+            f.data = self.windows_of(pixels, k)
+            del pixels
+
+    def columns(self, results, all_rows: bool = False) -> dict:
+        """The fits (one per galaxy of ``todo``) as columns, with the bookkeeping of :func:`measure_joint`."""
+        ctx, todo, on_any = self.ctx, self.todo, self.on_any
+        out = np.arange(len(self.rows)) if all_rows else todo
+        cols = _gather(results, todo, out, _JOINT_FLOAT, _JOINT_INT)
+        if all_rows:
+            fitted = np.isin(out, todo)
+            cols["ra"][~fitted] = ctx.cat["ra"][self.rows[out[~fitted]]]
+            cols["dec"][~fitted] = ctx.cat["dec"][self.rows[out[~fitted]]]
+            cols["flags"][~on_any[out]] = FLAG_OFF_FRAME
+            cols["flags"][on_any[out] & ~fitted] = FLAG_BELOW_CUT
+            for f in ctx.frames:
+                cols["nframes"][~fitted] += f.on[out[~fitted]].astype(np.int32)
+        cols["id"] = ctx.cat["id"][self.rows[out]]
+        cols["snr_pred"] = self.snr[out]
+        cols["_noise"] = self.noises
+        cols["_counts"] = {"selected": len(self.rows), "on": int(on_any.sum()),
+                           "cut": int(on_any.sum() - len(self.selected)), "fitted": len(todo),
+                           "models": self.nmodels}
+        cols["_todo"] = self.rows[self.selected]
+        return cols
+
+
+def joint_setup(frames, cat, o: MeasureOptions, *, inputs=None, psf_options=None, psf_used=None, data=None,
+                only=None) -> JointSetup:
+    """Read the frames' headers and choose what a joint measurement fits (:func:`measure_joint`, its parameters).
+
+    The frames' pixels are not read here (but those of standard input,
+    which cannot be read twice): :meth:`JointSetup.keep_windows` does.
+    """
+    from ..io.frames import open_frame
+
     psf, stamp = o.psf, o.stamp
     psf_options = psf_options if psf_options is not None else o.psf_options()
     min_snr = _check_min_snr(o.min_snr)
@@ -273,36 +417,10 @@ def measure_joint(frames, cat, *, options: MeasureOptions | None = None, progres
     for per_psf in models:
         for n in sorted(set(sizes[todo].tolist()) - set(per_psf)):
             per_psf[n] = ExpModel(per_psf[stamp].drawer.psf, n, pixel=per_psf[stamp].drawer.pixel)
-    for k, f in enumerate(jframes):
-        given = data[k] if data is not None else None
-        pixels = f.data if given is None else (given() if callable(given) else given)
-        if pixels is None:
-            with open_frame(frames[k]) as frame:
-                pixels = _float_pixels(frame)
-        f.data = Windows(f.shape, pixels.dtype)
-        for j in todo[f.on[todo]]:
-            f.data.keep(pixels, stamp_window(f.shape, int(sizes[j]), float(f.x[j]) - 1.0, float(f.y[j]) - 1.0))
-        del pixels
     ctx = JointContext(frames=jframes, models=models, cat=cat, rows=rows, sizes=sizes, blends=blends_all[rows],
                        rate_frame=rate_frame, stamp=stamp, pixel_scale=pixel_scale)
-    results = run(measure_joint_object, todo, context=ctx, workers=workers, progress=progress)
-    out = np.arange(len(rows)) if o.all_rows else todo
-    cols = _gather(results, todo, out, _JOINT_FLOAT, _JOINT_INT)
-    if o.all_rows:
-        fitted = np.isin(out, todo)
-        cols["ra"][~fitted] = cat["ra"][rows[out[~fitted]]]
-        cols["dec"][~fitted] = cat["dec"][rows[out[~fitted]]]
-        cols["flags"][~on_any[out]] = FLAG_OFF_FRAME
-        cols["flags"][on_any[out] & ~fitted] = FLAG_BELOW_CUT
-        for f in jframes:
-            cols["nframes"][~fitted] += f.on[out[~fitted]].astype(np.int32)
-    cols["id"] = cat["id"][rows[out]]
-    cols["snr_pred"] = snr[out]
-    cols["_noise"] = noises
-    cols["_counts"] = {"selected": len(rows), "on": int(on_any.sum()), "cut": int(on_any.sum() - len(selected)),
-                       "fitted": len(todo), "models": len(models)}
-    cols["_todo"] = rows[selected]
-    return cols
+    return JointSetup(ctx=ctx, rows=rows, todo=todo, selected=selected, on_any=on_any, snr=snr, noises=noises,
+                      nmodels=len(models))
 
 
 def _float_pixels(frame) -> np.ndarray:

@@ -14,6 +14,7 @@ other modules import from it.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -225,6 +226,13 @@ class Windows:
         b0, b1, a0, a1 = window
         self._parts[window] = np.array(data[b0:b1, a0:a1], dtype=self.dtype)
 
+    def put(self, window, pixels) -> None:
+        """Store ``pixels`` as the window ``window`` ((b0, b1, a0, a1)): a window kept elsewhere."""
+        b0, b1, a0, a1 = window
+        if np.shape(pixels) != (b1 - b0, a1 - a0):
+            raise ValueError(f"window {window}: pixels of shape {np.shape(pixels)}")
+        self._parts[tuple(window)] = np.asarray(pixels, dtype=self.dtype)
+
     def __contains__(self, window) -> bool:
         return window in self._parts
 
@@ -239,34 +247,85 @@ _FLOAT_COLUMNS = ("x", "y", "g1", "g2", "T", "flux", "x_err", "y_err", "g1_err",
 _INT_COLUMNS = ("nfev", "flags")
 
 
-def measure_object(ctx: FrameContext, i: int) -> dict:
-    """Fit catalogue object ``i`` (on the frame) of ``ctx``: its columns, as 1-element arrays."""
+def _object_columns(ctx: FrameContext, i: int, res, x0: int, y0: int, start, edge: int) -> dict:
+    """One exp fit's columns, as 1-element arrays: frame position, shape, errors and flags."""
     cols = {k: np.full(1, np.nan) for k in _FLOAT_COLUMNS}
     cols.update({k: np.zeros(1, dtype=np.int32) for k in _INT_COLUMNS})
+    th, er = res.theta, res.errors
+    cols["x"][0], cols["y"][0] = th[0] + x0 + 1.0, th[1] + y0 + 1.0
+    for j, key in enumerate(("g1", "g2", "T", "flux"), 2):
+        cols[key][0] = th[j]
+        cols[f"{key}_err"][0] = er[j]
+    cols["x_err"][0], cols["y_err"][0] = er[0], er[1]
+    cols["s2n"][0], cols["chi2"][0], cols["nfev"][0] = res.s2n, res.chi2, res.nfev
+    moved = math.hypot(th[0] - start[0], th[1] - start[1]) > MAX_MOVE
+    cols["flags"][0] = (res.flags | edge | (FLAG_MOVED if moved else 0)
+                        | (FLAG_LOW_SN if not res.s2n >= MIN_S2N else 0))
+    return cols
+
+
+def _object_start(ctx: FrameContext, i: int, img, wt, x0, y0):
+    """An exp fit's stamp model and start (from the catalogue, else the flux solved for)."""
+    xi, yi = float(ctx.x[i]) - 1.0, float(ctx.y[i]) - 1.0
+    model = ctx.models[int(ctx.sizes[i])]
+    start, from_catalogue = start_point(ctx.cat, i, xi - x0, yi - y0, ctx.frame, ctx.pixel_scale)
+    if not from_catalogue:
+        start = start[:5] + (_linear_flux(model, start, img, wt),)
+    return model, start
+
+
+def measure_object(ctx: FrameContext, i: int) -> dict:
+    """Fit catalogue object ``i`` (on the frame) of ``ctx``: its columns, as 1-element arrays."""
     # 0-indexed array coordinates of the object (FITS pixel 1 is index 0)
     xi, yi = float(ctx.x[i]) - 1.0, float(ctx.y[i]) - 1.0
     n = int(ctx.sizes[i]) if ctx.method == "exp" else ctx.stamp
     img, wt, x0, y0, off_edge = cut_stamp(ctx.data, ctx.weights, ctx.ivar, ctx.background, n, xi, yi)
     edge = (FLAG_EDGE if off_edge else 0) | (FLAG_BLEND if ctx.blends[i] else 0)
     if ctx.method == "exp":
-        model = ctx.models[n]
-        start, from_catalogue = start_point(ctx.cat, i, xi - x0, yi - y0, ctx.frame, ctx.pixel_scale)
-        if not from_catalogue:
-            start = start[:5] + (_linear_flux(model, start, img, wt),)
-        res = fit_exp(img, wt, model, start)
-        th, er = res.theta, res.errors
-        cols["x"][0], cols["y"][0] = th[0] + x0 + 1.0, th[1] + y0 + 1.0
-        for j, key in enumerate(("g1", "g2", "T", "flux"), 2):
-            cols[key][0] = th[j]
-            cols[f"{key}_err"][0] = er[j]
-        cols["x_err"][0], cols["y_err"][0] = er[0], er[1]
-        cols["s2n"][0], cols["chi2"][0], cols["nfev"][0] = res.s2n, res.chi2, res.nfev
-        moved = math.hypot(th[0] - start[0], th[1] - start[1]) > MAX_MOVE
-        cols["flags"][0] = (res.flags | edge | (FLAG_MOVED if moved else 0)
-                            | (FLAG_LOW_SN if not res.s2n >= MIN_S2N else 0))
-    else:
-        _hsm(img, wt, ctx.psf_image, cols, 0, x0, y0, edge)
+        model, start = _object_start(ctx, i, img, wt, x0, y0)
+        return _object_columns(ctx, i, fit_exp(img, wt, model, start), x0, y0, start, edge)
+    cols = {k: np.full(1, np.nan) for k in _FLOAT_COLUMNS}
+    cols.update({k: np.zeros(1, dtype=np.int32) for k in _INT_COLUMNS})
+    _hsm(img, wt, ctx.psf_image, cols, 0, x0, y0, edge)
     return cols
+
+
+@dataclass
+class ChangesFrameContext(FrameContext):
+    """A :class:`FrameContext` and, per variant, its pixel change over the frame (or None), which rows changed."""
+
+    deltas: list = None
+    changed: list = None
+    cold: bool = False
+
+
+def measure_object_changes(ctx: ChangesFrameContext, i: int) -> dict:
+    """Object ``i`` fitted on the reference and on every variant (:func:`perscli.measure.response.fit_exp_changes`)."""
+    from .response import CHANGE_METHODS, fit_exp_changes
+
+    xi, yi = float(ctx.x[i]) - 1.0, float(ctx.y[i]) - 1.0
+    n = int(ctx.sizes[i])
+    img, wt, x0, y0, off_edge = cut_stamp(ctx.data, ctx.weights, ctx.ivar, ctx.background, n, xi, yi)
+    edge = (FLAG_EDGE if off_edge else 0) | (FLAG_BLEND if ctx.blends[i] else 0)
+    model, start = _object_start(ctx, i, img, wt, x0, y0)
+    deltas = []
+    for v, full in enumerate(ctx.deltas):
+        if full is None or not ctx.changed[v][i]:
+            deltas.append(None)
+            continue
+        d = cut_stamp(full, None, 1.0, 0.0, n, xi, yi)[0]
+        deltas.append(d if np.any(d) else None)
+    ref, changes, colds = fit_exp_changes(img, wt, model, start, deltas, cold=ctx.cold)
+    out = {"ref": _object_columns(ctx, i, ref, x0, y0, start, edge), "variants": []}
+    for change, cold in zip(changes, colds):
+        cols = _object_columns(ctx, i, change.result, x0, y0, start, edge)
+        cols["method"] = np.array([CHANGE_METHODS.index(change.method)], dtype=np.int16)
+        cols["bound"] = np.array([change.bound])
+        if ctx.cold:
+            cols["g1_cold"] = np.array([cold.theta[2] if cold is not None else np.nan])
+            cols["g2_cold"] = np.array([cold.theta[3] if cold is not None else np.nan])
+        out["variants"].append(cols)
+    return out
 
 
 def _gather(results, fitted, out_rows, float_columns, int_columns) -> dict:
@@ -334,6 +393,61 @@ def measure_frame(frame, cat, *, options: MeasureOptions | None = None, progress
     """
     from ..executor import run
 
+    setup = frame_setup(frame, cat, options=options, models=models, psf_options=psf_options, psf_used=psf_used,
+                        data=data, only=only)
+    results = run(measure_object, setup.todo, context=setup.ctx, workers=workers, progress=progress)
+    o = options if options is not None else MeasureOptions()
+    return setup.columns(results, o.all_rows)
+
+
+@dataclass
+class FrameSetup:
+    """What a measurement of one frame reads before it fits (:func:`frame_setup`)."""
+
+    ctx: FrameContext
+    todo: np.ndarray           # catalogue rows to fit
+    selected: np.ndarray       # catalogue rows on the frame and above the cut
+    rows_sel: np.ndarray       # catalogue rows of the kinds measured
+    rows_on: np.ndarray
+    ra: np.ndarray
+    dec: np.ndarray
+    snr: np.ndarray
+    noise: object
+
+    @property
+    def rows(self) -> np.ndarray:
+        """Catalogue rows by the index :attr:`todo` uses (here: themselves)."""
+        return np.arange(len(self.ctx.cat["id"]))
+
+    def changes(self, deltas, changed, cold: bool = False) -> None:
+        """Make the context one of shape changes: per variant its pixel change (or None) and which rows changed."""
+        self.ctx = ChangesFrameContext(**{f.name: getattr(self.ctx, f.name) for f in dataclasses.fields(FrameContext)},
+                                       deltas=list(deltas), changed=list(changed), cold=cold)
+
+    def columns(self, results, all_rows: bool = False) -> dict:
+        """The fits (one per row of ``todo``) as columns, with the bookkeeping of :func:`measure_frame`."""
+        ctx, todo = self.ctx, self.todo
+        out_rows = self.rows_sel if all_rows else todo
+        cols = _gather(results, todo, out_rows, _FLOAT_COLUMNS, _INT_COLUMNS)
+        if all_rows:
+            fitted = np.isin(out_rows, todo)
+            on_all = on_frame(ctx.x[out_rows], ctx.y[out_rows], ctx.data.shape)
+            cols["flags"][~on_all] = FLAG_OFF_FRAME
+            cols["flags"][on_all & ~fitted] = FLAG_BELOW_CUT
+        cols["id"] = ctx.cat["id"][out_rows]
+        cols["ra"] = np.asarray(self.ra, dtype=np.float64)[out_rows]
+        cols["dec"] = np.asarray(self.dec, dtype=np.float64)[out_rows]
+        cols["snr_pred"] = self.snr[out_rows]
+        cols["_noise"] = self.noise
+        cols["_counts"] = {"selected": len(self.rows_sel), "on": len(self.rows_on),
+                           "cut": int(len(self.rows_on) - len(self.selected)), "fitted": len(todo)}
+        cols["_todo"] = self.selected
+        return cols
+
+
+def frame_setup(frame, cat, *, options: MeasureOptions | None = None, models=None, psf_options=None, psf_used=None,
+                data=None, only=None) -> FrameSetup:
+    """Read a frame and choose what :func:`measure_frame` fits (its parameters)."""
     o = options if options is not None else MeasureOptions()
     psf, method, stamp, blend_radius = o.psf, o.method, o.stamp, o.blend_radius
     psf_options = psf_options if psf_options is not None else o.psf_options()
@@ -384,23 +498,8 @@ def measure_frame(frame, cat, *, options: MeasureOptions | None = None, progress
                        background=float(noise.background), cat=cat, frame=facts, pixel_scale=pixel_scale,
                        method=method, stamp=stamp, models=models if method == "exp" else None, sizes=sizes,
                        psf_image=psf_image)
-    results = run(measure_object, todo, context=ctx, workers=workers, progress=progress)
-    out_rows = rows_sel if o.all_rows else todo
-    cols = _gather(results, todo, out_rows, _FLOAT_COLUMNS, _INT_COLUMNS)
-    if o.all_rows:
-        fitted = np.isin(out_rows, todo)
-        on_all = on_frame(x[out_rows], y[out_rows], data.shape)
-        cols["flags"][~on_all] = FLAG_OFF_FRAME
-        cols["flags"][on_all & ~fitted] = FLAG_BELOW_CUT
-    cols["id"] = cat["id"][out_rows]
-    cols["ra"] = np.asarray(ra, dtype=np.float64)[out_rows]
-    cols["dec"] = np.asarray(dec, dtype=np.float64)[out_rows]
-    cols["snr_pred"] = snr[out_rows]
-    cols["_noise"] = noise
-    cols["_counts"] = {"selected": len(rows_sel), "on": len(rows_on), "cut": int(len(rows_on) - len(selected)),
-                       "fitted": len(todo)}
-    cols["_todo"] = selected
-    return cols
+    return FrameSetup(ctx=ctx, todo=todo, selected=selected, rows_sel=rows_sel, rows_on=rows_on, ra=ra, dec=dec,
+                      snr=snr, noise=noise)
 
 
 def _psf_exp_model(psf, frame, pixel_scale, stamp, psf_options, psf_used) -> ExpModel:

@@ -44,7 +44,7 @@ from .psf import psf_hdus
 from .selection import _pixel_scale, frame_wcs, select_kinds
 from .settings import MeasureOptions
 
-# re-exported for existing callers (perscli.measure.changes, perscli.render.differential, the tests and
+# re-exported for existing callers (perscli.measure.changes, perscli.study.differential, the tests and
 # benchmarks import them from here); some are also used below
 from .joint import measure_joint  # noqa: F401
 from .noise import MIN_SNR_DEFAULT, SnrTable, _noise_and_weights, predicted_snr  # noqa: F401

@@ -221,33 +221,52 @@ def draw_context(exposure: Exposure, optics: Optics | None = None) -> DrawContex
     return DrawContext(optics, stamp_drawer(exposure.sca, exposure.filter))
 
 
-def draw_one(context: DrawContext, job):
-    """One object's stamp: (index, stamp array, its lower-left pixel).
+#: objects per batch of :func:`draw_batch`: at most this many stamp pixels (a few tens of MB of spectra)
+BATCH_PIXELS = 2 ** 22
 
-    ``job`` is (index, x, y, flux, stamp size, kind, hlr, e1, e2), as
-    :func:`draw_sources` makes them.
+
+def draw_batch(context: DrawContext, job):
+    """The stamps of a run of objects: [(index, stamp array, its lower-left pixel)], in the job's order.
+
+    ``job`` is (indices, x, y, flux, sizes, forms): arrays of one run of
+    consecutive objects of :func:`draw_sources`; ``forms`` the exponential
+    covariance forms of the galaxies (NaN rows for stars,
+    :func:`perscli.optics.exponential_forms`).  Objects of one stamp size are
+    drawn together (:meth:`perscli.optics.StampDrawer.batch`).
     """
-    import galsim
+    index, x, y, flux, sizes, forms = job
+    ix, iy = np.floor(x + 0.5).astype(np.int64), np.floor(y + 0.5).astype(np.int64)
+    out = [None] * len(index)
+    for n in np.unique(sizes):
+        pick = np.flatnonzero(sizes == n)
+        stamps = context.drawer.batch(int(n), x[pick] - ix[pick], y[pick] - iy[pick], forms[pick])
+        for k, st in zip(pick, stamps):
+            st *= flux[k]
+            out[k] = (int(index[k]), st, int(ix[k] - n // 2), int(iy[k] - n // 2))
+    return out
 
-    index, x, y, flux, n, kind, hlr, e1, e2 = job
-    optics, drawer = context.optics, context.drawer
-    profile = None
-    if kind == "galaxy":
-        gal = galsim.Exponential(half_light_radius=hlr, flux=1.0).shear(g1=e1, g2=e2)
-        profile = optics.wcs.local(galsim.PositionD(x, y)).toImage(gal)
-    ix, iy = int(math.floor(x + 0.5)), int(math.floor(y + 0.5))
-    stamp = drawer.stamp(n, x - ix, y - iy, flux, profile)
-    return index, stamp, ix - n // 2, iy - n // 2
+
+def _batches(todo, sizes):
+    """Runs of consecutive objects whose stamps hold at most :data:`BATCH_PIXELS` pixels (one at least)."""
+    start, total = 0, 0
+    for k, i in enumerate(todo):
+        px = int(sizes[i]) ** 2
+        if k > start and total + px > BATCH_PIXELS:
+            yield start, k
+            start, total = k, 0
+        total += px
+    if start < len(todo):
+        yield start, len(todo)
 
 
 def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, stars: bool = False,
                  optics: Optics | None = None, plan=None, bounds=None, only=None, image: bool = True):
     """Expected electrons from the catalogue's objects on the exposure's pixels.
 
-    Stamps are drawn by :func:`draw_one` through :func:`perscli.executor.imap`
-    (``workers`` processes, each handed the optics once) and added in
-    catalogue order whatever the number of workers, so the result is the same
-    bytes for any ``workers``.
+    Stamps are drawn in runs of consecutive objects by :func:`draw_batch`
+    through :func:`perscli.executor.imap` (``workers`` processes, each handed
+    the optics once) and added in catalogue order whatever the number of
+    workers, so the result is the same bytes for any ``workers``.
 
     Parameters
     ----------
@@ -290,31 +309,42 @@ def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, s
     if only is not None:
         todo = todo[np.asarray(only, dtype=bool)[todo]]
     image = np.zeros(shape) if image else None
-    jobs = [(int(i), float(x[i]), float(y[i]), float(flux[i]), int(sizes[i]), cols["kind"][i],
-             float(cols["hlr"][i]), float(cols["e1"][i]), float(cols["e2"][i])) for i in todo]
-    if jobs:
+    ndrawn = len(todo)
+    if ndrawn:
+        from ..optics import exponential_forms, local_jacobians
+
+        forms = np.full((len(x), 3), np.nan)
+        gal = todo[cols["kind"][todo] == "galaxy"]
+        if len(gal):
+            jac = local_jacobians(optics.wcs, x[gal], y[gal])
+            forms[gal] = exponential_forms(jac, np.asarray(cols["hlr"], dtype=np.float64)[gal],
+                                           np.asarray(cols["e1"], dtype=np.float64)[gal],
+                                           np.asarray(cols["e2"], dtype=np.float64)[gal])
+        jobs = [(todo[a:b], x[todo[a:b]], y[todo[a:b]], flux[todo[a:b]], sizes[todo[a:b]], forms[todo[a:b]])
+                for a, b in _batches(todo, sizes)]
         context = draw_context(exposure, optics)
         # the PSF table of each stamp size (the costly part of a large stamp) is made once, here, and
         # handed to every worker with the context, rather than remade in each of them
-        for n in sorted({job[4] for job in jobs}):
-            context.drawer.table(n)
-        # stamps vary a lot in cost (a bright star's is 2048 pixels wide): small chunks balance the load
-        stamps = imap(draw_one, jobs, context=context, workers=workers,
-                      chunksize=max(1, len(jobs) // (8 * max(1, workers))))
-        is_star = {job[0]: job[5] == "star" for job in jobs}
-        with contextlib.closing(stamps):
-            for done, (index, stamp, x0, y0) in enumerate(stamps, 1):
-                n = stamp.shape[0]
-                a0, a1 = max(x0, xmin), min(x0 + n, xmax + 1)
-                b0, b1 = max(y0, ymin), min(y0 + n, ymax + 1)
-                if a0 < a1 and b0 < b1:
-                    part = stamp[b0 - y0:b1 - y0, a0 - x0:a1 - x0]
-                    if image is not None:
-                        image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += part
-                    if star_image is not None and is_star[index]:
-                        star_image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += part
+        for n in sorted(set(sizes[todo].tolist())):
+            context.drawer._split(int(n))
+        batches = imap(draw_batch, jobs, context=context, workers=workers, chunksize=1)
+        is_star = cols["kind"] == "star"
+        done = 0
+        with contextlib.closing(batches):
+            for batch in batches:
+                for index, stamp, x0, y0 in batch:
+                    n = stamp.shape[0]
+                    a0, a1 = max(x0, xmin), min(x0 + n, xmax + 1)
+                    b0, b1 = max(y0, ymin), min(y0 + n, ymax + 1)
+                    if a0 < a1 and b0 < b1:
+                        part = stamp[b0 - y0:b1 - y0, a0 - x0:a1 - x0]
+                        if image is not None:
+                            image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += part
+                        if star_image is not None and is_star[index]:
+                            star_image[b0 - ymin:b1 - ymin, a0 - xmin:a1 - xmin] += part
+                done += len(batch)
                 if progress is not None:
-                    progress(done, len(jobs))
+                    progress(done, ndrawn)
     if stars:
-        return image, len(jobs), optics, star_image
-    return image, len(jobs), optics
+        return image, ndrawn, optics, star_image
+    return image, ndrawn, optics

@@ -2,18 +2,20 @@
 
 What a frame holds (:data:`HDU_NAMES`, chosen with ``hdus``): SCI (the frame,
 DN after gain), IDEAL (noise-free electrons of sky and sources), FLUENCE (the
-charge collected, after saturation: at most the full well), STARFLU (the
-noise-free electrons of the stars alone, not clipped), PERSIST (the
-persistence charge from earlier exposures) and MODEL (the detector model).
+charge collected, after saturation: at most the full well), DRAWN (the
+noise-free electrons of every object, galaxies and stars, no sky, not
+clipped), STARFLU (the same of the stars alone), PERSIST (the persistence
+charge from earlier exposures) and MODEL (the detector model).
 
 What persists of an earlier exposure (the persistence effect's ``source``
 and ``fluence_cap``, :meth:`perscli.detector.effects.Persistence.fluence_input`):
-its FLUENCE ('all'), its STARFLU ('stars'), or its FLUENCE where it exceeds a
-number of electrons (a threshold); the fluence x fed to the law is then
-min(x, cap), cap = the saturation full well by default.  A frame rendered
-once with FLUENCE and STARFLU is therefore the history of later frames for
-every source, and the persistence is applied when the later frame is
-rendered (:func:`persisting_fluence`).
+its DRAWN ('drawn': the light drawn on it, what the paper's pipeline
+persisted), its STARFLU ('stars'), its FLUENCE ('all'), or its FLUENCE where
+it exceeds a number of electrons (a threshold); the fluence x fed to the law
+is then min(x, cap) when a cap is set.  A frame rendered once with DRAWN,
+STARFLU and FLUENCE is therefore the history of later frames for every
+source, and the persistence is applied when the later frame is rendered
+(:func:`persisting_fluence`).
 
 Where the frame lands (:func:`footprint_report`, ``perscli render
 --dry-run``): its corners on the sky, its size, and which objects of the
@@ -38,7 +40,7 @@ from ..io.fitsfile import OutHDU
 from ..io.output import add_provenance, check_output, write_hdus
 from ..optics import Optics
 from .exposure import SCA_SIZE, Exposure, draw_sources, plan_objects, read_truth
-from .settings import DEFAULT_HDUS, HDU_NAMES, RenderOptions
+from .settings import DEFAULT_HDUS, HDU_NAMES, LIGHT_HDUS, SOURCE_HDU, RenderOptions
 
 log = logging.getLogger(__name__)
 
@@ -124,8 +126,8 @@ def with_persistence_source(model: DetectorModel, source) -> DetectorModel:
     ----------
     model : DetectorModel
         Not changed.
-    source : {'all', 'stars'} or float or str
-        'all', 'stars', or electrons (a number, or text such as '5e4'):
+    source : {'drawn', 'stars', 'all'} or float or str
+        'drawn', 'stars', 'all', or electrons (a number, or text such as '5e4'):
         the ``source`` parameter of the persistence effect
         (:class:`perscli.detector.effects.Persistence`).  None: ``model`` itself.
 
@@ -142,7 +144,7 @@ def with_persistence_source(model: DetectorModel, source) -> DetectorModel:
         return model
     if isinstance(source, str):
         source = source.strip()
-        if source.lower() in ("all", "stars"):
+        if source.lower() in ("drawn", "all", "stars"):
             source = source.lower()
     value = Persistence.validate({"source": source}, "--persistence-source")["source"]
     model = copy.deepcopy(model)
@@ -161,8 +163,9 @@ def open_history(name: str, source: str):
         The frame: a path (plain, ``.fits.gz`` or tile-compressed, optionally
         with an image section ``[x1:x2,y1:y2]``), '-' for standard input, or
         ``path[EXT]`` naming the image to use, which must then be that HDU.
-    source : {'all', 'stars', 'threshold'}
-        'stars' reads its STARFLU extension, the others its FLUENCE.
+    source : {'drawn', 'stars', 'all', 'threshold'}
+        Which image of it persists (:data:`perscli.render.settings.SOURCE_HDU`):
+        DRAWN, STARFLU, or FLUENCE for the others.
 
     Returns
     -------
@@ -180,12 +183,14 @@ def open_history(name: str, source: str):
     from ..io.sources import split_selector
     from ..io.frames import open_frame
 
-    want = "STARFLU" if source == "stars" else "FLUENCE"
-    why = ("the persistence source is the stars' light (the default; --persistence-source stars), which needs "
-           "the stars' fluence of every earlier exposure: render it with STARFLU in --hdus (the default), or use "
-           "--persistence-source all" if want == "STARFLU" else
-           "an earlier exposure leaves persistence through the charge it collected: render it with FLUENCE in "
-           "--hdus (the default)")
+    want = SOURCE_HDU[source]
+    why = {"DRAWN": "the persistence source is the light drawn on it (the default; --persistence-source drawn): "
+                    "render it with DRAWN in --hdus (the default), or choose another --persistence-source",
+           "STARFLU": "the persistence source is the stars' light (--persistence-source stars), which needs "
+                      "the stars' fluence of every earlier exposure: render it with STARFLU in --hdus, or use "
+                      "--persistence-source drawn",
+           "FLUENCE": "an earlier exposure leaves persistence through the charge it collected: render it with "
+                      "FLUENCE in --hdus (the default)"}[want]
     if name == "-":
         # standard input is read once: the whole frame, then its extension by name
         frame = open_frame(name)
@@ -629,10 +634,11 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
     source, threshold, cap = Persistence.fluence_input(model)
     cols = read_truth(truth, exposure.filter, columns=columns)
     optics = Optics(exposure)
-    # what only the stars' light needs (the history of later frames with star light persisting): the
-    # stars drawn on the frame, no galaxies, no sky, no detector
+    # what only the drawn light needs (the history of later frames): the objects drawn on the frame, no sky,
+    # no detector; the stars alone when only their light is asked for
+    light_only = set(hdus) <= {*LIGHT_HDUS, "MODEL"}
     stars_only = set(hdus) <= {"STARFLU", "MODEL"}
-    area = exposure.full_bounds if stars_only else simulation_area(exposure.full_bounds)
+    area = exposure.full_bounds if light_only else simulation_area(exposure.full_bounds)
     plan = plan_objects(cols, optics, area)
     on_frame = reaching(plan, exposure.full_bounds)
     if not on_frame.any():
@@ -643,11 +649,11 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
     previous = list(previous)
     if previous and not model.enabled("persistence"):
         log.warning("--previous given but the persistence effect is off in the detector model: ignored")
-    if previous and stars_only:
-        log.info("--previous not needed: only the stars' light (STARFLU) is written")
+    if previous and light_only:
+        log.info("--previous not needed: only the drawn light (%s) is written", ",".join(h for h in hdus if h != "MODEL"))
     opened = []
     try:
-        for name in previous if model.enabled("persistence") and not stars_only else []:
+        for name in previous if model.enabled("persistence") and not light_only else []:
             opened.append(open_history(name, source))
         is_star = cols["kind"] == "star"
         drawn = draw_sources(cols, exposure, workers=workers, progress=progress, stars="STARFLU" in hdus,
@@ -655,6 +661,8 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
                              image=not stars_only)
         sources, _, optics = drawn[:3]
         star_light = drawn[3] if len(drawn) > 3 else None
+        # the light of every object drawn, as the frame's float32: what persists for source drawn
+        drawn_light = crop(sources, area, exposure.full_bounds).astype(np.float32) if "DRAWN" in hdus else None
         nobj = int(np.count_nonzero(on_frame & is_star)) if stars_only else int(np.count_nonzero(on_frame))
         xmin, xmax, ymin, ymax = exposure.full_bounds
         pers_info = []
@@ -665,7 +673,7 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
             pers_info.extend(gaps)
             return pad_to(charge, exposure.full_bounds, area)
 
-        if stars_only:
+        if light_only:
             result = None
         else:
             result = crop_result(run_chain(sources, model, exptime=exposure.exptime, seed=seed,
@@ -699,6 +707,11 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
                             "what persists for source all or a threshold"),
                 format_card("SATWELL", float(well) if well is not None else 0.0,
                             "[e-] full well FLUENCE is clipped at (0: none)")]))
+        if "DRAWN" in hdus:
+            out.append(image(drawn_light, "DRAWN", e_cards + [
+                format_card("CONTENT", "expected electrons of every object drawn", "what persists for source drawn"),
+                format_card("COMMENT", "galaxies and stars, no sky, noise-free, not clipped at the well: the")
+                , format_card("COMMENT", "persistence cap (fluence_cap) applies when it is used")]))
         if "STARFLU" in hdus:
             out.append(image(star_light, "STARFLU", e_cards + [
                 format_card("CONTENT", "expected electrons of the stars alone", "what persists for source stars"),
@@ -730,7 +743,7 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
 
 def _source_params(source: str, threshold, cap) -> dict:
     """Header keywords saying what of the earlier exposures persisted: KEY -> (value, comment)."""
-    params = {"PS_SRC": (source, "persisting: all (FLUENCE), stars (STARFLU), threshold")}
+    params = {"PS_SRC": (source, "persisting: drawn, stars (STARFLU), all (FLUENCE), threshold")}
     if threshold is not None:
         params["PS_THR"] = (float(threshold), "[e-] only FLUENCE above this persisted")
     params["PS_CAP"] = (float(cap) if cap is not None else "none", "[e-] fluence fed to the law clipped here")

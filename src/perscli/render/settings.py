@@ -15,12 +15,20 @@ from __future__ import annotations
 import dataclasses
 
 #: the HDUs a rendered frame can hold, in the order they are written
-HDU_NAMES = ("SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL")
+HDU_NAMES = ("SCI", "IDEAL", "FLUENCE", "DRAWN", "STARFLU", "PERSIST", "MODEL")
 
-#: what ``perscli render`` writes unless told otherwise (PERSIST only with earlier exposures)
-#: STARFLU among them: a frame rendered with the defaults is the history of later ones under the default
-#: persistence source (stars)
-DEFAULT_HDUS = ("SCI", "IDEAL", "FLUENCE", "STARFLU", "PERSIST", "MODEL")
+#: what ``perscli render`` writes unless told otherwise (PERSIST only with earlier exposures).
+#: DRAWN among them: a frame rendered with the defaults is the history of later ones under the default
+#: persistence source (drawn); STARFLU (the stars' light alone) only when asked
+DEFAULT_HDUS = ("SCI", "IDEAL", "FLUENCE", "DRAWN", "PERSIST", "MODEL")
+
+#: the image of an earlier frame that each persistence source reads
+#: (:meth:`perscli.detector.effects.Persistence.fluence_input`)
+SOURCE_HDU = {"drawn": "DRAWN", "stars": "STARFLU", "all": "FLUENCE", "threshold": "FLUENCE"}
+
+#: the images that need only the objects drawn (no sky, no detector): a frame holding only these is drawn and
+#: written without running the detector chain
+LIGHT_HDUS = ("DRAWN", "STARFLU")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,16 +41,18 @@ class RenderOptions:
         The HDUs to write, among :data:`HDU_NAMES` (a comma-separated string
         too); written in that order, PERSIST only when earlier exposures are
         given.  A frame that is to be the history of later ones needs
-        FLUENCE, and STARFLU for the 'stars' source.
+        the image its persistence source reads (:data:`SOURCE_HDU`): DRAWN
+        for 'drawn', STARFLU for 'stars', FLUENCE for the others.
     compress : {'none', 'gzip', 'rice'}
         Lossless tile compression of the images (a full SCA: ~40% of the
         plain size with gzip).
-    persistence_source : {'all', 'stars'} or float or None
+    persistence_source : {'drawn', 'stars', 'all'} or float or None
         What of the earlier exposures persists (the persistence effect's
-        ``source``; None: the detector model's, 'stars' by default): 'all'
-        their FLUENCE, 'stars' their STARFLU, a number of electrons: only
-        pixels whose FLUENCE exceeds it.  The fluence is then capped at the
-        effect's ``fluence_cap`` (default: the saturation full well).
+        ``source``; None: the detector model's, 'drawn' by default): 'drawn'
+        their DRAWN (the light of every object, no sky), 'stars' their
+        STARFLU, 'all' their FLUENCE, a number of electrons: only pixels
+        whose FLUENCE exceeds it.  The fluence is then capped at the
+        effect's ``fluence_cap`` (default: none).
     strict : bool
         No object of the catalogue drawn on the frame is an error (before
         anything is drawn or written) rather than a warning.

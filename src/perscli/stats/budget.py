@@ -234,6 +234,8 @@ class XiTable:
     datasum: int = 0
     var_method: str = ""
     shot_bins: tuple = ()
+    #: the width of the jackknife's patches (header PATCHSIZ, in ``unit``; NaN when not given)
+    patch_size: float = float("nan")
 
 
 #: what read_xi reads (for --columns)
@@ -310,8 +312,10 @@ def read_xi(path: str, *, stdin=None, columns=None) -> XiTable:
     var_method = str(table.header.get("VAR_METH", table.header.get("VARMETHD", "")) or "").strip().lower()
     listed = str(table.header.get("SHOTBINS", "") or "")
     shot_bins = tuple(int(k) for k in listed.split(",") if k.strip().isdigit())
+    size = table.header.get("PATCHSIZ")
+    size = float(size) if isinstance(size, (int, float)) and not isinstance(size, bool) and size > 0 else math.nan
     return XiTable(label=table.label, name=path, theta=theta, unit=unit, xip=xip, sigma_xip=sigma, empty=empty,
-                   datasum=table.datasum, var_method=var_method, shot_bins=shot_bins)
+                   datasum=table.datasum, var_method=var_method, shot_bins=shot_bins, patch_size=size)
 
 
 def _xi_unit(table, column: str) -> str:
@@ -395,6 +399,11 @@ class Comparison:
     worst: int | None = None
     var_method: str = ""
     shot_bins: tuple = ()
+    #: per bin: 'below', 'above' or 'cannot tell' (:func:`bin_verdicts`); '' for an empty bin
+    verdicts: np.ndarray | None = None
+    #: per bin: whether its error can be trusted (a jackknife needs patches at least the separation)
+    supported: np.ndarray | None = None
+    patch_size: float = float("nan")
 
     @property
     def n_exceeding(self) -> int:
@@ -423,6 +432,28 @@ def budget_at(theta, unit: str = "arcmin", *, bands="dore2018", modes: str = "E"
                       amplitudes=amps)
 
 
+def bin_verdicts(xip, sigma, budget, n_sigma: float = 2.0, supported=None) -> np.ndarray:
+    """Per separation bin: 'below' the budget, 'above' it, or 'cannot tell'.
+
+    The budget bounds the size of a systematic whatever its sign, so a bin is
+    'below' when ``|xi+| + n_sigma sigma < |budget|`` (a strongly negative
+    xi+ is no better than a positive one), 'above' when
+    ``|xi+| - n_sigma sigma > |budget|``, and 'cannot tell' when that
+    interval straddles the budget, or where the error itself cannot be
+    trusted (``supported`` False: a jackknife over patches smaller than the
+    separation, or no error at all).
+    """
+    xip, sigma, budget = (np.asarray(v, dtype=float) for v in (xip, sigma, budget))
+    ok = np.isfinite(xip) & np.isfinite(sigma)
+    if supported is not None:
+        ok &= np.asarray(supported, dtype=bool)
+    out = np.full(xip.shape, "cannot tell", dtype=object)
+    with np.errstate(invalid="ignore"):
+        out[ok & (np.abs(xip) + n_sigma * sigma < np.abs(budget))] = "below"
+        out[ok & (np.abs(xip) - n_sigma * sigma > np.abs(budget))] = "above"
+    return out
+
+
 def compare(xi: XiTable, *, bands="dore2018", modes: str = "E", n_sigma: float = 2.0) -> Comparison:
     """Compare a measured xi+ with the budget at its separations.
 
@@ -445,17 +476,25 @@ def compare(xi: XiTable, *, bands="dore2018", modes: str = "E", n_sigma: float =
         raise PerscliError(f"n_sigma must be finite and >= 0, got {n_sigma}")
     result = budget_at(xi.theta, xi.unit, bands=bands, modes=modes)
     used = ~xi.empty
+    # a jackknife estimates the variance at a separation only from patches at least that wide
+    supported = np.ones(len(xi.theta), dtype=bool)
+    if xi.var_method == "jackknife" and math.isfinite(xi.patch_size):
+        supported = xi.theta <= xi.patch_size
+    verdicts = bin_verdicts(xi.xip, xi.sigma_xip, result.budget, n_sigma, supported)
+    verdicts[~used] = ""
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(used, xi.xip / result.budget, np.nan)
         sigma_ratio = np.where(used, xi.sigma_xip / np.abs(result.budget), np.nan)
-        exceeds = used & (np.abs(xi.xip) - n_sigma * xi.sigma_xip > np.abs(result.budget))
-        orders_per_bin = np.log10(np.abs(result.budget) / np.abs(xi.xip))
+        exceeds = used & (verdicts == "above")
+        # how far below the budget the bin's upper bound (|xi+| + n_sigma sigma) lies
+        orders_per_bin = np.log10(np.abs(result.budget) / (np.abs(xi.xip) + n_sigma * xi.sigma_xip))
     result.xip, result.sigma_xip = xi.xip, xi.sigma_xip
     result.ratio, result.sigma_ratio, result.exceeds, result.empty = ratio, sigma_ratio, exceeds, xi.empty.copy()
     result.n_sigma = float(n_sigma)
     result.orders = float(np.min(orders_per_bin[used])) if used.any() else float("nan")
     result.var_method = xi.var_method
     result.shot_bins = tuple(xi.shot_bins)
+    result.verdicts, result.supported, result.patch_size = verdicts, supported, xi.patch_size
     result.verdict = _verdict(result, orders_per_bin)
     return result
 
@@ -493,15 +532,25 @@ def _verdict_text(c: Comparison, orders_per_bin: np.ndarray) -> str:
     if not np.isfinite(c.orders):
         c.worst = int(idx[0])
         return f"below budget at every separation (xi+ = 0 in all {m} bins){tail}"
-    worst = int(idx[np.argmin(orders_per_bin[idx])])
+    unsupported = idx[~c.supported[idx]] if c.supported is not None else idx[:0]
+    if len(unsupported):
+        tail += (f"; {len(unsupported)} bin{'s' if len(unsupported) != 1 else ''} beyond the jackknife patches' "
+                 f"width ({c.patch_size:.3g} {c.unit}): cannot tell there")
+    told = idx[c.verdicts[idx] != "cannot tell"] if c.verdicts is not None else idx
+    if not len(told):
+        c.worst = int(idx[0])
+        return f"cannot tell at any of {m} bins: |xi+| +- {c.n_sigma:g} sigma straddles the budget{tail}"
+    worst = int(told[np.argmin(orders_per_bin[told])])
     c.worst = worst
     where = f"theta = {c.theta[worst]:.3g} {c.unit}"
-    if c.orders > 0:
-        median = float(np.median(orders_per_bin[idx]))
-        return (f"below budget by {c.orders:.1f} orders of magnitude at worst ({where}), "
-                f"{median:.1f} at the median over {m} bins{tail}")
-    return (f"within {c.n_sigma:g} sigma of the budget in all {m} bins, but |xi+| reaches "
-            f"{abs(c.ratio[worst]):.3g} x |budget| at {where}{tail}")
+    open_bins = [int(k) for k in idx if c.verdicts[k] == "cannot tell" and c.supported[k]]
+    if open_bins:
+        seps = ", ".join(f"{c.theta[k]:.3g}" for k in open_bins[:VERDICT_LIST]) + \
+            (", ..." if len(open_bins) > VERDICT_LIST else "")
+        tail = f"; cannot tell at {seps} {c.unit} (|xi+| +- {c.n_sigma:g} sigma straddles the budget)" + tail
+    median = float(np.median(orders_per_bin[told]))
+    return (f"below budget at {len(told)} of {m} bins (|xi+| + {c.n_sigma:g} sigma), by {orders_per_bin[worst]:.1f} "
+            f"orders of magnitude at worst ({where}), {median:.1f} at the median{tail}")
 
 
 def _excess(c: Comparison, k: int) -> str:
@@ -549,12 +598,16 @@ def budget_hdulist(result: Comparison, *, inputs=()):
     cols = {"theta": result.theta, "xip_budget": result.budget}
     if result.xip is not None:
         cols.update({"xip": result.xip, "sigma_xip": result.sigma_xip, "ratio": result.ratio,
-                     "sigma_ratio": result.sigma_ratio, "exceeds": np.asarray(result.exceeds, dtype=bool)})
+                     "sigma_ratio": result.sigma_ratio, "exceeds": np.asarray(result.exceeds, dtype=bool),
+                     "verdict": np.array([str(v) for v in result.verdicts]),
+                     "supported": np.asarray(result.supported, dtype=bool)})
     descriptions = {"theta": "separation (meanr of the XI table, else r_nom)",
                     "xip_budget": "xi+ of the additive shear budget",
                     "xip": "measured xi+ (XI table)", "sigma_xip": "error of xip (XI table)",
                     "ratio": "xip / xip_budget (NaN: empty bin)", "sigma_ratio": "sigma_xip / |xip_budget|",
-                    "exceeds": "|xip| - BUDSIGMA sigma_xip > |xip_budget|"}
+                    "exceeds": "|xip| - BUDSIGMA sigma_xip > |xip_budget|",
+                    "verdict": "below (|xip| + BUDSIGMA sigma < |budget|), above, or cannot tell",
+                    "supported": "the error holds: jackknife patches at least this separation wide"}
     hdu = table_hdu(cols, "BUDGET", units={"theta": result.unit}, descriptions=descriptions)
     params = {
         "BUDBANDS": (result.bands, "additive budget: HLIS requirement bands"),
@@ -569,7 +622,11 @@ def budget_hdulist(result: Comparison, *, inputs=()):
         params["BUDNBIN"] = (int(np.count_nonzero(~result.empty)), "bins compared (with pairs)")
         params["BUDNEXC"] = (result.n_exceeding, "bins exceeding the budget")
         if np.isfinite(result.orders):
-            params["BUDWORST"] = (round(result.orders, 4), "min log10(|budget|/|xip|) over bins")
+            params["BUDWORST"] = (round(result.orders, 4), "min log10(|budget|/(|xip| + BUDSIGMA sigma))")
+        for key, name in (("BUDNBEL", "below"), ("BUDNCNT", "cannot tell")):
+            params[key] = (int(np.count_nonzero(result.verdicts == name)), f"bins with verdict {name}")
+        if math.isfinite(result.patch_size):
+            params["BUDPATCH"] = (float(result.patch_size), f"[{result.unit}] width of the jackknife patches")
         if result.worst is not None:
             k = result.worst
             params["BUDWBIN"] = (int(k), "row of the bin the verdict names (0-based)")

@@ -133,6 +133,18 @@ def _png_targets(plot, plots_dir, overwrite):
     return targets
 
 
+def _within(sc, ra, dec, radius):
+    """The objects of ``sc`` within ``radius`` degrees of (ra, dec) (a study's field)."""
+    from ..scene import separation
+
+    if sc.coords != "radec":
+        raise PerscliError("a circle on the sky needs ra/dec positions, not x/y")
+    keep = separation(ra, dec, sc.pos1, sc.pos2) <= radius
+    if not keep.any():
+        raise PerscliError(f"no object within {radius} deg of ra={ra} dec={dec}: nothing to correlate")
+    return sc.select(keep, "outside")
+
+
 def correlate_files(catalogs, dest: str, options: CorrelateOptions | None = None, *, pairs=None, frames=None,
                     patch_centers=None, workers=1, plot=None, plots_dir=None, overwrite=False, stdin=None) -> dict:
     """``perscli correlate`` as a function: xi+/- of De, its covariance and the De statistics.
@@ -215,12 +227,17 @@ def correlate_files(catalogs, dest: str, options: CorrelateOptions | None = None
     # the patch centres are read first: a bad --patch-centers (a FIFO without a writer, /dev/zero, a folder)
     # is one line before any table is read, never a hang or a traceback after it
     centre_columns = read_patch_center_columns(patch_centers) if patch_centers is not None else None
+    if o.flagged not in ("drop", "keep"):
+        raise PerscliError(f"flagged {o.flagged!r}: drop or keep")
     if pairs is not None:
         sc = load_pairs(pairs, frames=frames, common_ids=common_ids, positions=positions, pixel_scale=pixel_scale,
-                        stdin=stdin, columns=columns)
+                        stdin=stdin, columns=columns, flagged=o.flagged)
     else:
         sc = load_shape_changes(catalogs, frames=frames, de_columns=de_columns, common_ids=common_ids,
-                                positions=positions, pixel_scale=pixel_scale, stdin=stdin, columns=columns)
+                                positions=positions, pixel_scale=pixel_scale, stdin=stdin, columns=columns,
+                                flagged=o.flagged)
+    if o.within is not None:
+        sc = _within(sc, *o.within)
     centers = patch_center_vectors(centre_columns, sc.coords, patch_centers) if patch_centers is not None else None
     log.info("%s: %d objects (%d matched, %d flagged, %d not finite)", sc.source, len(sc), sc.counts["matched"],
              sc.counts["flagged"], sc.counts["nonfinite"])
@@ -228,7 +245,8 @@ def correlate_files(catalogs, dest: str, options: CorrelateOptions | None = None
                                    bin_slop=bin_slop, npatch=npatch, patch_centers=centers,
                                    cross_patch_weight=cross_patch_weight, var_method=var_method, seed=seed,
                                    workers=workers)
-    stats = de_statistics(sc.de1, sc.de2, e1=sc.e1, e2=sc.e2, thresholds=thresholds, dabs=sc.dabs)
+    stats = de_statistics(sc.de1, sc.de2, e1=sc.e1, e2=sc.e2, thresholds=thresholds, dabs=sc.dabs,
+                          flags=sc.flags if o.flagged == "keep" else None)
     hist = de_histogram(_abs(sc.de1, sc.de2))
     theta = theta_distribution(sc.de1, sc.de2, edges=theta_edges, nboot=nboot, seed=seed)
     settings = dict(min_sep=float(min_sep), max_sep=float(max_sep), nbins=int(nbins), sep_units=sep_units,

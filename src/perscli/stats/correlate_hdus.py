@@ -127,6 +127,9 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     xh["BIN_SLOP"] = float(gg.bin_slop)
     xh["VAR_METH"] = (errors.method, "sigma_xip, sigma_xim: jackknife or shot")
     xh["NPATCH"] = errors.npatch
+    if errors.method == "jackknife" and np.isfinite(errors.patch_size):
+        # a jackknife supports separations up to the width of its patches
+        xh["PATCHSIZ"] = (round(float(errors.patch_size), 6), f"[{sep}] typical width of a patch")
     if errors.shot_bins:
         xh["SHOTBINS"] = (",".join(str(k) for k in errors.shot_bins), "rows with shot-noise errors")
     xh["NOBJ"] = len(sc)
@@ -149,11 +152,16 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     if "n_dabs_ge" in stats:
         scols["n_dabs_ge"] = stats["n_dabs_ge"][None, :].astype(np.int64)
         scols["frac_dabs_ge"] = stats["frac_dabs_ge"][None, :]
-    for key in ("rows_a", "rows_b", "matched", "flagged", "nonfinite"):
+    if "n_clean_ge" in stats:
+        scols["n_clean"] = np.array([stats["n_clean"]], dtype=np.int64)
+        scols["n_clean_ge"] = stats["n_clean_ge"][None, :].astype(np.int64)
+    for key in ("rows_a", "rows_b", "matched", "flagged", "nonfinite", "outside"):
         scols[key] = np.array([sc.counts.get(key, 0)], dtype=np.int64)
     stats_hdu = _table_hdu(scols, "STATS")
     _comment(stats_hdu, "e1/e2: mean g of B (the reference frame); NaN when De was given as columns. "
-                        "errors: standard errors of the means; frac_ge: fraction with |De| >= threshold.")
+                        "errors: standard errors of the means; frac_ge: fraction with |De| >= threshold. "
+                        "flagged: objects left out for a flag; with flagged objects kept, n_clean and n_clean_ge "
+                        "count the objects whose fits carry none; outside: objects outside the field.")
     if sc.pairs:
         stats_hdu.header["NPAIRS"] = (len(sc.pairs), "pairs pooled: counts are sums over them")
         _comment(stats_hdu, "pooled pairs: an object measured in several pairs counts once per pair.")

@@ -53,7 +53,7 @@ def _abs(de1, de2) -> np.ndarray:
     return np.sqrt(out, out=out)
 
 
-def de_statistics(de1, de2, *, e1=None, e2=None, thresholds=DEFAULT_THRESHOLDS, dabs=None) -> dict:
+def de_statistics(de1, de2, *, e1=None, e2=None, thresholds=DEFAULT_THRESHOLDS, dabs=None, flags=None) -> dict:
     """The paper's summary of De.
 
     Parameters
@@ -68,6 +68,10 @@ def de_statistics(de1, de2, *, e1=None, e2=None, thresholds=DEFAULT_THRESHOLDS, 
         Delta|e| = |g(A)| - |g(B)| per object (the paper's text says both
         |De| and Delta|e|): then also n_dabs_ge and frac_dabs_ge, objects
         with |Delta|e|| >= threshold.
+    flags : ndarray, optional
+        Per object, the flags of its fits (flagged objects kept): then also
+        n_clean (objects without a flag) and n_clean_ge (of them, those with
+        |De| >= threshold).
 
     Returns
     -------
@@ -91,6 +95,10 @@ def de_statistics(de1, de2, *, e1=None, e2=None, thresholds=DEFAULT_THRESHOLDS, 
     out["threshold"] = thresholds
     out["n_ge"] = np.array([np.count_nonzero(absde >= t) for t in thresholds], dtype=np.int64)
     out["frac_ge"] = out["n_ge"] / n if n else np.full(len(thresholds), math.nan)
+    if flags is not None:
+        clean = np.asarray(flags) == 0
+        out["n_clean"] = int(clean.sum())
+        out["n_clean_ge"] = np.array([np.count_nonzero(clean & (absde >= t)) for t in thresholds], dtype=np.int64)
     if dabs is not None:
         a = np.abs(np.asarray(dabs, dtype=np.float64))
         out["n_dabs_ge"] = np.array([np.count_nonzero(a >= t) for t in thresholds], dtype=np.int64)

@@ -118,7 +118,7 @@ def _check_pairs(pairs, frames) -> list:
 
 
 def load_pairs(pairs, *, frames=None, common_ids=False, positions="auto", pixel_scale=ROMAN_PIXEL_SCALE,
-               stdin=None, columns=None) -> ShapeChanges:
+               stdin=None, columns=None, flagged="drop") -> ShapeChanges:
     """The De of many pairs (each final exposure against its reference), pooled into one catalogue.
 
     Each pair gives De = g(A) - g(B) exactly as :func:`load_shape_changes`
@@ -151,6 +151,8 @@ def load_pairs(pairs, *, frames=None, common_ids=False, positions="auto", pixel_
         Stream read for a name '-' (at most one).
     columns : dict, optional
         Column mapping, as for :func:`load_shape_changes`.
+    flagged : {'drop', 'keep'}
+        As for :func:`load_shape_changes`.
 
     Returns
     -------
@@ -177,7 +179,8 @@ def load_pairs(pairs, *, frames=None, common_ids=False, positions="auto", pixel_
     for k, (a, b) in enumerate(pairs):
         try:
             sc = load_shape_changes([a, b], frames=frames, common_ids=common_ids, positions=positions,
-                                    pixel_scale=pixel_scale, stdin=stdin, orientation=many, columns=columns)
+                                    pixel_scale=pixel_scale, stdin=stdin, orientation=many, columns=columns,
+                                    flagged=flagged)
         except NoObjects as exc:
             if not many:
                 raise PerscliError(f"pair 1 of 1: {exc}") from None
@@ -244,7 +247,7 @@ def load_pairs(pairs, *, frames=None, common_ids=False, positions="auto", pixel_
                         pos1=concat("pos1"), pos2=concat("pos2"), coords=first.coords, pos_units=first.pos_units,
                         ids=ids, counts=counts, inputs=inputs, params=params, source=source, g_axes=first.g_axes,
                         pair=np.repeat(np.arange(len(parts)), [len(sc) if sc is not None else 0 for sc in parts]),
-                        pairs=records)
+                        pairs=records, flags=concat("flags"), dabs=concat("dabs"))
 
 
 def _warn_orientations(parts) -> None:

@@ -59,6 +59,12 @@ class CorrelateOptions:
         Bootstrap resamples of the position-angle test.
     seed : int
         Random seed (patches, bootstrap).
+    flagged : {'drop', 'keep'}
+        Objects whose fits carry a flag: left out (the command's default), or
+        kept with their flags (a study's sample: every galaxy counts).
+    within : (float, float, float) or None
+        Only the objects within this circle: (ra, dec, radius), degrees (a
+        study's field); None: all.
     """
 
     de_columns: tuple | None = None
@@ -78,6 +84,8 @@ class CorrelateOptions:
     theta_edges: tuple = DEFAULT_THETA_EDGES
     nboot: int = 200
     seed: int = 1
+    flagged: str = "drop"
+    within: tuple | None = None
 
 
 def default_text(values) -> str:

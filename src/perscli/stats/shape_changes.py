@@ -117,6 +117,27 @@ class ShapeChanges:
     dabs: np.ndarray | None = None
     #: tables with De columns pooled: per table its name, DATASUM, rows and objects used
     tables: list = field(default_factory=list)
+    #: per object, the flags of its fits (A's and B's ORed; 0: both clean), when flagged objects are kept
+    flags: np.ndarray | None = None
+
+    def select(self, keep: np.ndarray, why: str = "") -> "ShapeChanges":
+        """The objects ``keep`` marks (bool per object), every per-object array cut alike.
+
+        ``why`` names the cut in the counts (``counts[why]``: the objects it left out).
+        """
+        import dataclasses
+
+        keep = np.asarray(keep, dtype=bool)
+        per = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, np.ndarray) and value.shape[:1] == keep.shape:
+                per[f.name] = value[keep]
+        counts = dict(self.counts)
+        if why:
+            counts[why] = int(len(keep) - keep.sum())
+        counts["used"] = int(keep.sum())
+        return dataclasses.replace(self, counts=counts, **per)
 
     def __len__(self) -> int:
         return len(self.de1)
@@ -286,7 +307,8 @@ def _finite_rows(columns: dict, keep: np.ndarray, what: str) -> np.ndarray:
 
 
 def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=False, positions="auto",
-                       pixel_scale=ROMAN_PIXEL_SCALE, stdin=None, orientation=False, columns=None) -> ShapeChanges:
+                       pixel_scale=ROMAN_PIXEL_SCALE, stdin=None, orientation=False, columns=None,
+                       flagged="drop") -> ShapeChanges:
     """De from one or two SHAPES tables.
 
     Parameters
@@ -324,8 +346,13 @@ def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=Fal
         sit on the sky (:attr:`ShapeChanges.orientation`), from x, y and
         ra, dec; for pooling pairs, whose De add up only if their axes agree.
 
-    Only objects with ``flags == 0`` (in both A and B, or in the one table
-    when it has a flags column) and finite values are used.
+    flagged : {'drop', 'keep'}
+        'drop': only objects with ``flags == 0`` (in both A and B, or in the
+        one table when it has a flags column) are used; 'keep': every
+        object, its flags (ORed) in :attr:`ShapeChanges.flags` (a study's
+        sample counts every galaxy, as the paper's pipeline did).
+
+    Only objects with finite values are used.
 
     Raises
     ------
@@ -351,14 +378,14 @@ def load_shape_changes(catalogs, *, frames=None, de_columns=None, common_ids=Fal
         inputs = [(f"SHAPE{'AB'[k]}" if len(tables) == 2 else "SHAPES", t.name, t.datasum)
                   for k, t in enumerate(tables)]
         if de_columns is not None:
-            parts = [_from_columns(t, de_columns, positions, pixel_scale, inputs) for t in tables]
+            parts = [_from_columns(t, de_columns, positions, pixel_scale, inputs, flagged) for t in tables]
             if len(parts) == 1:
                 return parts[0]
             # many tables (a study's finals): listed with their DATASUMs in an INPUTS table, not as keywords
             records = [{"name": t.label, "datasum": int(t.datasum), "rows": p.counts["rows_a"],
                         "used": p.counts["used"]} for t, p in zip(tables, parts)]
             return _pool_columns(parts, [], records)
-        return _from_frames(tables, frames, common_ids, positions, pixel_scale, inputs, orientation)
+        return _from_frames(tables, frames, common_ids, positions, pixel_scale, inputs, orientation, flagged)
 
 
 def _pool_columns(parts, inputs, records) -> ShapeChanges:
@@ -378,10 +405,10 @@ def _pool_columns(parts, inputs, records) -> ShapeChanges:
                         pos2=cat("pos2"), coords=parts[0].coords, pos_units=parts[0].pos_units, ids=cat("ids"),
                         counts=counts, inputs=inputs, params=parts[0].params,
                         source=f"De columns of {len(parts)} tables pooled", g_axes=parts[0].g_axes,
-                        dabs=cat("dabs"), tables=records)
+                        dabs=cat("dabs"), tables=records, flags=cat("flags"))
 
 
-def _from_columns(table, de_columns, positions, pixel_scale, inputs) -> ShapeChanges:
+def _from_columns(table, de_columns, positions, pixel_scale, inputs, flagged="drop") -> ShapeChanges:
     c1, c2 = de_columns
     needed = (c1, c2, "ra/dec or x/y")
     de1 = table.column(c1, needed=needed).astype(np.float64)
@@ -392,13 +419,14 @@ def _from_columns(table, de_columns, positions, pixel_scale, inputs) -> ShapeCha
     rows = np.arange(n)
     pos1, pos2, coords, units, pparams = _positions(table, rows, positions, pixel_scale)
     keep = np.ones(n, dtype=bool)
-    flagged = 0
-    if "flags" in _names(table):
-        keep = table.column("flags", kind="integer") == 0
-        flagged = n - int(keep.sum())
+    nflagged = 0
+    flags = table.column("flags", kind="integer") if "flags" in _names(table) else np.zeros(n, dtype=np.int64)
+    if flagged == "drop":
+        keep = flags == 0
+        nflagged = n - int(keep.sum())
         if not keep.any():
             raise PerscliError(f"{table.label}: all {n} objects are flagged (flags != 0): nothing to correlate")
-    what = f"unflagged objects of {table.label}"
+    what = f"{'unflagged ' if flagged == 'drop' else ''}objects of {table.label}"
     cols = {f"{table.label}: column '{c1}'": de1, f"{table.label}: column '{c2}'": de2,
             f"{table.label}: position column 1": pos1, f"{table.label}: position column 2": pos2}
     good = _finite_rows(cols, keep, what)
@@ -408,7 +436,7 @@ def _from_columns(table, de_columns, positions, pixel_scale, inputs) -> ShapeCha
     _refuse_beyond(table.label, f"|De| = |({c1}, {c2})|", np.hypot(de1, de2), 2.0, good, all_ids,
                    "De is a difference of two shapes with |g| < 1, so |De| < 2; check the --de1/--de2 columns")
     ids = all_ids[good] if all_ids is not None else None
-    counts = {"rows_a": n, "rows_b": 0, "matched": n, "flagged": flagged,
+    counts = {"rows_a": n, "rows_b": 0, "matched": n, "flagged": nflagged,
               "nonfinite": int(keep.sum() - good.sum()), "used": int(good.sum())}
     params = {"DEMODE": ("columns", "De read from named columns"), "DE1COL": (c1, "column of De1"),
               "DE2COL": (c2, "column of De2"), **pparams}
@@ -426,7 +454,8 @@ def _from_columns(table, de_columns, positions, pixel_scale, inputs) -> ShapeCha
     return ShapeChanges(de1=de1[good], de2=de2[good], e1=extra.get("e1"), e2=extra.get("e2"), pos1=pos1[good],
                         pos2=pos2[good], coords=coords, pos_units=units, ids=ids, counts=counts, inputs=inputs,
                         params=params, source=f"De = ({c1}, {c2}) of {os.path.basename(table.label)}",
-                        g_axes=_g_axes(table) or "as given", dabs=extra.get("dabs"))
+                        g_axes=_g_axes(table) or "as given", dabs=extra.get("dabs"),
+                        flags=np.asarray(flags)[good].astype(np.int64))
 
 
 def _side(table, rows, label):
@@ -476,7 +505,8 @@ def _orientation(table, rows):
     return float(np.degrees(np.arctan2(jac[1, 0], jac[0, 0]))), (1 if det > 0 else -1)
 
 
-def _from_frames(tables, frames, common_ids, positions, pixel_scale, inputs, orientation=False) -> ShapeChanges:
+def _from_frames(tables, frames, common_ids, positions, pixel_scale, inputs, orientation=False,
+                 flagged="drop") -> ShapeChanges:
     if len(tables) == 1:
         ta = tb = tables[0]
         hint = f"--frames A B picks two of the frames of {ta.label}"
@@ -512,7 +542,8 @@ def _from_frames(tables, frames, common_ids, positions, pixel_scale, inputs, ori
     if only_a or only_b:
         log.info("--common-ids: %d ids in both, %d only in %s, %d only in %s", len(common), only_a, label_a,
                  only_b, label_b)
-    keep = (a["flags"][ia] == 0) & (b["flags"][ib] == 0)
+    both = a["flags"][ia] | b["flags"][ib]
+    keep = both == 0 if flagged == "drop" else np.ones(len(common), dtype=bool)
     if not keep.any():
         raise NoObjects(f"all {len(common)} matched objects are flagged in {label_a} or {label_b} "
                         "(flags != 0): nothing to correlate", inputs=inputs,
@@ -529,7 +560,7 @@ def _from_frames(tables, frames, common_ids, positions, pixel_scale, inputs, ori
     _refuse_beyond(label_b, "|g| = |(g1, g2)|", np.hypot(g1b, g2b), 1.0, keep, common, _G_HINT)
     cols = {f"{label_a}: g1": g1a, f"{label_a}: g2": g2a, f"{label_b}: g1": g1b, f"{label_b}: g2": g2b,
             f"{label_b}: position column 1": pos1, f"{label_b}: position column 2": pos2}
-    good = _finite_rows(cols, keep, "objects unflagged in both")
+    good = _finite_rows(cols, keep, "objects unflagged in both" if flagged == "drop" else "objects matched")
     counts = {"rows_a": len(rows_a), "rows_b": len(rows_b), "matched": len(common),
               "flagged": int(len(common) - keep.sum()), "nonfinite": int(keep.sum() - good.sum()),
               "used": int(good.sum())}
@@ -544,4 +575,5 @@ def _from_frames(tables, frames, common_ids, positions, pixel_scale, inputs, ori
                         counts=counts, inputs=inputs, params=params, source=f"De = g({label_a}) - g({label_b})",
                         g_axes=axes_a,
                         orientation=_orientation(tb, rows_b[ib][good]) if orientation and axes_a == "pixel"
-                        else None)
+                        else None, flags=np.asarray(both)[good].astype(np.int64),
+                        dabs=np.hypot(g1a[good], g2a[good]) - np.hypot(g1b[good], g2b[good]))

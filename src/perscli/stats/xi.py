@@ -11,6 +11,7 @@ importing this module does not import it.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -73,6 +74,9 @@ class Errors:
     asked: str = "auto"
     cov: np.ndarray | None = None
     shot_bins: list = field(default_factory=list)
+    #: the typical width of a jackknife patch, in the separation unit (NaN without patches): a jackknife
+    #: patch must be at least a separation for its removal to sample that separation's variance
+    patch_size: float = float("nan")
 
 
 def _too_few(n: int, wanted: int) -> tuple:
@@ -199,6 +203,7 @@ def correlate_de(sc: ShapeChanges, *, min_sep=1.0, max_sep=100.0, nbins=20, sep_
                     log.warning("%d of %d patches hold no object: the jackknife uses %d", wanted - used, wanted,
                                 used)
                 errors.cov = np.array(gg.cov, dtype=np.float64)
+                errors.patch_size = patch_size(cat, sc.coords, sep_units)
                 _repair_bins(gg, errors, float(cat.varg), sep_units, keep=var_method == "jackknife")
     if errors.method == "shot":
         if var_method == "auto":
@@ -214,6 +219,41 @@ def correlate_de(sc: ShapeChanges, *, min_sep=1.0, max_sep=100.0, nbins=20, sep_
             log.warning("no separation bin holds a pair: no two of the %d object(s) are %g to %g %s apart", n,
                         min_sep, max_sep, sep_units)
     return gg, cat, errors
+
+
+#: radians per separation unit
+RADIANS_PER = {"arcsec": math.pi / 648000, "arcmin": math.pi / 10800, "deg": math.pi / 180, "rad": 1.0}
+
+
+def patch_size(cat, coords: str, sep_units: str) -> float:
+    """The typical width of the jackknife patches of a TreeCorr catalogue, in ``sep_units``.
+
+    Each patch is taken as a disc holding its objects: for objects spread
+    evenly over a disc of radius R, their rms distance from its centre is
+    R / sqrt(2), so the disc's width is 2 sqrt(2) times the rms distance.
+    The median over the patches that hold objects.
+    """
+    patch = np.asarray(cat.patch)
+    if coords == "radec":
+        ra, dec = np.radians(cat.ra), np.radians(cat.dec)
+        xyz = np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], axis=1)
+    else:
+        # TreeCorr keeps x/y given with an angle unit in radians
+        xyz = np.stack([cat.x, cat.y], axis=1)
+    to_unit = 1.0 / RADIANS_PER[sep_units]
+    widths = []
+    for k in np.unique(patch[patch >= 0]):
+        pts = xyz[patch == k]
+        if len(pts) < 2:
+            continue
+        centre = pts.mean(axis=0)
+        if coords == "radec":
+            centre /= np.linalg.norm(centre)
+            d = np.arccos(np.clip(pts @ centre, -1.0, 1.0))
+        else:
+            d = np.linalg.norm(pts - centre, axis=1)
+        widths.append(2.0 * math.sqrt(2.0) * math.sqrt(float(np.mean(d * d))))
+    return float(np.median(widths)) * to_unit if widths else float("nan")
 
 
 def _repair_bins(gg, errors: Errors, varg: float, sep_units: str, *, keep: bool) -> None:

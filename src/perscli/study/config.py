@@ -75,7 +75,12 @@ SCHEMA = {
     },
     "persistence": {
         "models": ["typical", "pessimistic"],
-        "sources": ["stars"],    # stars (the paper), all, or a fluence threshold in electrons
+        # what of an earlier exposure persists: drawn (the light drawn on it, galaxies and stars, no sky: the
+        # paper's pipeline), stars, all (its whole FLUENCE), or a fluence threshold in electrons
+        "sources": ["drawn"],
+        # more variants beside the headline, each with every model: name -> detector settings applied after
+        # render.set, e.g. {stars: [persistence.source=stars], floor5e4: [persistence.floor=5e4]}
+        "bracket": None,
     },
     "render": {
         "compress": "gzip",      # lossless tiles: frames are most of a study's bytes
@@ -88,12 +93,17 @@ SCHEMA = {
         "joint": True,           # one shape per galaxy from all its final exposures (the paper's pipeline)
         "min_snr": None,         # predicted-S/N cut (None: measure's default)
         "stamp": MeasureOptions.stamp,   # measure's own default (perscli.measure.settings)
-        # differential joint fits: the galaxies spread over this many strips of the sky (one task each),
-        # each fitting the reference once for every variant
-        "parts": 2,
-        # differential fits per exposure: this many consecutive finals of an SCA in one task (they share
-        # their earlier exposures, whose stars are drawn once)
-        "chunk": 8,
+        # differential joint fits: the galaxies spread over this many strips of the sky (one task each, whose
+        # memory holds its galaxies' stamps on every final), each fitting the reference once for every
+        # variant; 0: one strip per 0.1 deg^2 of the field (at least 2)
+        "parts": 0,
+        # this many consecutive finals of an SCA in one task: they share their earlier exposures, whose light
+        # is drawn once
+        "chunk": 32,
+        # differential study: also fit every changed galaxy's variants from the start (as a fit of their data
+        # alone is), beside the fit from the reference's minimum: the check of the linear response, in the
+        # shape tables (de1_cold, de2_cold) and the summary; ~3 times the fitting time
+        "check": False,
     },
     "correlate": {
         # correlate's own defaults (perscli.stats.settings), in arcmin
@@ -113,34 +123,35 @@ SCHEMA = {
 #: presets: overrides of the schema's defaults
 PRESETS = {
     # a laptop-sized study: one SCA, its three earliest exposures of the field, each with its 10
-    # earlier exposures; both models, star light persisting (the paper's setting).  SCA 7: of the
-    # schedule's J129 exposures, none puts SCA 1 within 0.05 deg of (10, -44); seven put SCA 7 there
+    # earlier exposures; both models, the paper's setting (the drawn light of every earlier exposure
+    # persisting, one joint shape per galaxy).  SCA 7: of the schedule's J129 exposures, none puts
+    # SCA 1 within 0.05 deg of (10, -44); seven put SCA 7 there
     "small": {
         "name": "small",
         "scas": [7],
         "exposures": {"count": 3, "history": 10},
     },
-    # the paper's size: 6.25 deg^2 (a circle of radius 1.41 deg), every J129 exposure reaching it
-    # on all 18 SCAs (~480 exposures x 18 SCAs), 10 earlier exposures each; the setting that gives the
-    # paper's fractions (docs/results.md): star light above half well persisting, one shape per galaxy
-    # and exposure
+    # the paper's size in the paper's setting: 6.25 deg^2 (a circle of radius 1.41 deg), every J129
+    # exposure reaching it on all 18 SCAs, 10 earlier exposures each (any filter), their drawn light
+    # persisting through the law with its linear branch, one joint shape per galaxy over all its exposures
     "paper": {
         "name": "paper",
         "field": {"radius": 1.41},
         "scas": list(range(1, 19)),
         "exposures": {"count": 0, "history": 10},   # count 0: every exposure reaching the field
-        "render": {"set": ["persistence.floor=5.0e4"]},
-        "measure": {"joint": False},
     },
     # the test suite's: a 512-pixel corner of SCA 1 in a planned sequence (no data needed), two
     # finals with three earlier exposures each, small dithers and 8x the stars so that ghosts
     # land on galaxies even on so small an area
     "ci": {
         "name": "ci",
+        # a planned sequence points the boresight at the field: the sample's circle must reach SCA 1
+        "field": {"radius": 0.6},
         "scas": [1],
         "bounds": [1, 512, 1, 512],
         "exposures": {"source": "plan", "count": 2, "history": 3, "plan_dither": 3.0},
         "catalog": {"galaxy_density": 40.0, "star_density": 20.0},
+        "measure": {"parts": 2},
         "correlate": {"min_sep": 0.1, "max_sep": 1.0, "nbins": 4, "npatch": 4},
     },
 }
@@ -328,9 +339,26 @@ def check(s: dict) -> None:
 
     for m in p["models"]:
         load_detector_model("roman", [*model_settings(str(m)), *s["render"]["set"]])
+    if not p["sources"]:
+        raise PerscliError("persistence.sources is empty: give drawn, stars, all or a fluence threshold")
     for src in p["sources"]:
-        if src not in ("stars", "all") and not (isinstance(src, (int, float)) and src > 0):
-            raise PerscliError(f"persistence.sources: {src!r} is not stars, all or a fluence threshold (electrons > 0)")
+        if src not in ("drawn", "stars", "all") and not (isinstance(src, (int, float)) and src > 0):
+            raise PerscliError(f"persistence.sources: {src!r} is not drawn, stars, all or a fluence threshold "
+                               "(electrons > 0)")
+    bracket = p["bracket"]
+    if bracket is not None:
+        if not isinstance(bracket, dict):
+            raise PerscliError("persistence.bracket: a mapping of names to lists of detector settings, e.g. "
+                               "{stars: [persistence.source=stars]}")
+        for name, extra in bracket.items():
+            if not (isinstance(name, str) and name.replace("_", "").replace(".", "").isalnum()):
+                raise PerscliError(f"persistence.bracket: {name!r} is not a name of letters, digits, '_' and '.' "
+                                   "(it names files)")
+            if not (isinstance(extra, list) and all(isinstance(e, str) and "=" in e for e in extra)):
+                raise PerscliError(f"persistence.bracket.{name}: a list of KEY=VALUE detector settings, "
+                                   f"not {extra!r}")
+            for m in p["models"]:
+                load_detector_model("roman", [*model_settings(str(m)), *s["render"]["set"], *extra])
     if s["render"]["compress"] not in ("none", "gzip", "rice"):
         raise PerscliError(f"render.compress {s['render']['compress']!r}: use none, gzip or rice")
     cat = s["catalog"]
@@ -343,10 +371,11 @@ def check(s: dict) -> None:
         from ..scene.starcounts import galactic_star_model
 
         galactic_star_model(cat["star_model"])     # checked now, not when the catalogue is drawn
-    for key in ("parts", "chunk"):
+    for key, least in (("parts", 0), ("chunk", 1)):
         value = s["measure"][key]
-        if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-            raise PerscliError(f"measure.{key} {value!r}: an integer >= 1")
+        if not (isinstance(value, int) and not isinstance(value, bool) and value >= least):
+            raise PerscliError(f"measure.{key} {value!r}: an integer >= {least}" +
+                               (" (0: one strip per 0.1 deg^2 of the field)" if key == "parts" else ""))
     c = s["correlate"]
     if not 0 < c["min_sep"] < c["max_sep"] or c["nbins"] < 1:
         raise PerscliError("correlate: need 0 < min_sep < max_sep and nbins >= 1")

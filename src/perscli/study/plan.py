@@ -74,11 +74,44 @@ def frame_seed(seed: int, sca: int, expid: int) -> int:
 
 
 def variant_name(source, model: str) -> str:
-    """'stars-typical', 'all-pessimistic', 'above1e+05-typical' (file-name safe)."""
+    """'drawn-typical', 'stars-pessimistic', 'above1e+05-typical', 'floor5e4-typical' (file-name safe).
+
+    ``source`` is a persistence source or the name of a bracket variant.
+    """
     src = source if isinstance(source, str) else f"above{float(source):.0e}"
     mod = model if "/" not in model and not model.endswith((".yaml", ".yml")) else \
         model.rsplit("/", 1)[-1].rsplit(".", 1)[0]
     return f"{src}-{mod}"
+
+
+def variant_settings(s: dict) -> dict:
+    """Variant name -> (persistence source, detector settings) of every persistence variant of a study.
+
+    The variants are every model of ``persistence.models`` with every source
+    of ``persistence.sources`` (the headline), then with every bracket of
+    ``persistence.bracket`` (name -> more detector settings, applied after
+    ``render.set``).  Each variant's settings are complete: the model's law,
+    its source, the study's ``render.set``, the bracket's own.
+    """
+    from ..detector.effects import Persistence
+    from ..detector.model import load_detector_model
+
+    p = s["persistence"]
+    out = {}
+    for m in p["models"]:
+        for src in p["sources"]:
+            out[variant_name(src, str(m))] = [*model_settings(str(m)), f"persistence.source={src}",
+                                              *s["render"]["set"]]
+        for name, extra in (p["bracket"] or {}).items():
+            out[variant_name(str(name), str(m))] = [*model_settings(str(m)), f"persistence.source={p['sources'][0]}",
+                                                    *s["render"]["set"], *extra]
+    return {name: (Persistence.fluence_input(load_detector_model("roman", settings))[0], settings)
+            for name, settings in out.items()}
+
+
+def reference_settings(s: dict) -> list:
+    """The detector settings of every final's reference (no earlier exposure given: no persistence)."""
+    return [*model_settings("typical"), *s["render"]["set"]]
 
 
 def model_settings(model: str) -> list:
@@ -166,14 +199,18 @@ def frame_path(sca: int, expid: int, variant: str = "ref") -> str:
 
 
 def is_differential(s: dict) -> bool:
-    """Whether a study renders only where persistence reaches (``differential``; auto: when only star light persists)."""
+    """Whether a study renders only where persistence reaches (``differential``; auto: when every variant's
+    persisting light is drawn from the catalogue, persistence sources drawn and stars)."""
+    from .differential import LIGHT_SOURCES
+
     wanted = s.get("differential")
-    stars_only = all(src == "stars" for src in s["persistence"]["sources"])
+    drawable = all(src in LIGHT_SOURCES for src, _ in variant_settings(s).values())
     if wanted is None:
-        return stars_only
-    if wanted and not stars_only:
-        raise PerscliError("differential: true needs persistence.sources [stars] (what persists of an earlier "
-                           "exposure is then its stars' light); use differential: false for all or a threshold")
+        return drawable
+    if wanted and not drawable:
+        raise PerscliError("differential: true needs every variant's persistence source to be drawn or stars (what "
+                           "persists is then light drawn from the catalogue); use differential: false for all or a "
+                           "threshold")
     return bool(wanted)
 
 
@@ -207,11 +244,12 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
     for seed, prefix in zip(seeds, prefixes):
         tasks += make(s, ex, seed, prefix)
     finals_sorted = [(sca, p.expid) for sca, ps in sorted(ex.finals.items()) for p in ps]
-    variants = [variant_name(src, mod) for src in s["persistence"]["sources"] for mod in s["persistence"]["models"]]
+    variants = list(variant_settings(s))
     tasks.append(Task("summary", "summary", "summary.json", deps=[t.key for t in tasks],
                       params=dict(variants=variants, finals=[list(k) for k in finals_sorted], name=s["name"],
                                   realisations=[dict(seed=seed, prefix=prefix) for seed, prefix in zip(seeds, prefixes)],
                                   differential=is_differential(s), joint=bool(s["measure"]["joint"]),
+                                  field=dict(s["field"]),
                                   thresholds=list(s["correlate"]["thresholds"]))))
     return tasks
 
@@ -223,93 +261,112 @@ def _catalog_task(s: dict, ex: Exposures, seed: int, pre: str) -> Task:
     on the finals' footprints only (the same catalogue however the finals are rendered).
     """
     params = dict(catalog=s["catalog"], bounds=s["bounds"], seed=seed, field=s["field"])
-    if all(src == "stars" for src in s["persistence"]["sources"]):
+    if all(src == "stars" for src, _ in variant_settings(s).values()):
         finals = {(sca, p.expid) for sca, ps in ex.finals.items() for p in ps}
         params["galaxy_rows"] = [i for i, key in enumerate(sorted(ex.all)) if key in finals]
     return Task(f"{pre}catalog", "catalog", f"{pre}truth.fits", deps=["pointings"], params=params)
 
 
-def _variant_models(s: dict) -> dict:
-    """Variant name -> (source, model settings) of every persistence variant."""
-    return {variant_name(src, m): (src, model_settings(str(m))) for src in s["persistence"]["sources"]
-            for m in s["persistence"]["models"]}
+def _chunks(ex: Exposures, size: int):
+    """Consecutive finals of each SCA, ``size`` at a time: (sca, [Pointing]) (they share earlier exposures)."""
+    for sca in sorted(ex.finals):
+        ps = ex.finals[sca]
+        for k in range(0, len(ps), size):
+            yield sca, ps[k:k + size]
 
 
 def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
-    """Where persistence reaches, each final on those stamps (its earlier exposures' stars drawn in it), De, xi.
+    """Where persistence reaches, each final on those stamps (its earlier exposures' light drawn in it), De, xi.
 
-    With a joint fit, each final's stamps are written (frames/...final.fits) and one task per variant
-    fits the galaxies whose stamps changed over all their finals; without, each final's task fits them
-    right away and writes only their shape changes (shapes/scaNN/eNNNNNN.fits), so that a study of
-    thousands of finals keeps no frames.
+    Consecutive finals of an SCA make one task (``measure.chunk`` of them): they share their earlier
+    exposures, whose light is drawn once.  With a joint fit, each final's stamps are written
+    (frames/scaNN/cEEEEEE/eEEEEEE_final.fits) and tasks by strips of the sky fit the sample's galaxies
+    over all their finals; without, each task fits its finals' galaxies right away and writes only their
+    shape changes (shapes/scaNN/eNNNNNN.fits), so that a study of thousands of finals keeps no frames.
     """
-    from ..measure.changes import variant_extname
+    from .changes import variant_extname
 
     tasks = [_catalog_task(s, ex, seed, pre)]
     finals = [(sca, p) for sca, ps in sorted(ex.finals.items()) for p in ps]
-    variants = _variant_models(s)
+    variants = variant_settings(s)
     m = s["measure"]
+    sources = sorted({src for src, _ in variants.values()})
     if m["joint"]:
-        # a galaxy that persistence reaches on any final is simulated on all its finals: found for all at once
+        # a galaxy that persistence can reach on any final is simulated on all its finals: found for all at once
         tasks.append(Task(f"{pre}regions", "regions", f"{pre}regions.fits", deps=[f"{pre}catalog"],
                           params=dict(truth=f"{pre}truth.fits", finals=[dict(pointing=_pointing_dict(p),
                                                    history=[_pointing_dict(q) for q in ex.history[(sca, p.expid)]])
                                               for sca, p in finals],
-                                      bounds=s["bounds"], stamp=m["stamp"], joint=True,
-                                      models=[list(v[1]) for v in variants.values()], set=s["render"]["set"])))
-    final_keys, outputs = [], []
-    common = dict(truth=f"{pre}truth.fits", bounds=s["bounds"], model=model_settings("typical"),
-                  set=s["render"]["set"], variants={name: list(v[1]) for name, v in variants.items()},
-                  stamp=m["stamp"], compress=s["render"]["compress"])
+                                      bounds=s["bounds"], stamp=m["stamp"], joint=True, sources=sources,
+                                      models=[list(v[1]) for v in variants.values()], field=s["field"])))
+    common = dict(truth=f"{pre}truth.fits", bounds=s["bounds"], model=reference_settings(s),
+                  variants={name: list(v[1]) for name, v in variants.items()}, stamp=m["stamp"],
+                  compress=s["render"]["compress"], field=s["field"])
 
     def one(sca, p):
         return dict(pointing=_pointing_dict(p), sca=sca, seed=frame_seed(seed, sca, p.expid),
                     history=[_pointing_dict(q) for q in ex.history[(sca, p.expid)]])
 
-    if m["joint"]:
-        for sca, p in finals:
-            key, out = f"{pre}final/sca{sca:02d}/e{p.expid:06d}", f"{pre}{frame_path(sca, p.expid, 'final')}"
-            final_keys.append(key)
-            outputs.append(out)
+    final_keys, outputs, final_files = [], [], {}
+    size = max(1, int(m["chunk"]))
+    for sca, group in _chunks(ex, size):
+        key = f"{pre}final/sca{sca:02d}/e{group[0].expid:06d}"
+        final_keys.append(key)
+        if m["joint"]:
+            # the chunk's finals, one file each, in a folder of their own (the task's product)
+            out = f"{pre}frames/sca{sca:02d}/c{group[0].expid:06d}"
+            for p in group:
+                final_files[(sca, p.expid)] = (key, f"{out}/e{p.expid:06d}_final.fits")
             tasks.append(Task(key, "final", out, deps=[f"{pre}regions"],
-                              params=dict(common, regions=f"{pre}regions.fits", **one(sca, p))))
-    else:
-        # fitted per exposure: consecutive finals of one SCA share all but one earlier exposure, so a few
-        # of them make one task (their earlier stars drawn once), which keeps only their shape changes
-        size = max(1, int(m["chunk"]))
-        for sca in sorted(ex.finals):
-            ps = ex.finals[sca]
-            for k in range(0, len(ps), size):
-                group = ps[k:k + size]
-                key = f"{pre}final/sca{sca:02d}/e{group[0].expid:06d}"
-                out = f"{pre}shapes/sca{sca:02d}/e{group[0].expid:06d}.fits"
-                final_keys.append(key)
-                outputs.append(out)
-                tasks.append(Task(key, "final", out, deps=[f"{pre}catalog"],
-                                  params=dict(common, regions=None, finals=[one(sca, p) for p in group],
-                                              measure=dict(min_snr=m["min_snr"], stamp=m["stamp"]))))
+                              params=dict(common, regions=f"{pre}regions.fits", finals=[one(sca, p) for p in group])))
+        else:
+            # fitted per exposure: the task keeps only its finals' shape changes
+            out = f"{pre}shapes/sca{sca:02d}/e{group[0].expid:06d}.fits"
+            outputs.append(out)
+            tasks.append(Task(key, "final", out, deps=[f"{pre}catalog"],
+                              params=dict(common, regions=None, finals=[one(sca, p) for p in group],
+                                          measure=dict(min_snr=m["min_snr"], stamp=m["stamp"],
+                                                       check=bool(m["check"])))))
     c, b = s["correlate"], s["budget"]
     if m["joint"]:
         # the galaxies spread over tasks by strips of the sky (each fits the reference once for every
         # variant, and reads only the finals that reach its strip)
         parts = []
-        for k, (strip, used) in enumerate(measure_strips(s, finals, int(m["parts"]))):
-            key, out = f"{pre}measure/part{k + 1}of{m['parts']}", f"{pre}shapes/part{k + 1}of{m['parts']}.fits"
+        nparts = strips(s)
+        for k, (strip, used) in enumerate(measure_strips(s, finals, nparts)):
+            key, out = f"{pre}measure/part{k + 1}of{nparts}", f"{pre}shapes/part{k + 1}of{nparts}.fits"
             parts.append((key, out))
-            tasks.append(Task(key, "changes", out, deps=[f"{pre}catalog", *(final_keys[i] for i in used)],
-                              params=dict(truth=f"{pre}truth.fits", finals=[outputs[i] for i in used],
+            files = [final_files[(finals[i][0], finals[i][1].expid)] for i in used]
+            tasks.append(Task(key, "changes", out, deps=[f"{pre}catalog", *sorted({dep for dep, _ in files})],
+                              params=dict(truth=f"{pre}truth.fits", finals=[path for _, path in files],
                                           expids=[finals[i][1].expid for i in used], variants=list(variants),
-                                          joint=True, min_snr=m["min_snr"], stamp=m["stamp"], part=strip)))
+                                          joint=True, min_snr=m["min_snr"], stamp=m["stamp"], part=strip,
+                                          field=s["field"], check=bool(m["check"]))))
     for name in variants:
         if m["joint"]:
             tables, deps = [f"{out}[{variant_extname(name)}]" for _, out in parts], [key for key, _ in parts]
         else:
             tables, deps = [f"{out}[{variant_extname(name)}]" for out in outputs], final_keys
         tasks.append(Task(f"{pre}correlate/{name}", "correlate", f"{pre}xi/{name}.fits", deps=deps,
-                          params=dict(tables=tables, figures=f"{pre}figures/{name}", seed=seed, **c)))
+                          params=dict(tables=tables, figures=f"{pre}figures/{name}", seed=seed, field=s["field"], **c)))
         tasks.append(Task(f"{pre}budget/{name}", "budget", f"{pre}budget/{name}.fits", deps=[f"{pre}correlate/{name}"],
                           params=dict(xi=f"{pre}xi/{name}.fits", plot=f"{pre}figures/{name}/budget.png", **b)))
     return tasks
+
+
+#: deg^2 of the field per strip of joint fits when ``measure.parts`` is 0 (a strip's task holds its galaxies'
+#: stamps on every final: ~1.5 GB per 0.1 deg^2 with two variants)
+STRIP_AREA_DEG2 = 0.1
+
+
+def strips(s: dict) -> int:
+    """How many strips of the sky the joint fits are spread over (``measure.parts``, or by the field's area)."""
+    import math
+
+    if s["measure"]["parts"]:
+        return int(s["measure"]["parts"])
+    area = math.pi * s["field"]["radius"] ** 2
+    return max(2, math.ceil(area / STRIP_AREA_DEG2))
 
 
 #: arcsec: a final serves a strip of the sky when its footprint grown by this reaches it (stamps reach
@@ -362,46 +419,44 @@ def measure_strips(s: dict, finals, n: int) -> list:
 
 def _build_full(s: dict, ex: Exposures, seed: int, pre: str) -> list:
     """Every SCA-exposure rendered whole, every final again per variant, every galaxy measured in each."""
+    from ..render.settings import SOURCE_HDU
+
     tasks = []
     final_keys = {(sca, p.expid) for sca, ps in ex.finals.items() for p in ps}
     tasks.append(_catalog_task(s, ex, seed, pre))
-    sources = s["persistence"]["sources"]
-    need_stars = any(src == "stars" for src in sources)
-    need_all = any(src != "stars" for src in sources)
+    variants = variant_settings(s)
+    # what later frames read of an earlier one: the image each variant's source persists from
+    light = sorted({SOURCE_HDU[src if isinstance(src, str) else "threshold"] for src, _ in variants.values()})
     # the reference of each SCA-exposure: what later frames need of it (fluence), and for a
     # final what measure needs (SCI)
     for (sca, expid), p in sorted(ex.all.items()):
         is_final = (sca, expid) in final_keys
         # only what later tasks read: a frame's bytes are most of a study's
         # (MODEL with SCI: measure takes its noise model from the frame)
-        hdus = (["SCI", "MODEL"] if is_final else []) + (["FLUENCE"] if need_all else []) + \
-            (["STARFLU"] if need_stars else [])
+        hdus = (["SCI", "MODEL"] if is_final else []) + light
         tasks.append(Task(f"{pre}render/ref/sca{sca:02d}/e{expid:06d}", "render", f"{pre}{frame_path(sca, expid)}",
                           deps=[f"{pre}catalog"],
                           params=dict(truth=f"{pre}truth.fits", pointing=_pointing_dict(p), sca=sca,
                                       bounds=s["bounds"], seed=frame_seed(seed, sca, expid), previous=[], hdus=hdus,
-                                      model=model_settings("typical"), source="stars", set=s["render"]["set"],
-                                      compress=s["render"]["compress"], filter=p.filter)))
-    variants = [(src, m) for src in sources for m in s["persistence"]["models"]]
+                                      model=reference_settings(s), compress=s["render"]["compress"],
+                                      filter=p.filter)))
     for sca, ps in sorted(ex.finals.items()):
         for p in ps:
             hist = ex.history[(sca, p.expid)]
             prev_keys = [f"{pre}render/ref/sca{sca:02d}/e{q.expid:06d}" for q in hist]
-            for src, model in variants:
-                name = variant_name(src, model)
+            for name, (_, settings) in variants.items():
                 tasks.append(Task(f"{pre}render/{name}/sca{sca:02d}/e{p.expid:06d}", "render",
                                   f"{pre}{frame_path(sca, p.expid, name)}", deps=[f"{pre}catalog", *prev_keys],
                                   params=dict(truth=f"{pre}truth.fits", pointing=_pointing_dict(p), sca=sca,
                                               bounds=s["bounds"], seed=frame_seed(seed, sca, p.expid),
                                               previous=[f"{pre}{frame_path(sca, q.expid)}" for q in hist],
                                               hdus=["SCI", "MODEL"] + (["PERSIST"] if s["render"]["write_persist"] else []),
-                                              model=model_settings(model), source=src,
-                                              set=s["render"]["set"], compress=s["render"]["compress"],
+                                              model=list(settings), compress=s["render"]["compress"],
                                               filter=p.filter)))
     finals_sorted = [(sca, p.expid) for sca, ps in sorted(ex.finals.items()) for p in ps]
     m = s["measure"]
     shape_tasks = {}
-    for name in ["ref"] + [variant_name(src, mod) for src, mod in variants]:
+    for name in ["ref", *variants]:
         frames = [f"{pre}{frame_path(sca, expid, name)}" for sca, expid in finals_sorted]
         deps = [f"{pre}render/{name}/sca{sca:02d}/e{expid:06d}" for sca, expid in finals_sorted]
         if m["joint"]:
@@ -421,12 +476,11 @@ def _build_full(s: dict, ex: Exposures, seed: int, pre: str) -> list:
                                               stamp=m["stamp"])))
                 shape_tasks[name].append((key, out))
     c, b = s["correlate"], s["budget"]
-    for src, mod in variants:
-        name = variant_name(src, mod)
+    for name in variants:
         pairs = [[a[1], r[1]] for a, r in zip(shape_tasks[name], shape_tasks["ref"])]
         deps = [a[0] for a in shape_tasks[name]] + [r[0] for r in shape_tasks["ref"]]
         tasks.append(Task(f"{pre}correlate/{name}", "correlate", f"{pre}xi/{name}.fits", deps=deps,
-                          params=dict(pairs=pairs, figures=f"{pre}figures/{name}", seed=seed, **c)))
+                          params=dict(pairs=pairs, figures=f"{pre}figures/{name}", seed=seed, field=s["field"], **c)))
         tasks.append(Task(f"{pre}budget/{name}", "budget", f"{pre}budget/{name}.fits", deps=[f"{pre}correlate/{name}"],
                           params=dict(xi=f"{pre}xi/{name}.fits", plot=f"{pre}figures/{name}/budget.png", **b)))
     return tasks

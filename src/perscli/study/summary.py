@@ -63,6 +63,9 @@ def variant_results(study_dir: str, name: str, prefix: str = "", differential: b
         row = {k: v[0] if np.ndim(v) else v for k, v in stats.items()}
         if "n" in row:
             out["n"] = int(np.asarray(row["n"]).ravel()[0])
+        if "n_clean" in row and out.get("n"):
+            # flagged fits are kept in the sample (the paper's pipeline kept them): their share
+            out["flagged_fraction"] = 1.0 - int(np.asarray(row["n_clean"]).ravel()[0]) / out["n"]
         for key in ("de1_mean", "de1_err", "de2_mean", "de2_err", "e1_mean", "e2_mean", "de_abs_mean"):
             if key in row:
                 out[key] = _num(np.asarray(row[key]).ravel()[0])
@@ -84,6 +87,11 @@ def variant_results(study_dir: str, name: str, prefix: str = "", differential: b
         out["fitted"] = sum(int(h.get("NFITTED", 0)) for h in heads)
         out["fitted_flagged"] = sum(int(h.get("NFLAGGED", 0)) for h in heads)
         out["measured_fraction"] = out["fitted"] / out["sample"] if out["sample"] else None
+        out["methods"] = {m: sum(int(h.get(f"NMETH{k}", 0)) for h in heads)
+                          for k, m in enumerate(("linear", "newton", "cold"), 1)}
+        check = linear_response_check([_table(t, ext) for t in tables])
+        if check:
+            out["linear_check"] = check
         if str(heads[0].get("GAXES", "sky")) != "sky":
             # fitted per final: each final's own count of the galaxies on it
             prim = [_header(t, 0) for t in tables]
@@ -129,10 +137,45 @@ def variant_results(study_dir: str, name: str, prefix: str = "", differential: b
                 out["xi_over_budget_median"] = _num(np.median(r))
                 out["xi_over_budget_max"] = _num(r.max())
         if "theta" in table:
-            out["xi_bins"] = [{"theta": _num(t), "xip": _num(x), "sigma_xip": _num(e), "budget": _num(b)}
-                              for t, x, e, b in zip(table["theta"], table["xip"], table["sigma_xip"],
-                                                    table["xip_budget"])]
+            supported = table.get("supported", np.ones(len(table["theta"]), dtype=bool))
+            out["xi_bins"] = [{"theta": _num(t), "xip": _num(x), "sigma_xip": _num(e), "budget": _num(b),
+                               "supported": bool(ok)}
+                              for t, x, e, b, ok in zip(table["theta"], table["xip"], table["sigma_xip"],
+                                                        table["xip_budget"], supported)]
+        if "BUDPATCH" in h:
+            out["patch_size"] = _num(h["BUDPATCH"])
     return out
+
+
+def linear_response_check(tables) -> dict:
+    """How De from the reference's minimum compares with De from fits from the start (``measure.check``).
+
+    Per changed galaxy: |De - De_cold| against max(1e-3 |De_cold|, 1e-10),
+    and whether the two agree on |De| >= 1e-8 and >= 1e-4.  Empty without the
+    check's columns.
+    """
+    rows = [t for t in tables if t and "de1_cold" in t]
+    if not rows:
+        return {}
+    de = np.concatenate([np.stack([t["de1"], t["de2"]], axis=1) for t in rows])
+    cold = np.concatenate([np.stack([t["de1_cold"], t["de2_cold"]], axis=1) for t in rows])
+    method = np.concatenate([t["method"] for t in rows])
+    checked = np.all(np.isfinite(cold), axis=1) & (method > 0)
+    de, cold = de[checked], cold[checked]
+    if not len(de):
+        return {"checked": 0}
+    err = np.max(np.abs(de - cold), axis=1)
+    tol = np.maximum(1e-3 * np.max(np.abs(cold), axis=1), 1e-10)
+    a, b = np.hypot(de[:, 0], de[:, 1]), np.hypot(cold[:, 0], cold[:, 1])
+    return {"checked": int(len(de)), "within": int(np.count_nonzero(err <= tol)),
+            "worst_over_tolerance": _num(np.max(err / tol)),
+            "decisions_differ_1e-08": int(np.count_nonzero((a >= 1e-8) != (b >= 1e-8))),
+            "decisions_differ_1e-04": int(np.count_nonzero((a >= 1e-4) != (b >= 1e-4))),
+            "changed_1e-08": int(np.count_nonzero(b >= 1e-8))}
+
+
+#: realisations whose scatter gives xi+ an error at every separation (without a jackknife's patch limit)
+MIN_REALISATIONS = 3
 
 
 def combine_realisations(per: list) -> dict:
@@ -151,9 +194,13 @@ def combine_realisations(per: list) -> dict:
         scatter / sqrt(N)) beside the mean of the per-realisation (jackknife,
         standard) errors; ``xi``: per separation bin the mean xi+, its
         realisation scatter, the mean jackknife sigma, the budget, the error
-        used (the larger of the scatter's and the jackknife's, for the mean of
-        N realisations) and a verdict: 'below' when xi+ + 2 error < budget,
-        'above' when xi+ - 2 error > budget, 'cannot tell' otherwise.
+        used (for the mean of N realisations: the larger of the scatter and
+        the jackknife where the jackknife's patches are at least the
+        separation, the scatter alone beyond them when there are at least
+        :data:`MIN_REALISATIONS`) and a verdict
+        (:func:`perscli.stats.budget.bin_verdicts`): 'below' when
+        |xi+| + 2 error < |budget|, 'above' when |xi+| - 2 error > |budget|,
+        'cannot tell' otherwise or where no error holds.
     """
     n = len(per)
     out = {"variant": per[0]["variant"], "realisations": n}
@@ -173,6 +220,7 @@ def combine_realisations(per: list) -> dict:
         thresholds = sorted({t for r in per for t in (r.get(key) or {})}, key=float)
         if thresholds:
             out[key] = {t: stat([(r.get(key) or {}).get(t) for r in per]) for t in thresholds}
+    out["flagged_fraction"] = stat([r.get("flagged_fraction") for r in per])
     for key in ("n", "sample", "fitted", "catalogue"):
         values = [r.get(key) for r in per if r.get(key) is not None]
         if values:
@@ -181,6 +229,8 @@ def combine_realisations(per: list) -> dict:
         out["measured_fraction"] = out.get("fitted", 0) / out["sample"]
     for key in ("de1", "de2"):
         out[f"{key}_mean"] = stat([r.get(f"{key}_mean") for r in per], [r.get(f"{key}_err") for r in per])
+    from ..stats.budget import bin_verdicts
+
     bins = [r.get("xi_bins") or [] for r in per]
     nb = min((len(b) for b in bins), default=0)
     xi = []
@@ -191,17 +241,21 @@ def combine_realisations(per: list) -> dict:
         mean = float(np.nanmean(xs))
         scatter = float(np.nanstd(xs, ddof=1)) if n > 1 else math.nan
         jack = float(np.sqrt(np.nanmean(sj ** 2)))
-        error = max(x for x in (scatter, jack) if math.isfinite(x)) / math.sqrt(n) if n else math.nan
-        if mean + 2 * error < budget:
-            verdict = "below"
-        elif mean - 2 * error > budget:
-            verdict = "above"
-        else:
-            verdict = "cannot tell"
+        # the jackknife's error holds where its patches are at least the separation; the scatter of
+        # MIN_REALISATIONS or more realisations holds everywhere
+        jack_ok = all(b[k].get("supported", True) for b in bins)
+        spread_ok = n >= MIN_REALISATIONS and math.isfinite(scatter)
+        candidates = ([jack] if jack_ok else []) + ([scatter] if spread_ok or (jack_ok and math.isfinite(scatter))
+                                                     else [])
+        candidates = [c for c in candidates if math.isfinite(c)]
+        supported = bool(candidates)
+        error = max(candidates) / math.sqrt(n) if candidates else math.nan
+        verdict = str(bin_verdicts([mean], [error], [budget], 2.0, [supported])[0])
         bound = abs(mean) + 2 * error
         xi.append({"theta": bins[0][k]["theta"], "xip": mean, "scatter": _num(scatter), "sigma_jackknife": jack,
-                   "error": error, "budget": budget, "verdict": verdict,
-                   "orders_below_at_2sigma": _num(math.log10(budget / bound)) if bound > 0 and budget > 0 else None})
+                   "error": _num(error), "budget": budget, "verdict": verdict, "supported": supported,
+                   "orders_below_at_2sigma": _num(math.log10(abs(budget) / bound))
+                   if supported and bound > 0 and budget != 0 else None})
     out["xi"] = xi
     return out
 
@@ -224,7 +278,8 @@ def write_summary(study_dir: str, params: dict, out: str) -> None:
     combined = [combine_realisations([p[k] for p in per_real]) for k in range(len(params["variants"]))]
     summary = {"study": params["name"], "finals": params["finals"], "paper": PAPER, "results": results,
                "combined": combined, "realisations": [r["seed"] for r in reals],
-               "differential": bool(params.get("differential")), "joint": params.get("joint")}
+               "differential": bool(params.get("differential")), "joint": params.get("joint"),
+               "field": params.get("field", {})}
     if len(reals) > 1:
         summary["per_realisation"] = {str(r["seed"]): p for r, p in zip(reals, per_real)}
     _write_text(out, json.dumps(summary, indent=1, sort_keys=True) + "\n")
@@ -250,28 +305,40 @@ def markdown(summary: dict) -> str:
              f"{len(summary['finals'])} final SCA-exposures"
              + (f", {nreal} realisations (seeds {', '.join(map(str, reals))})" if nreal > 1 else "")
              + ".  The paper: Lin et al., 0.9M galaxies on 6.25 deg^2.", ""]
+    joint = summary.get("joint")
+    lines += [f"The sample: the galaxies within {_g(summary.get('field', {}).get('radius'))} deg of the field's "
+              "centre that measure fits (predicted S/N above its cut), "
+              + ("each once, its shape fitted jointly over every final it falls on (the paper's pipeline); "
+                 if joint else "each once per final it falls on (one shape per galaxy and exposure); ")
+              + "a fit's flag is kept (its share: 'flagged'), as the paper's pipeline kept them.", ""]
     if summary.get("differential"):
-        lines += ["Differential: each final simulated only on the stamps of galaxies that earlier exposures' star "
-                  "light can reach; a galaxy whose stamps persistence did not change has De = 0 exactly and is "
-                  "counted without a fit (the sample: every galaxy measure fits, predicted S/N above the cut).", ""]
+        lines += ["Differential: each final simulated only on the windows of the sample's galaxies; a galaxy "
+                  "whose stamps no variant changed has De = 0 exactly and is counted without a fit; a changed "
+                  "galaxy is fitted on the reference and each variant from the reference's minimum (the fit's "
+                  "linear response to the pixel change, checked by a Newton step: the same De as two fits from "
+                  "the start, to 1e-3 of itself).", ""]
     # absolute values written with \| so that a Markdown table keeps its columns
-    lines += ["| variant | galaxies | measured | \\|De\\| >= 1e-8 | \\|De\\| >= 1e-4 | \\|D\\|e\\|\\| >= 1e-8 | "
-              "\\|D\\|e\\|\\| >= 1e-4 | \\|De\\| >= 1e-8 of catalogue | <De1> | <De2> |",
-              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-              f"| paper | {PAPER['galaxies']:,} | | ~1% | ~0.5% | ~1% | ~0.5% | | {PAPER['de1_mean']:.1e} | "
+    lines += ["| variant | galaxies | measured | flagged | \\|De\\| >= 1e-8 | \\|De\\| >= 1e-4 | "
+              "\\|D\\|e\\|\\| >= 1e-8 | \\|D\\|e\\|\\| >= 1e-4 | \\|De\\| >= 1e-8 of catalogue | <De1> | <De2> |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+              f"| paper | {PAPER['galaxies']:,} | | | ~1% | ~0.5% | ~1% | ~0.5% | | {PAPER['de1_mean']:.1e} | "
               f"{PAPER['de2_mean']:.1e} |"]
     for r in summary["combined"]:
         f, a, c = r.get("frac_ge", {}), r.get("frac_dabs_ge", {}), r.get("frac_ge_catalogue", {})
         measured = r.get("measured_fraction")
         lines.append(f"| {r['variant']} | {r.get('n', 0):,} | {_pct(measured) if measured is not None else 'all'} | "
+                     f"{_pct_pm(r.get('flagged_fraction'))} | "
                      f"{_pct_pm(f.get('1e-08'))} | {_pct_pm(f.get('1e-04'))} | {_pct_pm(a.get('1e-08'))} | "
                      f"{_pct_pm(a.get('1e-04'))} | {_pct_pm(c.get('1e-08'))} | {_mean_pm(r.get('de1_mean'))} | "
                      f"{_mean_pm(r.get('de2_mean'))} |")
     lines += ["", "Errors: " + ("the scatter across realisations over sqrt(N)." if nreal > 1 else
                                 "the standard error of the mean (one realisation: no scatter across "
                                 "realisations; fractions without errors)."), ""]
-    lines += ["xi+ of De against the additive budget per separation (mean over realisations; error: the larger "
-              "of the realisation scatter and the jackknife, for the mean; verdict at 2 sigma):", ""]
+    lines += ["xi+ of De against the additive budget per separation (mean over realisations; error, for the "
+              "mean: the larger of the realisation scatter and the jackknife where the jackknife's patches are at "
+              f"least the separation, the scatter alone beyond them with {MIN_REALISATIONS} or more realisations; "
+              "verdict at 2 sigma on |xi+|: below when |xi+| + 2 sigma < |budget|, above when |xi+| - 2 sigma > "
+              "|budget|, cannot tell otherwise or where no error holds):", ""]
     for r in summary["combined"]:
         lines += [f"**{r['variant']}**", "", "| theta (arcmin) | xi+ | scatter | jackknife | budget | verdict | "
                   "orders below (2 sigma) |", "|---:|---:|---:|---:|---:|---|---:|"]
@@ -336,6 +403,8 @@ def cost(study_dir: str) -> dict:
         d["bytes"] += rec.get("bytes", 0)
         d["galaxies"] += rec.get("galaxies", 0)
         d["frames"] = d.get("frames", 0) + rec.get("frames", 0)
+        if "draws" in rec:
+            d["draws"] = d.get("draws", 0) + rec["draws"]
     for d in per.values():
         d["cpu_s_per_task"] = d["cpu_s"] / d["tasks"] if d["tasks"] else None
         d["bytes_per_task"] = d["bytes"] / d["tasks"] if d["tasks"] else None
@@ -400,13 +469,25 @@ def load_cost(path: str) -> dict:
     return data
 
 
+#: kinds of task whose cost goes as the frames or tables they read
+SCALED_KINDS = ("measure", "changes", "regions", "correlate")
+
+
+def final_draws(params: dict) -> set:
+    """The SCA-exposures a final task draws: its finals and their earlier exposures, each once."""
+    finals = params.get("finals") or [params]
+    return {int(f["pointing"]["expid"] if "pointing" in f else f["expid"]) for f in finals} | \
+        {int(q["expid"]) for f in finals for q in f.get("history", [])}
+
+
 def project(tasks, measured: dict) -> dict:
     """The cost of a task graph from the per-product costs another run measured (its cost.json).
 
-    Renders and finals cost what they cost per task (one SCA-exposure, or a
-    chunk of finals, each); measure, regions and correlate tasks are scaled
-    by the number of frames or tables they read, since their cost is per
-    galaxy and galaxies per frame do not depend on the study's size.
+    Renders cost what they cost per task (one SCA-exposure each); a chunk of
+    finals goes as the SCA-exposures it draws (:func:`final_draws`); measure,
+    regions and correlate tasks are scaled by the number of frames or tables
+    they read, since their cost is per galaxy and galaxies per frame do not
+    depend on the study's size.
 
     Returns
     -------
@@ -417,9 +498,14 @@ def project(tasks, measured: dict) -> dict:
     need = {}
     for t in tasks:
         kind = _cost_kind(t["kind"], t["key"], t["params"].get("hdus", []))
-        scaled = kind in ("measure", "changes", "regions", "correlate")
-        units = len(t["params"].get("frames", t["params"].get("finals", t["params"].get("tables", [])))) \
-            if scaled else 1
+        scaled = kind in SCALED_KINDS
+        if kind == "final":
+            # a chunk of finals draws each of its SCA-exposures once: its cost goes as those
+            units = len(final_draws(t["params"]))
+        elif scaled:
+            units = len(t["params"].get("frames", t["params"].get("finals", t["params"].get("tables", []))))
+        else:
+            units = 1
         need[kind] = need.get(kind, 0) + max(1, units)
     cpu = bytes_ = 0.0
     per, missing = {}, []
@@ -428,8 +514,12 @@ def project(tasks, measured: dict) -> dict:
         if not m:
             missing.append(kind)
             continue
-        units = m["tasks"] if kind not in ("measure", "changes", "regions", "correlate") else \
-            max(1, m.get("frames", m["tasks"]))
+        if kind == "final" and m.get("draws"):
+            units = m["draws"]
+        elif kind in SCALED_KINDS:
+            units = max(1, m.get("frames", m["tasks"]))
+        else:
+            units = m["tasks"]
         c, b = m["cpu_s"] / units, m["bytes"] / units
         per[kind] = {"units": n, "cpu_s_each": c, "bytes_each": b}
         cpu += n * c

@@ -140,9 +140,10 @@ def _render(study_dir, p, out):
     exposure = Exposure(ra=pt["ra"], dec=pt["dec"], pa=pt["pa"], sca=p["sca"], filter=pt["filter"],
                         mjd=pt["mjd"], exptime=pt["exptime"],
                         bounds=tuple(p["bounds"]) if p["bounds"] else None, expid=pt["expid"])
-    model = load_detector_model("roman", [*p["model"], *p["set"]])
+    # the settings are complete: the law, its source, the study's render.set (plan.variant_settings)
+    model = load_detector_model("roman", p["model"])
     previous = [os.path.join(study_dir, q) for q in p["previous"]]
-    options = RenderOptions(hdus=tuple(p["hdus"]), compress=p["compress"], persistence_source=p["source"])
+    options = RenderOptions(hdus=tuple(p["hdus"]), compress=p["compress"])
     summary = render_file(os.path.join(study_dir, p["truth"]), exposure, out, options, model=model, seed=p["seed"],
                           previous=previous, overwrite=True)
     return {"objects": int(summary.get("drawn", summary.get("objects", 0)) or 0), "hdus": list(p["hdus"])}
@@ -170,22 +171,23 @@ def _exposure(p) -> "Exposure":
                     expid=pt["expid"])
 
 
-def _variant_model(settings, extra):
+def _detector(settings):
     from ..detector.model import load_detector_model
-    from ..render.run import with_persistence_source
 
-    return with_persistence_source(load_detector_model("roman", [*settings, *extra]), "stars")
+    return load_detector_model("roman", list(settings))
 
 
 def _regions(study_dir, p, out):
-    from ..render.differential import plan_regions
     from ..render.exposure import read_truth
+    from .reach import in_field, plan_regions
 
     finals = [(_exposure(dict(f["pointing"], bounds=p["bounds"])),
                [_exposure(dict(q, bounds=p["bounds"])) for q in f["history"]]) for f in p["finals"]]
-    floors = [_floor(_variant_model(m, p["set"])) for m in p["models"]]
+    floors = [_floor(_detector(m)) for m in p["models"]]
     cols = read_truth(os.path.join(study_dir, p["truth"]), finals[0][0].filter) if finals else None
-    table, counts = plan_regions(cols, finals, stamp=p["stamp"], joint=p["joint"], floor=min(floors or [0.0]))
+    sample = in_field(cols, p["field"]) if cols is not None else None
+    table, counts = plan_regions(cols, finals, stamp=p["stamp"], joint=p["joint"], sources=p["sources"],
+                                 floor=min(floors or [0.0]), sample=sample)
     write_regions_table(out, table, counts)
     return {"galaxies": counts["candidates"], "frames": len(finals)}
 
@@ -203,58 +205,82 @@ def write_regions_table(out: str, table: dict, counts: dict) -> None:
     hdu = table_hdu(table, "REGIONS", descriptions={"id": "catalogue id of a galaxy whose stamps are simulated",
                                                      "sca": "detector", "expid": "final exposure"})
     for key, (value, comment) in {
-        "NONFRAME": (counts["on_frames"], "galaxy-final pairs with the galaxy's stamp on the frame"),
-        "NGALON": (counts["galaxies_on"], "galaxies on at least one final"),
+        "NONFRAME": (counts["on_frames"], "galaxy-final pairs of the sample with the stamp on the frame"),
+        "NGALON": (counts["galaxies_on"], "galaxies of the sample on at least one final"),
         "NCAND": (counts["candidates"], "galaxies persistence can reach (simulated)"),
         "NREACH": (counts["reached"], "galaxy-final pairs whose stamp persistence can reach"),
-        "FPIXRCH": (round(counts["pixel_fraction"], 6), "fraction of final pixels persistence can reach"),
-        "FLOOR": (counts["floor"], "[e-] star light at or below this does not persist"),
+        **({"FPIXRCH": (round(counts["pixel_fraction"], 6), "fraction of final pixels persistence can reach")}
+           if np.isfinite(counts["pixel_fraction"]) else {}),
+        "FLOOR": (counts["floor"], "[e-] light at or below this does not persist"),
     }.items():
         hdu[key] = (value, comment)
     write_hdus([OutHDU([]), hdu], out, overwrite=True)
 
 
 def _final(study_dir, p, out):
-    """One final (joint fits: its stamps kept for the fit over all finals), or a few fitted per exposure."""
-    from ..render.differential import _truth_columns, render_final
+    """A few consecutive finals of one SCA: with joint fits their stamps kept (one file each in ``out``, a
+    folder) for the fit over all finals; without, fitted per exposure and only the shape changes kept."""
+    import shutil
 
-    model = _variant_model(p["model"], p["set"])
-    variants = {name: _variant_model(settings, p["set"]) for name, settings in p["variants"].items()}
+    from .differential import _truth_columns, render_final
+    from .reach import final_candidates, in_field
+
+    model = _detector(p["model"])
+    variants = {name: _detector(settings) for name, settings in p["variants"].items()}
     truth = os.path.join(study_dir, p["truth"])
-    finals = p.get("finals") or [p]
+    sources = sorted({_source(v) for v in variants.values()})
+    floor = min(_floor(v) for v in variants.values())
     rows_of, reach = {}, {"on": 0, "reached": 0, "fractions": []}
-    for f in finals:
+    regions = None
+    if p.get("regions"):
+        from ..io.tables import read_table
+
+        regions = read_table(os.path.join(study_dir, p["regions"]), what="study regions")
+    for f in p["finals"]:
         exposure = _exposure(dict(f, bounds=p["bounds"]))
         cols = _truth_columns(truth, exposure.filter)
         history = [_exposure(dict(q, bounds=p["bounds"])) for q in f["history"]]
-        if p.get("regions"):
-            from ..io.tables import read_table
-
-            regions = read_table(os.path.join(study_dir, p["regions"]), what="study regions")
+        if regions is not None:
             here = (regions.column("sca", kind="integer") == exposure.sca) & \
                 (regions.column("expid", kind="integer") == exposure.expid)
             rows = np.isin(cols["id"], regions.column("id", kind="integer")[here])
         else:
-            # fitted on this final alone: the galaxies its own earlier exposures' star light reaches
-            from ..render.differential import final_candidates
-
-            rows, on, fraction = final_candidates(cols, exposure, history, stamp=p["stamp"],
-                                                  floor=min(_floor(v) for v in variants.values()))
+            # fitted on this final alone: the galaxies of the sample its own earlier exposures' light reaches
+            rows, on, fraction = final_candidates(cols, exposure, history, stamp=p["stamp"], sources=sources,
+                                                  floor=floor, sample=in_field(cols, p["field"]))
             reach["on"] += int(on.sum())
             reach["reached"] += int(rows.sum())
             reach["fractions"].append(fraction)
         rows_of[exposure.expid] = (exposure, history, rows, f["seed"])
+    # the finals that are earlier exposures of later finals of this task: their drawn light is kept once drawn
+    earlier = {int(q["expid"]) for f in p["finals"] for q in f["history"]}
+    from .summary import final_draws
+
+    draws = len(final_draws(p))
     measure = p.get("measure")
     if measure is None:
-        exposure, history, rows, seed = next(iter(rows_of.values()))
-        summary = render_final(truth, exposure, out, model=model, variants=variants, seed=seed, histories=history,
-                               rows=rows, stamp=p["stamp"], compress=p["compress"], overwrite=True)
-        return {"galaxies": summary["rows"], "objects": summary["objects"], "blocks": summary["blocks"],
-                "block_fraction": round(summary["block_fraction"], 6), "changed": summary["changed"]}
+        # joint fits: every final's stamps in a file of its own, in the task's folder (written whole again
+        # if the task is run again: a folder without the task's record is not a product)
+        if os.path.isdir(out):
+            shutil.rmtree(out)
+        os.makedirs(out)
+        rec = {"galaxies": 0, "objects": 0, "blocks": 0, "frames": len(rows_of), "draws": draws, "changed": {}}
+        for expid, (exposure, history, rows, seed) in rows_of.items():
+            summary = render_final(truth, exposure, os.path.join(out, f"e{expid:06d}_final.fits"), model=model,
+                                   variants=variants, seed=seed, histories=history, rows=rows, stamp=p["stamp"],
+                                   compress=p["compress"], overwrite=True,
+                                   keep_light="drawn" in sources and expid in earlier)
+            rec["galaxies"] += summary["rows"]
+            rec["objects"] += summary["objects"]
+            rec["blocks"] += summary["blocks"]
+            for name, n in summary["changed"].items():
+                rec["changed"][name] = rec["changed"].get(name, 0) + n
+        return rec
     # fitted per exposure: each final rendered to a scratch file beside the output, measured, and dropped
-    from ..measure.changes import write_changes
+    from .changes import write_changes
 
-    frames, arrays, rec = [], [], {"galaxies": 0, "objects": 0, "blocks": 0, "frames": len(rows_of)}
+    frames, arrays, rec = [], [], {"galaxies": 0, "objects": 0, "blocks": 0, "frames": len(rows_of),
+                                   "draws": draws}
     try:
         for expid, (exposure, history, rows, seed) in rows_of.items():
             # NAME.PID.part: a killed run's scratch frames are removed before the next (remove_stale_parts)
@@ -265,16 +291,17 @@ def _final(study_dir, p, out):
             # the scratch file gives the headers; the pixels stay in memory
             summary = render_final(truth, exposure, frame, model=model, variants=variants, seed=seed,
                                    histories=history, rows=rows, stamp=p["stamp"], compress="none", overwrite=True,
-                                   pixels=arrays[-1])
+                                   pixels=arrays[-1], keep_light="drawn" in sources and expid in earlier)
             for key in ("galaxies", "objects", "blocks"):
                 rec[key] += summary["rows" if key == "galaxies" else key]
-        header = {"NONFRAME": (reach["on"], "galaxy-final pairs with the stamp on the final"),
-                  "NREACH": (reach["reached"], "of them reached by earlier star light"),
-                  "FPIXRCH": (round(float(np.mean(reach["fractions"])), 6),
-                              "mean fraction of the finals' pixels persistence can reach")}
+        header = {"NONFRAME": (reach["on"], "galaxy-final pairs of the sample with the stamp on the final"),
+                  "NREACH": (reach["reached"], "of them reached by earlier light")}
+        if reach["fractions"] and np.all(np.isfinite(reach["fractions"])):
+            header["FPIXRCH"] = (round(float(np.mean(reach["fractions"])), 6),
+                                 "mean fraction of the finals' pixels persistence can reach")
         options = MeasureOptions(joint=False, stamp=measure["stamp"], min_snr=measure["min_snr"])
         counts = write_changes(frames, list(variants), truth, out, options=options, expids=list(rows_of),
-                               header=header, pixels=arrays)
+                               header=header, pixels=arrays, field=p["field"], cold=bool(measure.get("check")))
         rec.update(sample=counts["sample"], fitted=counts["fitted"])
         return rec
     finally:
@@ -283,13 +310,19 @@ def _final(study_dir, p, out):
                 os.unlink(frame)
 
 
+def _source(model) -> str:
+    from ..detector.effects import Persistence
+
+    return Persistence.fluence_input(model)[0]
+
+
 def _changes(study_dir, p, out):
-    from ..measure.changes import write_changes
+    from .changes import write_changes
 
     finals = [os.path.join(study_dir, f) for f in p["finals"]]
     options = MeasureOptions(joint=p["joint"], stamp=p["stamp"], min_snr=p["min_snr"])
     summary = write_changes(finals, p["variants"], os.path.join(study_dir, p["truth"]), out, options=options,
-                            expids=p["expids"], part=p["part"])
+                            expids=p["expids"], part=p["part"], field=p["field"], cold=bool(p.get("check")))
     return {"galaxies": summary["sample"], "fitted": summary["fitted"], "frames": len(finals)}
 
 
@@ -298,8 +331,12 @@ def _correlate(study_dir, p, out):
 
     figures = os.path.join(study_dir, p["figures"])
     os.makedirs(figures, exist_ok=True)
+    f = p["field"]
+    # the study's sample: the galaxies in the field, every one of them (a flagged fit is kept with its flag,
+    # as the paper's pipeline kept them): the same rows whether the finals were rendered whole or not
     options = CorrelateOptions(min_sep=p["min_sep"], max_sep=p["max_sep"], nbins=p["nbins"], npatch=p["npatch"],
-                               thresholds=tuple(p["thresholds"]), seed=p["seed"])
+                               thresholds=tuple(p["thresholds"]), seed=p["seed"], flagged="keep",
+                               within=(f["ra"], f["dec"], f["radius"]))
     if "tables" in p:
         # the differential study's shape changes: one row per galaxy of the sample, De in columns
         summary = correlate_files([os.path.join(study_dir, t) for t in p["tables"]], out,
@@ -307,7 +344,8 @@ def _correlate(study_dir, p, out):
                                   overwrite=True)
         return {"frames": len(p["tables"]), "galaxies": int(summary["n"])}
     pairs = [(os.path.join(study_dir, a), os.path.join(study_dir, b)) for a, b in p["pairs"]]
-    correlate_files([], out, options, pairs=pairs, plots_dir=figures, overwrite=True)
+    summary = correlate_files([], out, options, pairs=pairs, plots_dir=figures, overwrite=True)
+    return {"frames": len(pairs), "galaxies": int(summary["n"])}
 
 
 def _budget(study_dir, p, out):

@@ -1,0 +1,467 @@
+"""A final exposure rendered only where persistence can change a galaxy: the differential study.
+
+What persists of an earlier exposure is light drawn from the catalogue:
+every object's (persistence source 'drawn', the paper's pipeline) or the
+stars' alone ('stars').  A galaxy whose measured stamp (:func:`window_boxes`,
+one pixel wider for interpixel capacitance) no such light reaches has exactly
+the same pixels with and without persistence, hence exactly the same fit:
+De = 0.  With star light persisting, the persistence of a final can only be
+non-zero on the pixels that some star of an earlier exposure lit, the union
+of those stars' stamps (:func:`reach_mask`), and only the galaxies there
+(:func:`candidate_rows`) need pixels; with every object's light persisting,
+nearly every galaxy's stamp is reached and all of them are simulated.  Only
+their pixels are simulated (:func:`render_final`): the detector's noise
+blocks that their stamps reach (:data:`perscli.detector.blocks.NOISE_BLOCK`),
+with every object whose light reaches those blocks.  Because each pixel's
+noise is keyed on its block and each pixel is the sum of the same stamps in
+the same order, those pixels are the very bits a whole-frame render gives:
+the differential result is the full result, not an approximation of it
+(tests/test_differential.py checks this galaxy by galaxy).
+
+The final's file holds the reference (no persistence) in SCI, and one image
+per variant (persistence model and source) holding only the stamps it
+changed, NaN elsewhere, with a CHANGED table of which galaxies changed in
+which variant; :func:`perscli.measure.changes.measure_changes` fits those.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .. import PerscliError
+from ..detector.blocks import NOISE_BLOCK, BlockStack
+from ..detector.chain import run_chains
+from ..detector.effects import Persistence
+from ..detector.model import DetectorModel
+from ..optics import Optics
+from ..render.exposure import Exposure, draw_sources, plan_objects, read_truth
+from .reach import (IPC_REACH, WINDOW_MARGIN, _active_blocks, _clip_keep, _objects_reaching, galaxy_positions,
+                    persisting_stars, stamp_sides, touches, window_boxes)
+
+log = logging.getLogger(__name__)
+
+
+#: the light of earlier exposures drawn by :func:`object_light`, kept for the next final of the same detector
+#: (which shares all but one of its earlier exposures): key -> float32 image
+_LIGHT: dict = {}
+_LIGHT_SIZE = 12
+_TRUTH: dict = {}
+
+#: the persistence sources a differential study can draw from the catalogue, and the image of a frame each is
+LIGHT_SOURCES = {"drawn": "DRAWN", "stars": "STARFLU"}
+
+
+def _truth_columns(truth: str, filter_name: str) -> dict:
+    """The catalogue's columns for a filter, read once per process and file (size and time keyed)."""
+    import os
+
+    st = os.stat(truth)
+    key = (os.path.realpath(truth), st.st_size, st.st_mtime_ns, filter_name)
+    if key not in _TRUTH:
+        if len(_TRUTH) >= 4:
+            _TRUTH.pop(next(iter(_TRUTH)))
+        _TRUTH[key] = read_truth(truth, filter_name)
+    return _TRUTH[key]
+
+
+def _light_key(truth: str, exposure: Exposure, source: str, floor: float):
+    import os
+
+    st = os.stat(truth)
+    return (os.path.realpath(truth), st.st_size, st.st_mtime_ns, exposure.sca, exposure.expid, exposure.mjd,
+            exposure.filter, exposure.full_bounds, source, float(floor) if source == "stars" else 0.0)
+
+
+def _keep(key, light) -> None:
+    _LIGHT[key] = light
+    while len(_LIGHT) > _LIGHT_SIZE:
+        _LIGHT.pop(next(iter(_LIGHT)))
+
+
+def remember_light(truth: str, exposure: Exposure, source: str, light: np.ndarray) -> None:
+    """Keep a frame's drawn light, drawn elsewhere, as :func:`object_light` would return it."""
+    _keep(_light_key(truth, exposure, source, 0.0), light)
+
+
+def object_light(truth: str, exposure: Exposure, source: str = "drawn", floor: float = 0.0) -> np.ndarray:
+    """The expected electrons of the catalogue's objects on an exposure's frame, as render writes them.
+
+    What an earlier exposure leaves, drawn here from the catalogue rather
+    than read from a file, and kept for the next final (a study's earlier
+    exposures would be most of its bytes): for ``source`` 'drawn' every
+    object (the frame's DRAWN), for 'stars' the stars alone (its STARFLU).
+    The same stamps added in the same order as ``perscli render`` adds them,
+    in float32 as it writes them: the same bits.  With ``floor`` and the
+    stars, only the stars whose light can exceed it (:func:`persisting_stars`)
+    are drawn: the same bits wherever the light exceeds ``floor``, what
+    persists above it.
+
+    Parameters
+    ----------
+    truth : str
+    exposure : Exposure
+    source : {'drawn', 'stars'}
+    floor : float
+        Electrons (the persistence effect's floor).
+    """
+    if source not in LIGHT_SOURCES:
+        raise PerscliError(f"persistence source {source!r}: a differential study draws {' or '.join(LIGHT_SOURCES)}")
+    key = _light_key(truth, exposure, source, floor)
+    if key in _LIGHT:
+        _LIGHT[key] = _LIGHT.pop(key)        # most recently used last
+        return _LIGHT[key]
+    cols = _truth_columns(truth, exposure.filter)
+    optics = Optics(exposure)
+    plan = plan_objects(cols, optics, exposure.full_bounds)
+    if source == "drawn":
+        light = draw_sources(cols, exposure, optics=optics, plan=plan)[0].astype(np.float32)
+    else:
+        only = cols["kind"] == "star"
+        if floor > 0:
+            todo, x, y, flux, sizes = plan
+            stars = todo[only[todo]]
+            ix = np.floor(x[stars] + 0.5).astype(np.int64)
+            iy = np.floor(y[stars] + 0.5).astype(np.int64)
+            n = sizes[stars]
+            boxes = np.stack([ix - n // 2, ix - n // 2 + n - 1, iy - n // 2, iy - n // 2 + n - 1], axis=1)
+            only = np.zeros_like(only)
+            only[stars[persisting_stars(flux[stars], boxes, floor)]] = True
+        light = draw_sources(cols, exposure, stars=True, optics=optics, plan=plan, only=only,
+                             image=False)[3].astype(np.float32)
+    _keep(key, light)
+    return light
+
+
+def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=None, area=None) -> dict:
+    """The persistence charge that the light of ``histories`` leaves in ``final``, per law.
+
+    The computation of ``perscli render --previous`` with the earlier
+    frames' DRAWN or STARFLU (:func:`perscli.render.run.history_persistences`),
+    on their light drawn here (:func:`object_light`).
+
+    Parameters
+    ----------
+    laws : dict
+        Name -> (PersistenceModel, source, threshold, cap, floor); source 'drawn' or 'stars'.
+    blocks : perscli.detector.effects.BlockStack, optional
+        Only these noise blocks of ``area`` (the simulation area around the
+        final's frame): the charge as a stack of them.  The law is per pixel,
+        so a block's values are the whole frame's there.
+    area : (x0, x1, y0, y1)
+        With ``blocks``.
+
+    Returns
+    -------
+    dict
+        Name -> electrons per pixel of the final's frame (or the stack of ``blocks``).
+    """
+    from ..detector.persistence import order_earlier, persistence_charge
+    from ..io.frames import SECONDS_PER_DAY
+    from ..render.run import pad_to, persisting_fluence
+
+    histories = list(histories)
+    for h in histories:
+        if h.full_bounds != final.full_bounds or h.sca != final.sca:
+            raise PerscliError(f"earlier exposure {h.expid}: not the frame of final {final.expid} (SCA {h.sca}, "
+                               f"bounds {h.full_bounds})")
+    ends = [(h.end - final.mjd) * SECONDS_PER_DAY for h in histories]
+    window = (final.end - final.mjd) * SECONDS_PER_DAY
+    names = [f"earlier exposure {h.expid}" for h in histories]
+    bounds = final.full_bounds
+    lights, charges = {}, {}
+
+    def light(i, source, floor):
+        key = (i, source, floor if source == "stars" else 0.0)
+        if key not in lights:
+            value = object_light(truth, histories[i], source, floor)
+            # only the blocks simulated: the law on a few per cent of the frame
+            lights[key] = value if blocks is None else \
+                blocks.gather(pad_to(value, bounds, area), fill=0.0, dtype=np.float32)
+        return lights[key]
+
+    def fluence(i, source, threshold, cap, floor, scratch):
+        # made when the law uses it, in one scratch array: fresh frames cost more in page faults than the law
+        return lambda: persisting_fluence(light(i, source, floor), 1.0, threshold=threshold, cap=cap, floor=floor,
+                                          out=scratch)
+
+    for name, (pmodel, source, threshold, cap, floor) in laws.items():
+        keep, _ = order_earlier(ends, 0.0, pmodel, names)
+        if not histories or not keep:
+            charges[name] = None
+            continue
+        shape = light(keep[0], source, floor).shape
+        scratch = np.empty(shape, dtype=np.float32)
+        # exposures beyond the law's look-back or count are left out by persistence_charge: never called
+        fluences = [fluence(i, source, threshold, cap, floor, scratch) for i in range(len(histories))]
+        charges[name] = persistence_charge(fluences, ends, 0.0, window, pmodel)[0]
+    return charges
+
+
+#: below this fraction of active blocks the chain runs on the stack of them rather than on the whole area
+STACK_FRACTION = 0.25
+
+
+def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, area, blocks=None) -> dict:
+    """Every model's SCI over ``area`` (NaN outside the active blocks).
+
+    With ``blocks`` (few active blocks), the chain runs on the stack of them
+    (:class:`perscli.detector.effects.BlockStack`; ``charges`` are stacks
+    too) and the result is put back in the area; noise is keyed on blocks,
+    so each pixel is the bits the whole area gives.
+    """
+    if blocks is None:
+        results = run_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=sky_rate,
+                             persistence=charges, origin=(area[0], area[2]), active=active)
+        return {name: (r.sci, r.unit, r.sky_rate) for name, r in results.items()}
+    results = run_chains(blocks.gather(sources), models, exptime=exposure.exptime, seed=seed, sky_rate=sky_rate,
+                         persistence=charges, origin=(area[0], area[2]), blocks=blocks)
+    return {name: (blocks.scatter(r.sci, dtype=np.float32), r.unit, r.sky_rate) for name, r in results.items()}
+
+
+def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, variants: dict, seed: int,
+                 histories=(), rows=None, stamp: int = 48, compress: str = "gzip", overwrite: bool = False,
+                 pixels: dict | None = None, keep_light: bool = False) -> dict:
+    """The reference and every variant of a final exposure, on the stamps of ``rows`` only; write ``dest``.
+
+    Parameters
+    ----------
+    truth : str
+        The truth catalogue.
+    exposure : Exposure
+        The final exposure (with its frame's bounds).
+    dest : str
+        Output file: SCI (the reference: ``model`` without earlier
+        exposures) holding the pixels of the rows' stamps (NaN elsewhere);
+        one image per variant (:func:`perscli.measure.changes.variant_extname`)
+        holding the stamps it changed (NaN elsewhere); MODEL (the
+        reference's detector model); CHANGED (id, and per variant whether
+        it changed that galaxy's stamp).
+    model : DetectorModel
+        The reference's detector model.
+    variants : dict
+        Variant name -> DetectorModel: the model with its persistence law and
+        source (:data:`LIGHT_SOURCES`: light drawn from the catalogue).
+    seed : int
+        The frame's seed: the reference and every variant share its noise.
+    histories : sequence of Exposure
+        The earlier exposures of the same frame: their light persists
+        (:func:`history_charges`).
+    rows : ndarray of bool, optional
+        Per catalogue row: the galaxies whose stamps to simulate (default: none).
+    stamp : int
+        The largest stamp ``perscli measure`` cuts.
+    compress, overwrite
+        As for :func:`perscli.render.run.render_file`.
+    pixels : dict, optional
+        Filled with the images and the CHANGED table as arrays (``SCI``, each
+        variant's EXTNAME, ``CHANGED``) for a caller that measures them right
+        away.
+    keep_light : bool
+        Draw every object on the frame and keep its drawn light
+        (:func:`object_light`'s cache) for later finals of the same detector:
+        when this final is an earlier exposure of others to come.
+
+    Returns
+    -------
+    dict
+        rows simulated, objects drawn, active blocks and their fraction, and
+        per variant the galaxies changed.
+    """
+    from ..io.cards import format_card
+    from ..io.fitsfile import OutHDU, table_hdu
+    from ..io.output import check_output, write_hdus
+    from ..render.run import _exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, pad_to, simulation_area
+
+    check_output(dest, overwrite=overwrite, inputs=[truth])
+    cols = _truth_columns(truth, exposure.filter)
+    for name, vm in variants.items():
+        source = Persistence.fluence_input(vm)[0]
+        if source not in LIGHT_SOURCES:
+            raise PerscliError(f"variant {name}: a differential render draws what persists from the catalogue: "
+                               f"persistence.source {' or '.join(LIGHT_SOURCES)}, not {source}")
+    optics = Optics(exposure)
+    bounds = exposure.full_bounds
+    xmin, xmax, ymin, ymax = bounds
+    area = simulation_area(bounds)
+    rows = np.zeros(len(cols["ra"]), dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
+    gal, gx, gy = galaxy_positions(cols, optics, bounds, stamp)
+    keep = rows[gal]
+    gal, gx, gy = gal[keep], gx[keep], gy[keep]
+    sides = stamp_sides(cols, gal, stamp)
+    windows = _clip_keep(window_boxes(gx, gy, sides), bounds)
+    active = _active_blocks(window_boxes(gx, gy, sides, WINDOW_MARGIN + IPC_REACH), area)
+    plan = plan_objects(cols, optics, area)
+    drawn = _objects_reaching(plan, active, area)
+    if keep_light:
+        # every object drawn, not only those reaching the stamps: the frame's DRAWN is then a crop of the same
+        # sums, kept for the later finals whose earlier exposure this one is
+        drawn = np.zeros_like(drawn)
+        drawn[plan[0]] = True
+    sources = draw_sources(cols, exposure, optics=optics, plan=plan, bounds=area, only=drawn)[0] \
+        if active.any() or keep_light else np.zeros((area[3] - area[2] + 1, area[1] - area[0] + 1))
+    if keep_light:
+        remember_light(truth, exposure, "drawn", crop(sources, area, bounds).astype(np.float32))
+    charges = {}
+    blocks = BlockStack.of(active, (area[0], area[2]), sources.shape) \
+        if active.any() and active.mean() <= STACK_FRACTION else None
+    if active.any() and histories:
+        laws = {name: (vm.persistence_model(), *Persistence.fluence_input(vm), Persistence.floor(vm))
+                for name, vm in variants.items()}
+        charges = history_charges(truth, exposure, histories, laws, blocks, area)
+        if blocks is None:
+            charges = {name: pad_to(charge, bounds, area) for name, charge in charges.items()}
+    models = {"": model, **variants}
+    results = _simulate(sources, models, charges, exposure=exposure, seed=seed, sky_rate=optics.sky_rate,
+                        active=active, area=area, blocks=blocks)
+    ref = crop(results[""][0], area, bounds)
+    inside = np.zeros(ref.shape, dtype=bool)
+    for x0, x1, y0, y1 in windows[1]:
+        inside[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
+    if np.any(inside & ~np.isfinite(ref)):          # pragma: no cover - the blocks cover the windows
+        raise PerscliError("render_final: a stamp reaches pixels that were not simulated")
+    ref32 = ref.astype(np.float32)
+    # each galaxy's window of the frame (0-indexed array coordinates), one after the other
+    win = windows[1]
+    wx0, wy0 = win[:, 0] - xmin, win[:, 2] - ymin
+    wnx, wny = win[:, 1] - win[:, 0] + 1, win[:, 3] - win[:, 2] + 1
+    offsets = np.concatenate([[0], np.cumsum(wnx * wny)]).astype(np.int64)
+
+    def cut(image):
+        if not len(win):
+            return np.zeros(0, dtype=image.dtype)
+        return np.concatenate([image[y:y + h, x:x + w].ravel() for x, y, w, h in zip(wx0, wy0, wnx, wny)])
+
+    ref_pix = cut(ref32)
+    changed, deltas, var_full = {}, {}, {}
+    for name in variants:
+        sci = crop(results[name][0], area, bounds).astype(np.float32)
+        # a stamp changed when any of its pixels (as written: float32) differs from the reference's
+        flags = touches(inside & (sci != ref32), win, bounds)
+        d = cut(sci).astype(np.float64) - ref_pix.astype(np.float64)
+        d32 = d.astype(np.float32)
+        changed[name], deltas[name] = flags, d32 if np.array_equal(d32, d) else d
+        if pixels is not None:
+            keep = np.zeros(ref.shape, dtype=bool)
+            for x0, x1, y0, y1 in win[flags]:
+                keep[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
+            var_full[name] = np.where(keep, sci, np.float32(np.nan))
+    gain = model.value("gain", "gain", off=1.0)
+    unit, sky_rate = results[""][1], results[""][2]
+    common = _wcs_cards(optics, bounds)
+    frame_cards = common + _exposure_cards(exposure, optics, seed, unit, gain) + [
+        format_card("SKYRATE", sky_rate, "[e-/pixel/s] sky background used"),
+        format_card("NOBJ", int(np.count_nonzero(drawn)), "objects drawn (those reaching the stamps)")]
+    region = [format_card("REGION", "stamps", "only the stamps of galaxies persistence can reach"),
+              format_card("NBLOCKS", int(active.sum()), f"noise blocks ({NOISE_BLOCK} px) simulated"),
+              format_card("FBLOCKS", round(float(active.mean()) if active.size else 0.0, 6),
+                          "fraction of the blocks simulated"),
+              format_card("FRAMENX", int(xmax - xmin + 1), "[pixel] columns of the frame (pixels in REFPIX)"),
+              format_card("FRAMENY", int(ymax - ymin + 1), "[pixel] rows of the frame")]
+    out = [OutHDU([format_card("SIMPLE", True), format_card("BITPIX", 8), format_card("NAXIS", 0),
+                   format_card("EXTEND", True)])]
+    out.append(OutHDU(frame_cards + region + [
+        format_card("CONTENT", "the reference's header", "pixels: REFPIX at the STAMPS windows")],
+        None, extname="SCI"))
+    out.append(_model_hdu(model))
+    from .changes import variant_extname
+
+    ids = np.asarray(cols["id"])[gal[windows[0]]].astype(np.int64)
+    table = {"id": ids, "x0": wx0.astype(np.int32), "y0": wy0.astype(np.int32), "nx": wnx.astype(np.int32),
+             "ny": wny.astype(np.int32), "offset": offsets[:-1],
+             **{variant_extname(n): changed[n].astype(np.int16) for n in variants}}
+    out.append(table_hdu(table, STAMPS_EXTNAME, descriptions={
+        "id": "catalogue id of a galaxy simulated", "x0": "first column of its window (0-indexed, frame array)",
+        "y0": "first row of its window", "nx": "columns of the window", "ny": "rows of the window",
+        "offset": "first pixel of the window in REFPIX and the D_ images (row by row)",
+        **{variant_extname(n): f"1: variant {n} changed a pixel of the window" for n in variants}}))
+    out.append(OutHDU([format_card("BUNIT", unit),
+                       format_card("CONTENT", "reference pixels of the STAMPS windows", "no persistence")],
+                      ref_pix, extname=REF_EXTNAME))
+    for name, vm in variants.items():
+        pm = vm.persistence_model()
+        out.append(OutHDU([format_card("BUNIT", unit),
+                           format_card("CONTENT", f"variant {name} minus the reference", "STAMPS windows"),
+                           format_card("VARIANT", name), format_card("PS_LAW", pm.name[-68:], "persistence law"),
+                           format_card("PS_FLOOR", Persistence.floor(vm), "[e-] fluence at or below leaves nothing"),
+                           format_card("NCHANGED", int(changed[name].sum()), "galaxies whose stamps changed")],
+                          deltas[name], extname=delta_extname(name)))
+    _provenance(out[0], truth, cols["datasum"], exposure, model, seed, [], [], {}, sky_rate,
+                int(np.count_nonzero(drawn)), ("SCI",))
+    out[0]["NPREV"] = (len(histories), "earlier exposures whose light persists")
+    for k, h in enumerate(histories, 1):
+        if k <= 99:
+            out[0][f"PRV{k:02d}ID"] = (int(h.expid), f"earlier exposure, ended MJD {h.end:.6f}")
+    write_hdus(out, dest, overwrite=overwrite, compress=compress)
+    if pixels is not None:
+        ref_full = np.where(inside, ref32, np.float32(np.nan))
+        pixels.update({"SCI": ref_full, "CHANGED": {"id": ids, **{variant_extname(n): changed[n] for n in variants}},
+                       **{variant_extname(n): var_full[n] for n in variants}})
+    return {"rows": int(len(windows[0])), "objects": int(np.count_nonzero(drawn)), "blocks": int(active.sum()),
+            "block_fraction": float(active.mean()) if active.size else 0.0,
+            "changed": {n: int(c.sum()) for n, c in changed.items()}}
+
+
+#: a final's table of the galaxies' windows, and its 1-D images of their pixels
+STAMPS_EXTNAME = "STAMPS"
+REF_EXTNAME = "REFPIX"
+
+
+def delta_extname(variant: str) -> str:
+    """The 1-D image of a final's file holding a variant's change in the windows: 'D_DRAWN-TYPICAL'."""
+    from .changes import variant_extname
+
+    return "D_" + variant_extname(variant)
+
+
+def read_stamps(path: str, variants=()) -> dict:
+    """A final's windows (:func:`render_final`): their table, the reference's pixels, each variant's change.
+
+    Returns
+    -------
+    dict
+        'table' (column arrays of STAMPS), 'ref' (1-D), 'deltas' (variant -> 1-D), as stored.
+    """
+    from ..io.tables import read_table
+    from .changes import variant_extname
+
+    table = read_table(f"{path}[{STAMPS_EXTNAME}]", what="the windows of a study's final")
+    names = {n.upper(): n for n in table.names}
+    cols = {k: table.column(k, kind="integer") for k in ("id", "x0", "y0", "nx", "ny", "offset")}
+    for v in variants:
+        if variant_extname(v) not in names:
+            raise PerscliError(f"{path}: its {STAMPS_EXTNAME} table has no column {variant_extname(v)} (variant {v})")
+        cols[variant_extname(v)] = table.column(names[variant_extname(v)], kind="integer")
+    out = {"table": cols, "deltas": {}}
+    import fitsio
+
+    with fitsio.FITS(path) as f:
+        out["ref"] = f[REF_EXTNAME].read() if len(cols["id"]) else np.zeros(0, dtype=np.float32)
+        for v in variants:
+            out["deltas"][v] = f[delta_extname(v)].read() if len(cols["id"]) else np.zeros(0, dtype=np.float32)
+    return out
+
+
+def stamp_windows(stored: dict, key: str, wanted: dict):
+    """Sub-windows of a final's stored windows: {galaxy id: (b0, b1, a0, a1)} -> {(b0, b1, a0, a1): pixels}.
+
+    ``key`` is 'ref' or a variant.  Each wanted window must lie inside its
+    galaxy's stored one (render's windows are measure's stamps grown by a
+    margin).
+    """
+    t = stored["table"]
+    flat = stored["ref"] if key == "ref" else stored["deltas"][key]
+    where = {int(i): k for k, i in enumerate(t["id"])}
+    out = {}
+    for gid, (b0, b1, a0, a1) in wanted.items():
+        k = where.get(int(gid))
+        if k is None:
+            raise PerscliError(f"galaxy {gid}: no window of it in the final's {STAMPS_EXTNAME} table")
+        x0, y0, nx, ny, off = (int(t[c][k]) for c in ("x0", "y0", "nx", "ny", "offset"))
+        if a0 < x0 or a1 > x0 + nx or b0 < y0 or b1 > y0 + ny:
+            raise PerscliError(f"galaxy {gid}: measure's stamp [{a0}:{a1}, {b0}:{b1}] is not inside the window the "
+                               f"final kept [{x0}:{x0 + nx}, {y0}:{y0 + ny}]")
+        block = flat[off:off + nx * ny].reshape(ny, nx)
+        out[(b0, b1, a0, a1)] = block[b0 - y0:b1 - y0, a0 - x0:a1 - x0]
+    return out
