@@ -27,6 +27,7 @@ which variant; :func:`perscli.measure.changes.measure_changes` fits those.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -66,12 +67,41 @@ def _truth_columns(truth: str, filter_name: str) -> dict:
     return _TRUTH[key]
 
 
-def _light_key(truth: str, exposure: Exposure, source: str, floor: float):
+def _light_key(truth: str, exposure: Exposure, source: str, floor: float, region=None):
+    import hashlib
     import os
 
     st = os.stat(truth)
+    where = None if region is None else (region.area, hashlib.sha1(region.blocks.tobytes()).hexdigest())
     return (os.path.realpath(truth), st.st_size, st.st_mtime_ns, exposure.sca, exposure.expid, exposure.mjd,
-            exposure.filter, exposure.full_bounds, source, float(floor) if source == "stars" else 0.0)
+            exposure.filter, exposure.full_bounds, source, float(floor) if source == "stars" else 0.0, where)
+
+
+@dataclass(frozen=True)
+class Region:
+    """Where a task needs the light of its exposures: noise blocks (:func:`perscli.detector.blocks.block_grid`
+    of ``area``) that some final's simulated stamps reach; the light is exact there, 0 where no object
+    reaching them is drawn."""
+
+    area: tuple
+    blocks: np.ndarray = field(compare=False)
+
+
+def final_blocks(cols: dict, exposure: Exposure, rows, stamp: int):
+    """The noise blocks a final's simulation needs: (simulation area, active blocks of it, windows, galaxies)."""
+    from ..render.run import simulation_area
+
+    optics = Optics(exposure)
+    bounds = exposure.full_bounds
+    area = simulation_area(bounds)
+    rows = np.zeros(len(cols["ra"]), dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
+    gal, gx, gy = galaxy_positions(cols, optics, bounds, stamp)
+    keep = rows[gal]
+    gal, gx, gy = gal[keep], gx[keep], gy[keep]
+    sides = stamp_sides(cols, gal, stamp)
+    windows = _clip_keep(window_boxes(gx, gy, sides), bounds)
+    active = _active_blocks(window_boxes(gx, gy, sides, WINDOW_MARGIN + IPC_REACH), area)
+    return area, active, windows, gal
 
 
 def _keep(key, light) -> None:
@@ -80,12 +110,13 @@ def _keep(key, light) -> None:
         _LIGHT.pop(next(iter(_LIGHT)))
 
 
-def remember_light(truth: str, exposure: Exposure, source: str, light: np.ndarray) -> None:
+def remember_light(truth: str, exposure: Exposure, source: str, light: np.ndarray, region=None) -> None:
     """Keep a frame's drawn light, drawn elsewhere, as :func:`object_light` would return it."""
-    _keep(_light_key(truth, exposure, source, 0.0), light)
+    _keep(_light_key(truth, exposure, source, 0.0, region), light)
 
 
-def object_light(truth: str, exposure: Exposure, source: str = "drawn", floor: float = 0.0) -> np.ndarray:
+def object_light(truth: str, exposure: Exposure, source: str = "drawn", floor: float = 0.0,
+                 region: Region | None = None) -> np.ndarray:
     """The expected electrons of the catalogue's objects on an exposure's frame, as render writes them.
 
     What an earlier exposure leaves, drawn here from the catalogue rather
@@ -105,20 +136,30 @@ def object_light(truth: str, exposure: Exposure, source: str = "drawn", floor: f
     source : {'drawn', 'stars'}
     floor : float
         Electrons (the persistence effect's floor).
+    region : Region, optional
+        Only the objects whose stamps reach these blocks: the light there is
+        the frame's, bit for bit (each pixel the sum of the same stamps in the
+        same order); elsewhere it may lack the light of objects that do not
+        reach them.  None: the whole frame.
     """
     if source not in LIGHT_SOURCES:
         raise PerscliError(f"persistence source {source!r}: a differential study draws {' or '.join(LIGHT_SOURCES)}")
-    key = _light_key(truth, exposure, source, floor)
+    key = _light_key(truth, exposure, source, floor, region)
     if key in _LIGHT:
         _LIGHT[key] = _LIGHT.pop(key)        # most recently used last
         return _LIGHT[key]
     cols = _truth_columns(truth, exposure.filter)
     optics = Optics(exposure)
     plan = plan_objects(cols, optics, exposure.full_bounds)
+    reaching = None
+    if region is not None:
+        reaching = _objects_reaching(plan_objects(cols, optics, region.area), region.blocks, region.area)
     if source == "drawn":
-        light = draw_sources(cols, exposure, optics=optics, plan=plan)[0].astype(np.float32)
+        light = draw_sources(cols, exposure, optics=optics, plan=plan, only=reaching)[0].astype(np.float32)
     else:
         only = cols["kind"] == "star"
+        if reaching is not None:
+            only = only & reaching
         if floor > 0:
             todo, x, y, flux, sizes = plan
             stars = todo[only[todo]]
@@ -126,15 +167,17 @@ def object_light(truth: str, exposure: Exposure, source: str = "drawn", floor: f
             iy = np.floor(y[stars] + 0.5).astype(np.int64)
             n = sizes[stars]
             boxes = np.stack([ix - n // 2, ix - n // 2 + n - 1, iy - n // 2, iy - n // 2 + n - 1], axis=1)
-            only = np.zeros_like(only)
-            only[stars[persisting_stars(flux[stars], boxes, floor)]] = True
+            keep = np.zeros_like(only)
+            keep[stars[persisting_stars(flux[stars], boxes, floor)]] = True
+            only = keep
         light = draw_sources(cols, exposure, stars=True, optics=optics, plan=plan, only=only,
                              image=False)[3].astype(np.float32)
     _keep(key, light)
     return light
 
 
-def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=None, area=None) -> dict:
+def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=None, area=None,
+                    region: Region | None = None) -> dict:
     """The persistence charge that the light of ``histories`` leaves in ``final``, per law.
 
     The computation of ``perscli render --previous`` with the earlier
@@ -151,6 +194,9 @@ def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=N
         so a block's values are the whole frame's there.
     area : (x0, x1, y0, y1)
         With ``blocks``.
+    region : Region, optional
+        The earlier exposures' light drawn only where the task's finals need it
+        (:func:`object_light`): it must cover ``blocks``.
 
     Returns
     -------
@@ -175,7 +221,7 @@ def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=N
     def light(i, source, floor):
         key = (i, source, floor if source == "stars" else 0.0)
         if key not in lights:
-            value = object_light(truth, histories[i], source, floor)
+            value = object_light(truth, histories[i], source, floor, region)
             # only the blocks simulated: the law on a few per cent of the frame
             lights[key] = value if blocks is None else \
                 blocks.gather(pad_to(value, bounds, area), fill=0.0, dtype=np.float32)
@@ -222,7 +268,7 @@ def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, are
 
 def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, variants: dict, seed: int,
                  histories=(), rows=None, stamp: int = 48, compress: str = "gzip", overwrite: bool = False,
-                 pixels: dict | None = None, keep_light: bool = False) -> dict:
+                 pixels: dict | None = None, keep_light: bool = False, region: Region | None = None) -> dict:
     """The reference and every variant of a final exposure, on the stamps of ``rows`` only; write ``dest``.
 
     Parameters
@@ -259,9 +305,12 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         variant's EXTNAME, ``CHANGED``) for a caller that measures them right
         away.
     keep_light : bool
-        Draw every object on the frame and keep its drawn light
+        Draw every object of ``region`` and keep its drawn light
         (:func:`object_light`'s cache) for later finals of the same detector:
         when this final is an earlier exposure of others to come.
+    region : Region, optional
+        Where the task's finals need light (:func:`final_blocks` of each,
+        joined): earlier exposures are drawn there only.  None: the whole frame.
 
     Returns
     -------
@@ -272,7 +321,7 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     from ..io.cards import format_card
     from ..io.fitsfile import OutHDU, table_hdu
     from ..io.output import check_output, write_hdus
-    from ..render.run import _exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, pad_to, simulation_area
+    from ..render.run import _exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, pad_to
 
     check_output(dest, overwrite=overwrite, inputs=[truth])
     cols = _truth_columns(truth, exposure.filter)
@@ -284,32 +333,27 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     optics = Optics(exposure)
     bounds = exposure.full_bounds
     xmin, xmax, ymin, ymax = bounds
-    area = simulation_area(bounds)
-    rows = np.zeros(len(cols["ra"]), dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
-    gal, gx, gy = galaxy_positions(cols, optics, bounds, stamp)
-    keep = rows[gal]
-    gal, gx, gy = gal[keep], gx[keep], gy[keep]
-    sides = stamp_sides(cols, gal, stamp)
-    windows = _clip_keep(window_boxes(gx, gy, sides), bounds)
-    active = _active_blocks(window_boxes(gx, gy, sides, WINDOW_MARGIN + IPC_REACH), area)
+    area, active, windows, gal = final_blocks(cols, exposure, rows, stamp)
+    if region is not None and (region.area != area or np.any(active & ~region.blocks)):
+        raise PerscliError("render_final: the region does not cover the final's stamps")
     plan = plan_objects(cols, optics, area)
     drawn = _objects_reaching(plan, active, area)
     if keep_light:
-        # every object drawn, not only those reaching the stamps: the frame's DRAWN is then a crop of the same
-        # sums, kept for the later finals whose earlier exposure this one is
-        drawn = np.zeros_like(drawn)
-        drawn[plan[0]] = True
+        # every object of the region drawn, not only those reaching the stamps: the frame's DRAWN is then a
+        # crop of the same sums there, kept for the later finals whose earlier exposure this one is
+        drawn = _objects_reaching(plan, region.blocks, area) if region is not None else np.isin(
+            np.arange(len(drawn)), plan[0])
     sources = draw_sources(cols, exposure, optics=optics, plan=plan, bounds=area, only=drawn)[0] \
         if active.any() or keep_light else np.zeros((area[3] - area[2] + 1, area[1] - area[0] + 1))
     if keep_light:
-        remember_light(truth, exposure, "drawn", crop(sources, area, bounds).astype(np.float32))
+        remember_light(truth, exposure, "drawn", crop(sources, area, bounds).astype(np.float32), region)
     charges = {}
     blocks = BlockStack.of(active, (area[0], area[2]), sources.shape) \
         if active.any() and active.mean() <= STACK_FRACTION else None
     if active.any() and histories:
         laws = {name: (vm.persistence_model(), *Persistence.fluence_input(vm), Persistence.floor(vm))
                 for name, vm in variants.items()}
-        charges = history_charges(truth, exposure, histories, laws, blocks, area)
+        charges = history_charges(truth, exposure, histories, laws, blocks, area, region)
         if blocks is None:
             charges = {name: pad_to(charge, bounds, area) for name, charge in charges.items()}
     models = {"": model, **variants}

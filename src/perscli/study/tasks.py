@@ -222,7 +222,7 @@ def _final(study_dir, p, out):
     folder) for the fit over all finals; without, fitted per exposure and only the shape changes kept."""
     import shutil
 
-    from .differential import _truth_columns, render_final
+    from .differential import Region, _truth_columns, final_blocks, render_final
     from .reach import final_candidates, in_field
 
     model = _detector(p["model"])
@@ -252,7 +252,12 @@ def _final(study_dir, p, out):
             reach["reached"] += int(rows.sum())
             reach["fractions"].append(fraction)
         rows_of[exposure.expid] = (exposure, history, rows, f["seed"])
-    # the finals that are earlier exposures of later finals of this task: their drawn light is kept once drawn
+    # where the task's finals need light: the union of their simulated blocks (an earlier exposure is drawn
+    # there only); the finals that are earlier exposures of later ones keep their drawn light
+    region = None
+    for exposure, _, rows, _ in rows_of.values():
+        area, active, _, _ = final_blocks(_truth_columns(truth, exposure.filter), exposure, rows, p["stamp"])
+        region = Region(area, active.copy()) if region is None else Region(area, region.blocks | active)
     earlier = {int(q["expid"]) for f in p["finals"] for q in f["history"]}
     from .summary import final_draws
 
@@ -269,7 +274,7 @@ def _final(study_dir, p, out):
             summary = render_final(truth, exposure, os.path.join(out, f"e{expid:06d}_final.fits"), model=model,
                                    variants=variants, seed=seed, histories=history, rows=rows, stamp=p["stamp"],
                                    compress=p["compress"], overwrite=True,
-                                   keep_light="drawn" in sources and expid in earlier)
+                                   keep_light="drawn" in sources and expid in earlier, region=region)
             rec["galaxies"] += summary["rows"]
             rec["objects"] += summary["objects"]
             rec["blocks"] += summary["blocks"]
@@ -291,7 +296,8 @@ def _final(study_dir, p, out):
             # the scratch file gives the headers; the pixels stay in memory
             summary = render_final(truth, exposure, frame, model=model, variants=variants, seed=seed,
                                    histories=history, rows=rows, stamp=p["stamp"], compress="none", overwrite=True,
-                                   pixels=arrays[-1], keep_light="drawn" in sources and expid in earlier)
+                                   pixels=arrays[-1], keep_light="drawn" in sources and expid in earlier,
+                                   region=region)
             for key in ("galaxies", "objects", "blocks"):
                 rec[key] += summary["rows" if key == "galaxies" else key]
         header = {"NONFRAME": (reach["on"], "galaxy-final pairs of the sample with the stamp on the final"),
