@@ -17,8 +17,8 @@ catalogue), which must exist:
 - measure: the last measured frame, every galaxy of the catalogue, ``--workers 1``;
 - diagnose: the eleven pairs, ``--workers 2`` (once each: ~90 s a run).
 
-Each pair of outputs is also compared (FITS data and cards but DATE/CHECKSUM):
-a refactoring that moves code moves no byte.
+Each pair of outputs is also compared (tests/golden.py's per-product tolerances, DATE/CHECKSUM
+ignored): a refactoring that moves code moves no number beyond its tolerance.
 
     python benchmarks/bench_side_by_side.py --before /tmp/before/src
 """
@@ -69,13 +69,14 @@ def timed(args, dest, src=None) -> tuple:
 
 
 def same_products(a: Path, b: Path) -> str:
+    """'the same' when the two products agree within tests/golden.py's tolerances, else which differ."""
     import golden
 
     if a.is_dir():
-        names = sorted(p.name for p in a.iterdir())
-        diff = [n for n in names if golden.digest(a / n) != golden.digest(b / n)]
-        return "identical" if not diff else f"differ: {', '.join(diff)}"
-    return "identical" if golden.digest(a) == golden.digest(b) else "differ"
+        names = golden.products(a)
+        diff = [n for n in names if golden.differences(a / n, b / n, n)]
+        return "the same" if not diff else f"differ: {', '.join(diff)}"
+    return "the same" if not golden.differences(a, b, a.name) else "differ"
 
 
 def main(argv=None):
