@@ -816,7 +816,7 @@ def _run_forked(req: dict, closing: list) -> dict:
     else:
         code = os.WEXITSTATUS(status)
     return dict(code=code, stdout=stdout, stderr=stderr, elapsed=elapsed, timed_out=timed_out,
-                maxrss_mb=usage.ru_maxrss / 1024.0)
+                maxrss_mb=usage.ru_maxrss / 1024.0, cpu=usage.ru_utime + usage.ru_stime)
 
 
 def serve() -> None:

@@ -18,7 +18,7 @@ Each case ends in one of two ways, and nothing else:
   (``SAME``), or, with the checksum check off (NO_CHECKSUM), the outcome of the same bytes
   re-signed with valid checksums and checked (``CONSISTENT``).
 
-Always: no traceback, no hang (a deadline per case), no crash, no memory blow (RLIMIT_AS 3 GiB),
+Always: no traceback, no hang (a generous deadline per case, :data:`TIMEOUT`), no crash, no memory blow (RLIMIT_AS 3 GiB),
 inputs byte-for-byte unchanged.  Which of the two endings a case may have (``expect``):
 
 ERROR          must fail: truncations, bit flips under CHECKSUM/DATASUM in what the command reads,
@@ -43,7 +43,7 @@ Cases marked ``fits_layer`` (``pytest -m fits_layer``) need behaviour of the new
 8: CHECKSUM/DATASUM of every HDU read, structure and scaling checks, trailing garbage, linear
 CONTINUE parsing, FIFOs and devices, gzip, tile compression, [EXT]); they are NOT xfailed: they
 fail until the FITS layer does it.  A failure message starts with its kind: [hang], [crash],
-[traceback], [memory], [exit N], [accepted] (exit 0 where an error was due), [wrong result],
+[traceback], [memory], [slow] (CPU time of a flood), [exit N], [accepted] (exit 0 where an error was due), [wrong result],
 [refused] (exit 1 on a valid input), [inconsistent] (NO_CHECKSUM changes more than the check),
 [message] (not exactly one line naming the file), [partial output] (output or temporary file left,
 in the output folder or next to the input), [input modified], [bad output].
@@ -82,9 +82,13 @@ from fuzz_corpus import card, quoted
 #: reaches every command (measure and correlate have no option of their own)
 NO_CHECKSUM = "--no-checksum"
 
-TIMEOUT = 20.0          # seconds for any case (a normal case takes ~0.02 s, render ~1 s)
-FLOOD_TIMEOUT = 15.0    # a 100,000-card header must be done within this (quadratic parsing: minutes)
-FIFO_DEADLINE = 12.0    # a FIFO without a writer must give its error within this
+#: seconds after which a run is killed and reported as a hang: a deadline for a hung run, not a measure of
+#: speed (a case takes ~0.02 s, a render ~1 s, a FIFO without a writer perscli's own 10 s wait), so generous
+#: that a loaded machine never reaches it
+TIMEOUT = 300.0
+#: CPU seconds a 100,000-card header may take: linear parsing takes ~1 s, quadratic parsing minutes.  CPU time,
+#: not wall-clock time: what a loaded machine's other processes take does not count
+FLOOD_CPU = 60.0
 MEMORY = 3 * fc.GiB     # RLIMIT_AS of every run
 MAX_RSS_MB = 1500       # peak resident memory of a run (perscli and its imports take ~100-300 MB)
 
@@ -128,6 +132,7 @@ class Case:
     special: str | None = None         # dir, devnull, devzero, fifo, fifo-writer, noperm, loop, ext:<selector>
     new: bool = False                  # needs the new FITS layer (marked fits_layer)
     timeout: float = TIMEOUT
+    max_cpu: float | None = None       # CPU seconds the run may take (complexity, not speed: the floods)
     suffix: str = ".fits"
     compare: str = "all"               # all HDUs, or 'sci' (the SCI image only)
     base: Callable | None = None       # () -> the unmutated bytes (default: the seed), for CONSISTENT
@@ -410,7 +415,7 @@ def flood_cases(seed: str, hdu: int, commands) -> list:
                         ("COMMENT-flood-100000", lambda: fc.comment_flood(100_000))):
         make = (lambda cards=cards: fc.edit(seed_bytes(seed), hdu, insert=cards()))
         for command in commands:
-            out.append(Case(seed, command, f"{name}-{label}", make, ERROR_OR_SAME, timeout=FLOOD_TIMEOUT, new=True))
+            out.append(Case(seed, command, f"{name}-{label}", make, ERROR_OR_SAME, max_cpu=FLOOD_CPU, new=True))
     return out
 
 
@@ -480,7 +485,7 @@ def special_cases() -> list:
            Case("frame", "cur", "ext-[SCI]-of-a-flipped-file", lambda: fc.flip(seed_bytes("frame"),
                 spans_of("frame")[1].data[0] + 8, 0x20), ERROR, special="ext:[SCI]", new=True),
            Case("frame", "cur", "fifo-with-writer", frame, SAME, special="fifo-writer", new=True),
-           Case("frame", "cur", "fifo-without-writer", None, ERROR, special="fifo", timeout=FIFO_DEADLINE, new=True),
+           Case("frame", "cur", "fifo-without-writer", None, ERROR, special="fifo", new=True),
            Case("frame", "cur", "fifo-valid-then-endless-zeros", frame, ERROR, special="fifo-endless", new=True)]
     for command in ("cur", "prev"):
         for kind in ("dir", "devnull", "devzero", "loop", "noperm"):
@@ -818,13 +823,17 @@ def _excerpt(lines, head=3, tail=12):
     return lines if len(lines) <= head + tail + 1 else [*lines[:head], "...", *lines[-tail:]]
 
 
-def judge(run, out_dir: Path, *, expect_error_only: bool, label: str):
-    """The checks every run must pass; returns the output's contents (exit 0) or None (exit 1)."""
+def judge(run, out_dir: Path, *, expect_error_only: bool, label: str, max_cpu: float | None = None):
+    """The checks every run must pass; returns the output's contents (exit 0) or None (exit 1).
+
+    ``max_cpu``: CPU seconds the run may take (user + system, the child's own: not the machine's load)."""
     stderr = run["stderr"]
     where = f"{label}\n  $ perscli {' '.join(run['args'])}\n  exit {run['code']} in {run['elapsed']:.2f}s; " \
             "stderr:\n" + "".join(f"    | {line}\n" for line in _excerpt(stderr.splitlines()))
     if run["timed_out"]:
         raise Failure("hang", f"no answer within the deadline: {where}")
+    if max_cpu is not None and run["cpu"] > max_cpu:
+        raise Failure("slow", f"{run['cpu']:.1f} CPU seconds, more than {max_cpu:g} (quadratic work?): {where}")
     if run["code"] < 0:
         raise Failure("crash", f"killed by signal {-run['code']}: {where}")
     if "Traceback" in stderr or "Exception ignored" in stderr:
@@ -903,7 +912,8 @@ def test_fuzz_case(case: Case, server, inputs, tmp_path):
     try:
         run, out_dir = run_case(server, inputs, tmp_path / "case", data, case.command, name="case" + case.suffix,
                                 timeout=case.timeout, checksum=case.checksum, special=case.special)
-        got = judge(run, out_dir, expect_error_only=case.expect == ERROR, label=f"{case.id} (expect {case.expect})")
+        got = judge(run, out_dir, expect_error_only=case.expect == ERROR, label=f"{case.id} (expect {case.expect})",
+                    max_cpu=case.max_cpu)
         if case.name == "valid" and case.checksum and case.special is None:
             _REFERENCES.setdefault((_digest(data), case.command), (run["code"], got, run["stderr"].strip()))
         if case.expect == CONSISTENT:
@@ -1046,7 +1056,8 @@ def test_server_kills_a_run_at_its_deadline(server, inputs, tmp_path):
     """A FIFO that nobody writes, with a deadline shorter than perscli's wait: the run is reported as a hang."""
     run, out_dir = run_case(server, inputs, tmp_path / "case", None, "cur", name="case.fits", timeout=1.0,
                             checksum=True, special="fifo")
-    assert run["timed_out"] and run["code"] == -9 and 0.9 < run["elapsed"] < 5
+    # the kill itself is what is checked (the harness's deadline works), not how fast a loaded machine does it
+    assert run["timed_out"] and run["code"] == -9 and 0.9 < run["elapsed"] < 60
     with pytest.raises(Failure, match=r"\[hang\]"):
         judge(run, out_dir, expect_error_only=True, label="hang")
 

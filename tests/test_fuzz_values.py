@@ -34,7 +34,9 @@ from astropy.io import fits
 
 import fuzz_corpus as fc
 
-TIMEOUT = 30.0            # seconds for any run (a refused one takes ~0.1 s, a measure ~2 s)
+#: seconds after which a run is killed and reported as a hang: a deadline for a hung run, not a measure of speed
+#: (a refused run takes ~0.1 s, a measure ~2 s), so generous that a loaded machine never reaches it
+TIMEOUT = 300.0
 MEMORY = 3 * fc.GiB       # RLIMIT_AS of every run: /dev/zero read into memory ends here, not in swap
 
 CORRELATE_ARGS = ["--frames", "0", "1", "--npatch", "2", "--nbins", "2", "--nboot", "2", "--min-sep", "1",
