@@ -62,9 +62,9 @@ COMMANDS = {
                      "--set", "dark.current=0.3", "--persistence-source", "all", "--previous", "e0.fits"],
     "add.fits": ["apply-persistence", EXPS[3], *EXPS[:3]],
     "predict.fits": ["apply-persistence", EXPS[3], *EXPS[:3], "--mode", "predict"],
-    "subtract_set.fits": ["apply-persistence", EXPS[3], *EXPS[:3], "--mode", "subtract", "--model", "pessimistic",
+    "subtract_set.fits": ["apply-persistence", EXPS[3], *EXPS[:3], "--mode", "subtract", "--law", "pessimistic",
                           "--set", "persistence.gamma=1.1"],
-    "wfc3.fits": ["apply-persistence", EXPS[3], *EXPS[:3], "--model", "wfc3", "--mode", "predict"],
+    "wfc3.fits": ["apply-persistence", EXPS[3], *EXPS[:3], "--law", "wfc3", "--mode", "predict"],
     "shapes.fits": ["measure", "e1.fits", "--catalog", "truth.fits"],
     "joint.fits": ["measure", "e0.fits", "e1.fits", "--catalog", "truth.fits", "--joint"],
 }

@@ -41,7 +41,7 @@ def test_exact_integral_with_irregular_gaps_matches_numerical_integration(frame_
     current = frame_writer("cur.fits", rng.normal(500, 20, (16, 16)), start=cur_start, exptime=cur_len)
     out = tmp_path / "pers.fits"
     run("apply-persistence", current, paths[2], paths[0], paths[3], paths[1], "--mode", "predict",
-        "--model", preset, "--param", f"gamma={gamma}", "-o", out)
+        "--law", preset, "--set", f"persistence.gamma={gamma}", "-o", out)
     params = dict(PRESETS[preset])
     expected = sum(quad_charge(f, params, (cur_start - s) * DAY - ln, (cur_start - s) * DAY - ln + cur_len, gamma)
                    for f, s, ln in zip(fluences, starts, lengths))
@@ -91,7 +91,7 @@ def test_galsim_time_model_reproduces_galsim_fermi(frame_writer, tmp_path):
     np.testing.assert_allclose(sci(out) - current, image.array - current, rtol=1e-6, atol=1e-9)
 
     out_lin = tmp_path / "lin.fits"
-    run("apply-persistence", cur, *paths, "--model", "galsim-linear", "--mode", "predict", "-o", out_lin)
+    run("apply-persistence", cur, *paths, "--law", "galsim-linear", "--mode", "predict", "-o", out_lin)
     image = galsim.Image(current.copy())
     galsim.roman.applyPersistence(image, [galsim.Image(p) for p in prevs[::-1]], method="linear")
     np.testing.assert_allclose(sci(out_lin), image.array - current, rtol=1e-6, atol=1e-9)

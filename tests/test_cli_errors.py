@@ -214,24 +214,25 @@ def test_mismatched_subarray_offsets(tmp_path, good):
 # -- model and parameters ----------------------------------------------------------------------
 
 def test_unknown_model(tmp_path, good):
-    expect_error(tmp_path, [*good, "--model", "optimistic"], "'optimistic'", "typical, pessimistic")
+    expect_error(tmp_path, [*good, "--law", "optimistic"], "'optimistic'", "typical, pessimistic")
 
 
 def test_param_with_unknown_key(tmp_path, good):
-    expect_error(tmp_path, [*good, "--param", "beta=2"], "'beta'", "valid are A, x0, dx, alpha, gamma, half_well")
+    expect_error(tmp_path, [*good, "--set", "persistence.beta=2"], "'beta'", "valid are A, x0, dx, alpha, gamma, half_well")
 
 
 def test_param_that_is_not_a_number(tmp_path, good):
-    expect_error(tmp_path, [*good, "--param", "gamma=fast"], "persistence.gamma", "finite number", "'fast'")
+    expect_error(tmp_path, [*good, "--set", "persistence.gamma=fast"], "persistence.gamma", "finite number", "'fast'")
 
 
 @pytest.mark.parametrize("text", ["gamma", "gamma:1.1"])
 def test_param_that_is_not_key_value(tmp_path, good, text):
-    expect_error(tmp_path, [*good, "--param", text], f"'{text}'", "KEY=VALUE", "gamma=1.1")
+    # the older spelling (--param KEY=VALUE): its deprecation warning, then the one line of the error
+    expect_error(tmp_path, [*good, "--param", text], f"'{text}'", "KEY=VALUE", "gamma=1.1", allow_warnings=True)
 
 
 def test_param_on_the_linear_model(tmp_path, good):
-    expect_error(tmp_path, [*good, "--model", "galsim-linear", "--param", "gamma=1"], "linear model", fix_words=())
+    expect_error(tmp_path, [*good, "--law", "galsim-linear", "--set", "persistence.gamma=1"], "linear model", fix_words=())
 
 
 # -- outputs -----------------------------------------------------------------------------------

@@ -151,8 +151,8 @@ SEX_MAP = "ra=ALPHA_J2000,dec=DELTA_J2000,id=NUMBER"
 def field(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("columns")
     plan, truth = tmp / "plan.fits", tmp / "truth.fits"
-    assert invoke("pointings", "--plan", "--ra", 10, "--dec", -44, "--n", 2, "--sca", 7, "-o", plan).exit_code == 0
-    assert invoke("catalog", "--footprints", plan, "--bounds", 1, 128, 1, 128, "-o", truth).exit_code == 0
+    assert invoke("pointings", "plan", "--ra", 10, "--dec", -44, "--n", 2, "--sca", 7, "-o", plan).exit_code == 0
+    assert invoke("catalog", "--pointings", plan, "--bounds", 1, 128, 1, 128, "-o", truth).exit_code == 0
     return dict(tmp=tmp, plan=str(plan), truth=str(truth), sex=_renamed(truth, tmp / "sex.fits", SEX))
 
 
@@ -172,10 +172,10 @@ def test_render_with_a_sextractor_catalogue(field, tmp_path):
 
 
 def test_pointings_counts_and_schedule_with_other_names(field, tmp_path):
-    counted = invoke("pointings", "--plan", "--ra", 10, "--dec", -44, "--n", 2, "--sca", 7, "--footprints",
+    counted = invoke("pointings", "plan", "--ra", 10, "--dec", -44, "--n", 2, "--sca", 7, "--footprints",
                      "--catalog", field["sex"], "--columns", "ra=ALPHA_J2000,dec=DELTA_J2000", "-o", tmp_path / "c.fits")
     assert counted.exit_code == 0, counted.output
-    reference = invoke("pointings", "--plan", "--ra", 10, "--dec", -44, "--n", 2, "--sca", 7, "--footprints",
+    reference = invoke("pointings", "plan", "--ra", 10, "--dec", -44, "--n", 2, "--sca", 7, "--footprints",
                        "--catalog", field["truth"], "-o", tmp_path / "r.fits")
     assert reference.exit_code == 0
     for col in ("n_star", "n_galaxy"):
@@ -190,10 +190,10 @@ def test_pointings_counts_and_schedule_with_other_names(field, tmp_path):
     ours.write(tmp_path / "sched.fits")
     ours.rename_columns(list(names), list(names.values()))
     ours.write(tmp_path / "other.fits")
-    a = invoke("pointings", "--schedule", tmp_path / "sched.fits", "--ra", 10, "--dec", -44, "--radius", 1,
+    a = invoke("pointings", "select", "--schedule", tmp_path / "sched.fits", "--ra", 10, "--dec", -44, "--radius", 1,
                "-o", tmp_path / "a.fits")
     mapping = ",".join(f"{k}={v}" for k, v in names.items())
-    b = invoke("pointings", "--schedule", tmp_path / "other.fits", "--ra", 10, "--dec", -44, "--radius", 1,
+    b = invoke("pointings", "select", "--schedule", tmp_path / "other.fits", "--ra", 10, "--dec", -44, "--radius", 1,
                "--schedule-columns", mapping, "-o", tmp_path / "b.fits")
     assert a.exit_code == 0 and b.exit_code == 0, b.output
     ta, tb = fits.getdata(tmp_path / "a.fits"), fits.getdata(tmp_path / "b.fits")

@@ -75,7 +75,7 @@ def test_examples_needing_absent_shared_inputs_are_skipped_with_what_they_make(t
     examples = [docs.Example("t", "perscli study examples/small.yaml -o small_study"),
                 docs.Example("t", "perscli study --preset paper -o plan --dry-run --cost-from small_study/cost.json"),
                 docs.Example("t", "perscli pointings --schedule Roman_WAS_obseq_11_1_23.fits --before 3 --n 2 -o p.fits"),
-                docs.Example("t", "perscli catalog --footprints p.fits --sca 7 -o c.fits")]
+                docs.Example("t", "perscli catalog --pointings p.fits --sca 7 -o c.fits")]
     folder = tmp_path / "clone"
     docs.prepare_folder(folder, absent, docs.script_dir())
     outcomes = docs.run_examples(examples, folder, shared=absent)

@@ -171,8 +171,8 @@ def test_catalog_and_pointings_read_gz_inputs(tmp_path, shared_data):
     np.testing.assert_array_equal(table(tmp_path / "a.fits")["ra"], table(tmp_path / "b.fits")["ra"])
     sched = shared_data / "roman" / "Roman_WAS_obseq_11_1_23.fits"
     args = ["--ra", 10, "--dec", -44, "--radius", 0.2, "--filter", "J129"]
-    run("pointings", "--schedule", sched, *args, "-o", tmp_path / "p1.fits")
-    run("pointings", "--schedule", f"{gz(sched, tmp_path / 's.fits.gz')}[1]", *args, "-o", tmp_path / "p2.fits")
+    run("pointings", "select", "--schedule", sched, *args, "-o", tmp_path / "p1.fits")
+    run("pointings", "select", "--schedule", f"{gz(sched, tmp_path / 's.fits.gz')}[1]", *args, "-o", tmp_path / "p2.fits")
     np.testing.assert_array_equal(table(tmp_path / "p1.fits")["mjd"], table(tmp_path / "p2.fits")["mjd"])
 
 

@@ -236,7 +236,7 @@ SELECT = ["--ra", "10", "--dec", "-44", "--radius", "1"]
 
 def test_a_schedule_with_positive_times_is_accepted(server, tmp_path):
     good = schedule_file(tmp_path / "sched.fits", [139.8, 139.8, np.nan])   # a row without a time is skipped
-    run = accepted(server, tmp_path / "run", ["pointings", "--schedule", good, *SELECT], inputs=[good])
+    run = accepted(server, tmp_path / "run", ["pointings", "select", "--schedule", good, *SELECT], inputs=[good])
     with fits.open(run["out"]) as hdul:
         assert list(hdul["POINTINGS"].data["exptime"]) == [139.8, 139.8]
 
@@ -244,12 +244,12 @@ def test_a_schedule_with_positive_times_is_accepted(server, tmp_path):
 @pytest.mark.parametrize("exptime", [-139.8, 0.0, -np.inf])
 def test_a_schedule_with_an_exposure_time_of_zero_or_less_is_refused(server, tmp_path, exptime):
     bad = schedule_file(tmp_path / "sched.fits", [139.8, exptime])
-    refused(server, tmp_path, ["pointings", "--schedule", bad, *SELECT], "sched.fits", "exptime",
+    refused(server, tmp_path, ["pointings", "select", "--schedule", bad, *SELECT], "sched.fits", "exptime",
             "row 1", inputs=[bad])
 
 
 def test_a_pointings_table_with_a_negative_exposure_time_is_refused(server, tmp_path):
-    """A pointings table (what render and catalog --footprints read) needs a time > 0 in every row."""
+    """A pointings table (what render and catalog --pointings read) needs a time > 0 in every row."""
     from perscli.scene.pointings import write_pointings
     from perscli.scene.schedule import Pointing
 
@@ -257,7 +257,7 @@ def test_a_pointings_table_with_a_negative_exposure_time_is_refused(server, tmp_
             for k, t in enumerate((139.8, -139.8))]
     bad = tmp_path / "plan.fits"
     write_pointings(rows, str(bad), step="test")
-    args = ["catalog", "--footprints", bad, "--bounds", "1", "16", "1", "16"]
+    args = ["catalog", "--pointings", bad, "--bounds", "1", "16", "1", "16"]
     refused(server, tmp_path, args, "plan.fits", "exptime", "-139.8", inputs=[bad])
     write_pointings([rows[0]], str(tmp_path / "good.fits"), step="test")
     accepted(server, tmp_path / "run", [*args[:2], tmp_path / "good.fits", *args[3:]], inputs=[tmp_path / "good.fits"])
@@ -471,7 +471,7 @@ def test_study_takes_no_checksum_and_passes_it_to_its_tasks(tmp_path, monkeypatc
 
 def test_pointings_and_catalog_print_the_rows_written(server, tmp_path):
     """One line on stderr with the number of rows written, which is the table's; none with -q."""
-    plan = ["pointings", "--plan", "--ra", "10", "--dec", "-44", "--n", "3"]
+    plan = ["pointings", "plan", "--ra", "10", "--dec", "-44", "--n", "3"]
     run = accepted(server, tmp_path / "p", plan)
     with fits.open(run["out"]) as hdul:
         rows = len(hdul["POINTINGS"].data)

@@ -313,7 +313,7 @@ def astropy_datasum(path, index=1):
 def test_apply_persistence_output_has_provenance(tmp_path, run_inputs):
     current, newer, older = run_inputs
     out = tmp_path / "out.fits"
-    apply(current, older, newer, out=out, extra=["--param", "gamma=1.1"])
+    apply(current, older, newer, out=out, extra=["--set", "persistence.gamma=1.1"])
     with open_verified(out) as hdul:
         hdr = hdul[0].header
         assert hdr["CREATOR"] == f"perscli {perscli.__version__}"

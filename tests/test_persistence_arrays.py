@@ -1,5 +1,5 @@
 """Persistence on arrays (no files): the same numbers as the file adapter, the model's settings
-(time_model, combine, max_previous) from YAML, --param and the command line, and one earlier
+(time_model, combine, max_previous) from YAML, --set and the command line, and one earlier
 exposure given twice refused."""
 
 import numpy as np
@@ -29,7 +29,7 @@ def arrays(names):
 
 
 @pytest.mark.parametrize("settings", [[], ["--combine", "max"], ["--time-model", "galsim"], ["--max-previous", "1"],
-                                      ["--param", "gamma=1.2", "--max-previous", "0"]])
+                                      ["--set", "persistence.gamma=1.2", "--max-previous", "0"]])
 def test_arrays_give_what_the_file_adapter_writes(tmp_path, settings):
     run("apply-persistence", EXP[3], *EXP[:3], "--mode", "predict", *settings, "-o", tmp_path / "p.fits")
     with fits.open(tmp_path / "p.fits") as hdul:
@@ -42,7 +42,7 @@ def test_arrays_give_what_the_file_adapter_writes(tmp_path, settings):
         overrides["time_model"] = "galsim"
     if "--max-previous" in settings:
         overrides["max_previous"] = int(settings[settings.index("--max-previous") + 1])
-    if "--param" in settings:
+    if "--set" in settings:
         overrides["gamma"] = 1.2
     model = load_model("typical", overrides)
     charge = persistence_charge([e[0] for e in earlier], [e[1] for e in earlier], start, exptime, model)
@@ -105,7 +105,7 @@ def test_an_exposure_that_is_not_earlier_is_refused():
 
 
 def test_model_means_the_same_in_render_and_apply_persistence(tmp_path):
-    """apply-persistence --model takes a rendered frame (its MODEL table) or a detector-model YAML, as render does."""
+    """apply-persistence --law takes a rendered frame (its MODEL table) or a detector-model YAML, as render does."""
     from perscli.detector.model import load_detector_model
 
     path = tmp_path / "det.yaml"
@@ -153,7 +153,7 @@ def test_the_persistence_step_ignores_earlier_frames_beyond_its_lookback():
 
 
 def test_model_from_a_rendered_frame(tmp_path):
-    """A frame rendered with a tweaked persistence step: apply-persistence --model FRAME.fits uses that step."""
+    """A frame rendered with a tweaked persistence step: apply-persistence --law FRAME.fits uses that step."""
     from test_render import DEC, FILTER, MJD1, PA, RA, SCA
 
     truth = tmp_path / "truth.fits"

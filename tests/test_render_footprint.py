@@ -250,7 +250,7 @@ def test_render_at_a_date_roman_cannot_observe_is_one_line(tmp_path, truth):
     assert invoke("render", *args, "--dry-run").exit_code == 0
     # the same from a row of a pointings table
     plan = tmp_path / "plan.fits"
-    assert invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 1, "--sca", SCA, "-o", plan).exit_code == 0
+    assert invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 1, "--sca", SCA, "-o", plan).exit_code == 0
     with fits.open(plan, mode="update") as hdul:
         hdul["POINTINGS"].data["mjd"][0] = 60000.0
     expect_error(tmp_path, ["render", truth, "--pointings", plan, "--bounds", *BOUNDS, "--seed", 1],
@@ -260,7 +260,7 @@ def test_render_at_a_date_roman_cannot_observe_is_one_line(tmp_path, truth):
 
 def test_render_refuses_a_table_row_out_of_range(tmp_path, truth):
     plan = tmp_path / "plan.fits"
-    assert invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 1, "--sca", SCA, "-o", plan).exit_code == 0
+    assert invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 1, "--sca", SCA, "-o", plan).exit_code == 0
     for column, value, needle in [("ra", 370.0, "RA 370 is not in [0, 360]"), ("dec", -95.0, "Dec -95 is not in"),
                                   ("pa", np.nan, "position angle nan"), ("mjd", 2461542.0, "a Julian Date")]:
         with fits.open(plan) as hdul:
@@ -309,13 +309,13 @@ def test_sky_level_is_galsims_on_the_exposure_date(tmp_path):
 
 def test_pointings_catalog_counts_against_galsims_wcs(tmp_path):
     plan, cat = tmp_path / "plan.fits", tmp_path / "cat.fits"
-    assert invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 3, "--sca", SCA, "--dither", 120,
+    assert invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 3, "--sca", SCA, "--dither", 120,
                   "-o", plan).exit_code == 0
     result = invoke("catalog", "--ra", 10.5, "--dec", -44.05, "--size", 9, "--galaxy-density", 3,
                     "--star-density", 1, "-o", cat)
     assert result.exit_code == 0, result.stderr
     out = tmp_path / "counts.fits"
-    result = invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 3, "--sca", SCA, "--dither", 120,
+    result = invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 3, "--sca", SCA, "--dither", 120,
                     "--footprints", "--catalog", cat, "-o", out)
     assert result.exit_code == 0, result.stderr
     table = Table.read(cat)
@@ -336,13 +336,13 @@ def test_pointings_catalog_counts_against_galsims_wcs(tmp_path):
 
 def test_pointings_catalog_elsewhere_warns_and_needs_footprints(tmp_path, elsewhere):
     out = tmp_path / "counts.fits"
-    result = invoke("pointings", "--plan", "--ra", 200, "--dec", 30, "--n", 2, "--sca", SCA, "--footprints",
+    result = invoke("pointings", "plan", "--ra", 200, "--dec", 30, "--n", 2, "--sca", SCA, "--footprints",
                     "--catalog", elsewhere, "-o", out)
     assert result.exit_code == 0, result.stderr
-    assert result.stderr.startswith("perscli: warning: no object of") and "perscli catalog --footprints" in \
+    assert result.stderr.startswith("perscli: warning: no object of") and "perscli catalog --pointings" in \
         result.stderr
     assert list(fits.getdata(out, "POINTINGS")["n_galaxy"]) == [0, 0]
-    result = invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", SCA, "--catalog", elsewhere,
+    result = invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", SCA, "--catalog", elsewhere,
                     "-o", tmp_path / "no.fits")
     assert result.exit_code == 2 and "--catalog needs --footprints" in result.stderr
     assert not (tmp_path / "no.fits").exists()

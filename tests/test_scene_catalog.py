@@ -717,11 +717,11 @@ def test_cli_footprints_of_a_pointings_table(tmp_path):
     from perscli.scene.footprints import sca_footprint
 
     ptg = tmp_path / "p.fits"
-    assert invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 3, "--dither", 120, "--start", 61541.97,
+    assert invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 3, "--dither", 120, "--start", 61541.97,
                   "--pa", 30, "--sca", 7, "-o", ptg).exit_code == 0
     out, again = tmp_path / "cat.fits", tmp_path / "again.fits"
     for path in (out, again):
-        result = invoke("catalog", "--footprints", ptg, "--margin", 15, "--seed", 2, "-o", path)
+        result = invoke("catalog", "--pointings", ptg, "--margin", 15, "--seed", 2, "-o", path)
         assert result.exit_code == 0, result.stderr
     assert raw_cards_masked(out) == raw_cards_masked(again)
     pts = read_pointings(str(ptg))
@@ -734,7 +734,7 @@ def test_cli_footprints_of_a_pointings_table(tmp_path):
     lib = make_truth_catalog(footprints=[sca_footprint(p) for p in pts], margin_arcsec=15.0, seed=2)
     assert np.array_equal(lib["ra"], data["ra"]) and np.array_equal(lib["kind"], np.char.strip(data["kind"]))
     # --sca chooses another detector of the same pointings; --bounds a cutout of it
-    assert invoke("catalog", "--footprints", ptg, "--sca", 3, "--bounds", 1, 512, 1, 512, "-o",
+    assert invoke("catalog", "--pointings", ptg, "--sca", 3, "--bounds", 1, 512, 1, 512, "-o",
                   tmp_path / "cut.fits").exit_code == 0
     with fits.open(tmp_path / "cut.fits") as hdul:
         np.testing.assert_array_equal(hdul["FOOTPRNT"].data["corner_ra"][0],
@@ -743,16 +743,16 @@ def test_cli_footprints_of_a_pointings_table(tmp_path):
 
 def test_cli_footprints_errors(tmp_path):
     ptg = tmp_path / "p.fits"
-    assert invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--start", 61541.97,
+    assert invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 2, "--start", 61541.97,
                   "-o", ptg).exit_code == 0
     # rows without an SCA and no --sca: one line
-    expect_error(tmp_path, ["--footprints", ptg], "--sca", command="catalog")
-    for args, needle in ((["--footprints", ptg, "--ra", RA], "--ra is for a square field"),
-                         (["--footprints", ptg, "--size", 3], "--size is for a square field"),
-                         (["--ra", RA, "--dec", DEC, "--margin", 5], "--margin is for --footprints"),
-                         (["--ra", RA, "--dec", DEC, "--sca", 3], "--sca is for --footprints"),
-                         (["--footprints", ptg, "--sca", 19], "--sca"),
-                         (["--footprints", ptg, "--sca", 1, "--margin", -1], "--margin")):
+    expect_error(tmp_path, ["--pointings", ptg], "--sca", command="catalog")
+    for args, needle in ((["--pointings", ptg, "--ra", RA], "--ra is for a square field"),
+                         (["--pointings", ptg, "--size", 3], "--size is for a square field"),
+                         (["--ra", RA, "--dec", DEC, "--margin", 5], "--margin is for --pointings"),
+                         (["--ra", RA, "--dec", DEC, "--sca", 3], "--sca is for --pointings"),
+                         (["--pointings", ptg, "--sca", 19], "--sca"),
+                         (["--pointings", ptg, "--sca", 1, "--margin", -1], "--margin")):
         expect_usage_error(tmp_path, [*args, "-o", tmp_path / "x.fits"], needle)
 
 
@@ -777,11 +777,11 @@ def test_galaxy_rows_hold_the_galaxies_and_every_row_the_stars(tmp_path):
     from perscli.scene.regions import FootprintUnion
 
     plan = tmp_path / "plan.fits"
-    r = CliRunner().invoke(cli, ["pointings", "--plan", "--ra", "10", "--dec", "-44", "--n", "3", "--dither", "400",
+    r = CliRunner().invoke(cli, ["pointings", "plan", "--ra", "10", "--dec", "-44", "--n", "3", "--dither", "400",
                                  "--sca", "7", "--seed", "3", "-o", str(plan)])
     assert r.exit_code == 0, r.output
     out = tmp_path / "cat.fits"
-    r = CliRunner().invoke(cli, ["catalog", "--footprints", str(plan), "--bounds", "1", "256", "1", "256",
+    r = CliRunner().invoke(cli, ["catalog", "--pointings", str(plan), "--bounds", "1", "256", "1", "256",
                                  "--galaxy-rows", "2", "--star-density", "20", "-o", str(out)])
     assert r.exit_code == 0, r.output
     from astropy.table import Table
@@ -794,9 +794,9 @@ def test_galaxy_rows_hold_the_galaxies_and_every_row_the_stars(tmp_path):
     others = FootprintUnion(corners[:2], 30.0).contains(stars["ra"], stars["dec"]) \
         & ~FootprintUnion([corners[2]], 30.0).contains(stars["ra"], stars["dec"])
     assert others.any()                                           # stars on the rows without galaxies too
-    bad = CliRunner().invoke(cli, ["catalog", "--footprints", str(plan), "--galaxy-rows", "5", "-o",
+    bad = CliRunner().invoke(cli, ["catalog", "--pointings", str(plan), "--galaxy-rows", "5", "-o",
                                    str(tmp_path / "bad.fits")])
     assert bad.exit_code == 1 and "rows 0 to 2" in bad.output
     bad = CliRunner().invoke(cli, ["catalog", "--ra", "10", "--dec", "-44", "--galaxy-rows", "1", "-o",
                                    str(tmp_path / "bad2.fits")])
-    assert bad.exit_code == 2 and "--galaxy-rows is for --footprints" in bad.output
+    assert bad.exit_code == 2 and "--galaxy-rows is for --pointings" in bad.output

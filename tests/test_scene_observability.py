@@ -152,7 +152,7 @@ def test_plan_library_refuses_coordinates_out_of_range():
 
 def test_cli_plan_default_writes_its_choices_into_the_header(tmp_path):
     out = tmp_path / "plan.fits"
-    result = invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 3, "--sca", 7, "-o", out)
+    result = invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 3, "--sca", 7, "-o", out)
     assert result.exit_code == 0, result.stderr
     with fits.open(out) as hdul:
         data, hdr = hdul["POINTINGS"].data, hdul["POINTINGS"].header
@@ -166,7 +166,7 @@ def test_cli_plan_default_writes_its_choices_into_the_header(tmp_path):
 
 def test_cli_plan_given_start_and_pa_are_recorded(tmp_path):
     out = tmp_path / "plan.fits"
-    result = invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--start", 61600.5, "--pa", 240,
+    result = invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 2, "--start", 61600.5, "--pa", 240,
                     "-o", out)
     assert result.exit_code == 0, result.stderr
     with fits.open(out) as hdul:
@@ -176,21 +176,21 @@ def test_cli_plan_given_start_and_pa_are_recorded(tmp_path):
 
 
 def test_cli_plan_unobservable_start_is_one_line_naming_the_fix(tmp_path):
-    args = ["pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "--start", 60000]
+    args = ["pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "--start", 60000]
     line = expect_error(tmp_path, args, "Roman cannot take", "the Sun is", "--start 60048", "best --pa")
     assert "Traceback" not in line
 
 
 def test_cli_plan_never_observable_is_one_line(tmp_path):
-    expect_error(tmp_path, ["pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 150, "--gap", DAY, "--dither", 0],
+    expect_error(tmp_path, ["pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 150, "--gap", DAY, "--dither", 0],
                  "shorten it (--n, --exptime, --gap)")
 
 
 def test_default_plan_then_render_works_end_to_end(tmp_path):
     """The new user's path: plan with defaults, draw a catalogue where SCA 7 lands, render a cutout."""
     plan, truth = tmp_path / "plan.fits", tmp_path / "truth.fits"
-    assert invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "-o", plan).exit_code == 0
-    result = invoke("catalog", "--footprints", plan, "--bounds", 1, 128, 1, 128, "-o", truth)
+    assert invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "-o", plan).exit_code == 0
+    result = invoke("catalog", "--pointings", plan, "--bounds", 1, 128, 1, 128, "-o", truth)
     assert result.exit_code == 0, result.stderr
     for row in (0, 1):
         out = tmp_path / f"e{row}.fits"

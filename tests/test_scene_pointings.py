@@ -61,7 +61,7 @@ def was(shared_data):
 
 def test_real_schedule_selection_around_the_gaia_field(was, tmp_path):
     out = tmp_path / "p.fits"
-    result = invoke("pointings", "--schedule", was, "--ra", RA, "--dec", DEC, "--radius", 1, "--filter", "J129",
+    result = invoke("pointings", "select", "--schedule", was, "--ra", RA, "--dec", DEC, "--radius", 1, "--filter", "J129",
                     "-o", out)
     assert result.exit_code == 0, result.output
     with fits.open(was) as hdul:
@@ -125,7 +125,7 @@ def test_rows_out_of_time_order_are_sorted(tmp_path):
 def test_empty_selection_is_a_warning_and_an_empty_table(tmp_path):
     path = schedule_file(tmp_path / "s.fits")
     out = tmp_path / "p.fits"
-    result = invoke("pointings", "--schedule", path, "--ra", 100, "--dec", 20, "--radius", 1, "-o", out)
+    result = invoke("pointings", "select", "--schedule", path, "--ra", 100, "--dec", 20, "--radius", 1, "-o", out)
     assert result.exit_code == 0
     assert "perscli: warning:" in result.stderr and "no exposure" in result.stderr
     with fits.open(out) as hdul:
@@ -136,7 +136,7 @@ def test_empty_selection_is_a_warning_and_an_empty_table(tmp_path):
 
 def test_plan_spacing_offsets_and_columns(tmp_path):
     out = tmp_path / "plan.fits"
-    result = invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 12, "--dither", 30, "--filter", "h158",
+    result = invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 12, "--dither", 30, "--filter", "h158",
                     "--start", 61000.5, "--exptime", 100, "--gap", 20, "--pa", 45, "--sca", 3, "--seed", 4,
                     "-o", out)
     assert result.exit_code == 0, result.output
@@ -174,7 +174,7 @@ def test_plan_without_dither_points_at_the_centre():
 def test_plan_same_seed_same_bytes_other_seed_other_offsets(tmp_path):
     outs = [tmp_path / f"{k}.fits" for k in "abc"]
     for out, seed in zip(outs, (8, 8, 9)):
-        args = ["pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 5, "--dither", 20, "--seed", seed, "-o", out]
+        args = ["pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 5, "--dither", 20, "--seed", seed, "-o", out]
         assert invoke(*args).exit_code == 0
     assert raw_cards_masked(outs[0]) == raw_cards_masked(outs[1])
     with fits.open(outs[0]) as a, fits.open(outs[2]) as c:
@@ -226,7 +226,7 @@ def test_schedule_from_stdin(tmp_path):
     path = schedule_file(tmp_path / "s.fits")
     out = tmp_path / "p.fits"
     with open(path, "rb") as fh:
-        result = invoke("pointings", "--schedule", "-", "--ra", RA, "--dec", DEC, "--radius", 1, "-o", out,
+        result = invoke("pointings", "select", "--schedule", "-", "--ra", RA, "--dec", DEC, "--radius", 1, "-o", out,
                         input=fh.read())
     assert result.exit_code == 0, result.output
     with fits.open(out) as hdul:
@@ -243,13 +243,13 @@ expect_error = partial(fits_factory.expect_error, command="pointings")
 @pytest.mark.parametrize("column", ["date", "exptime", "ra", "dec", "pa", "filter"])
 def test_schedule_missing_a_column(tmp_path, column):
     path = schedule_file(tmp_path / "s.fits", drop=column)
-    expect_error(tmp_path, ["--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1],
+    expect_error(tmp_path, ["select", "--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1],
                  path, f"no column '{column}'", "date, exptime, ra, dec, pa, filter", "check that this is a schedule")
 
 
 def test_schedule_column_of_the_wrong_type(tmp_path):
     path = schedule_file(tmp_path / "s.fits", text="ra")
-    expect_error(tmp_path, ["--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1],
+    expect_error(tmp_path, ["select", "--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1],
                  path, "column 'ra'", "holds text", "must hold numbers")
 
 
@@ -259,14 +259,14 @@ def test_schedule_filter_column_of_numbers(tmp_path):
     cols = [fits.Column(n, "D", array=np.array([v])) for n, v in zip(("date", "exptime", "ra", "dec", "pa",
                                                                         "filter"), rows[0])]
     fits.HDUList([fits.PrimaryHDU(), fits.BinTableHDU.from_columns(cols)]).writeto(path)
-    expect_error(tmp_path, ["--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1],
+    expect_error(tmp_path, ["select", "--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1],
                  str(path), "column 'filter'", "must hold text")
 
 
 def test_schedule_that_is_not_fits(tmp_path):
     bad = tmp_path / "bad.fits"
     bad.write_bytes(b"date,exptime,ra,dec,pa,filter\n" * 200)
-    expect_error(tmp_path, ["--schedule", bad, "--ra", RA, "--dec", DEC, "--radius", 1], str(bad), "not a FITS file")
+    expect_error(tmp_path, ["select", "--schedule", bad, "--ra", RA, "--dec", DEC, "--radius", 1], str(bad), "not a FITS file")
 
 
 def test_schedule_truncated(tmp_path):
@@ -274,19 +274,19 @@ def test_schedule_truncated(tmp_path):
     raw = open(path, "rb").read()
     with open(path, "wb") as fh:
         fh.write(raw[:2880 * 2 + 100])
-    expect_error(tmp_path, ["--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1], path, "truncated")
+    expect_error(tmp_path, ["select", "--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1], path, "truncated")
 
 
 def test_unknown_filter(tmp_path):
     path = schedule_file(tmp_path / "s.fits")
-    msg = expect_error(tmp_path, ["--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1, "--filter", "J130"],
+    msg = expect_error(tmp_path, ["select", "--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 1, "--filter", "J130"],
                        "unknown filter 'J130'", "valid are R062, Z087, Y106, J129, H158, F184, K213, W146")
     assert msg
-    expect_error(tmp_path, ["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--filter", "Ks"], "unknown filter 'Ks'")
+    expect_error(tmp_path, ["plan", "--ra", RA, "--dec", DEC, "--n", 2, "--filter", "Ks"], "unknown filter 'Ks'")
 
 
 def test_missing_schedule_file(tmp_path):
-    expect_error(tmp_path, ["--schedule", tmp_path / "nope.fits", "--ra", RA, "--dec", DEC, "--radius", 1],
+    expect_error(tmp_path, ["select", "--schedule", tmp_path / "nope.fits", "--ra", RA, "--dec", DEC, "--radius", 1],
                  "nope.fits", "no such file")
 
 
@@ -328,12 +328,12 @@ def test_schedule_through_real_pipes(tmp_path):
     """A schedule read from a real pipe and the table written to one, as in a shell script."""
     path = schedule_file(tmp_path / "s.fits")
     piped, direct = tmp_path / "piped.fits", tmp_path / "direct.fits"
-    cmd = (f"cat {path} | {PERSCLI} pointings --schedule - --ra {RA} --dec {DEC} --radius 0.3 --filter J129 -o - "
+    cmd = (f"cat {path} | {PERSCLI} pointings select --schedule - --ra {RA} --dec {DEC} --radius 0.3 --filter J129 -o - "
            f"| cat > {piped}")
     proc = subprocess.run(["bash", "-o", "pipefail", "-c", cmd], capture_output=True, text=True)
     # stderr holds the count of rows written and nothing else; the table went through stdout
     assert proc.returncode == 0 and proc.stderr == "stdout: 2 rows written (exposures)\n", proc.stderr
-    assert invoke("pointings", "--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 0.3, "--filter", "J129",
+    assert invoke("pointings", "select", "--schedule", path, "--ra", RA, "--dec", DEC, "--radius", 0.3, "--filter", "J129",
                   "-o", direct).exit_code == 0
     with fits.open(piped, checksum=True) as a, fits.open(direct) as b:
         assert list(a["POINTINGS"].data["expid"]) == [0, 5]
@@ -518,7 +518,7 @@ def test_previous_exposures_of_the_real_schedule(was, tmp_path):
     # the survey changes filter at row 4576 (J129 to H158): the history of row 4578 crosses it
     assert [p.filter for p in previous_exposures(sched, 4578, 4)] == ["J129", "J129", "H158", "H158"]
     out = tmp_path / "prev.fits"
-    result = invoke("pointings", "--schedule", was, "--before", 4183, "--n", 10, "--sca", 7, "--footprints",
+    result = invoke("pointings", "before", "--schedule", was, "--row", 4183, "--n", 10, "--sca", 7, "--footprints",
                     "-o", out)
     assert result.exit_code == 0, result.stderr
     with fits.open(out, checksum=True) as hdul:
@@ -537,18 +537,18 @@ def test_previous_exposures_of_the_real_schedule(was, tmp_path):
 def test_cli_before_warns_when_the_schedule_starts_later(tmp_path):
     path = schedule_file(tmp_path / "s.fits")
     out = tmp_path / "p.fits"
-    result = invoke("pointings", "--schedule", path, "--before", 2, "--n", 5, "-o", out)
+    result = invoke("pointings", "before", "--schedule", path, "--row", 2, "--n", 5, "-o", out)
     assert result.exit_code == 0 and "only 2 exposure(s)" in result.stderr
     with fits.open(out) as hdul:
         assert list(hdul["POINTINGS"].data["expid"]) == [0, 1]
-    result = invoke("pointings", "--schedule", path, "--before", 99, "--n", 5, "-o", tmp_path / "q.fits")
+    result = invoke("pointings", "before", "--schedule", path, "--row", 99, "--n", 5, "-o", tmp_path / "q.fits")
     assert result.exit_code == 1 and "row 99 does not exist" in result.stderr
     assert not (tmp_path / "q.fits").exists()
 
 
 def test_cli_footprints_of_a_selection_and_a_plan(was, tmp_path):
     out = tmp_path / "sel.fits"
-    result = invoke("pointings", "--schedule", was, "--ra", RA, "--dec", DEC, "--radius", 0.05, "--sca", 7,
+    result = invoke("pointings", "select", "--schedule", was, "--ra", RA, "--dec", DEC, "--radius", 0.05, "--sca", 7,
                     "--filter", "J129", "--footprints", "-o", out)
     assert result.exit_code == 0, result.stderr
     with fits.open(out) as hdul:
@@ -559,7 +559,7 @@ def test_cli_footprints_of_a_selection_and_a_plan(was, tmp_path):
                          row["filter"].strip(), int(row["sca"]))
             assert np.array_equal(sca_footprint(p)[0], row["corner_ra"])
     plan = tmp_path / "plan.fits"
-    result = invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--start", 61541.97, "--sca", 3,
+    result = invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 2, "--start", 61541.97, "--sca", 3,
                     "--footprints", "-o", plan)
     assert result.exit_code == 0, result.stderr
     with fits.open(plan) as hdul:
@@ -583,14 +583,14 @@ def test_usage_errors_of_before_and_footprints(tmp_path, args, needle):
 
 def test_plan_on_a_date_roman_cannot_observe_is_one_line(tmp_path):
     # MJD 60000 is too close to the Sun for RA 10, Dec -44: the plan says so before any footprint is asked for
-    expect_error(tmp_path, ["--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "--start", 60000, "--footprints"],
+    expect_error(tmp_path, ["plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "--start", 60000, "--footprints"],
                  "Roman cannot take", "--start")
 
 
 def test_plan_with_footprints_at_the_default_start(tmp_path):
     # the first new-user path: no --start, no --pa; the footprints are GalSim's for the chosen date and PA
     out = tmp_path / "plan.fits"
-    result = invoke("pointings", "--plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "--footprints", "-o", out)
+    result = invoke("pointings", "plan", "--ra", RA, "--dec", DEC, "--n", 2, "--sca", 7, "--footprints", "-o", out)
     assert result.exit_code == 0, result.stderr
     for p, row in zip(read_pointings(str(out)), fits.getdata(out, "POINTINGS")):
         assert np.array_equal(sca_footprint(p)[0], row["corner_ra"])

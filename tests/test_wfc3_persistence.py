@@ -121,7 +121,7 @@ def test_wfc3_model_on_real_ramps_matches_the_hand_computation_at_the_ltv_offset
     target, _ = target_of_ibh7a7lsq(folder)
     out = tmp_path / "pred.fits"
     # the 16 h look-back would ignore an exposure a year old: --lookback 0 looks back without limit
-    run("apply-persistence", folder / target, folder / "ibh7a7lsq_raw.fits", "--model", "wfc3", "--lookback", "0",
+    run("apply-persistence", folder / target, folder / "ibh7a7lsq_raw.fits", "--law", "wfc3", "--lookback", "0",
         "--mode", "predict", "-o", out)
     expected = hand_prediction(folder, target, ["ibh7a7lsq_raw.fits"])
     with fits.open(out) as hdul:
@@ -143,7 +143,7 @@ def test_wfc3_maximum_over_two_earlier_subarrays_of_different_sizes(shared_data,
     folder = shared_data / "wfc3"
     earlier = ["ibh7a7lsq_raw.fits", "ibxy01aoq_raw.fits"]
     out = tmp_path / "pred.fits"
-    run("apply-persistence", folder / "ibxy04s4q_raw.fits", *[folder / e for e in earlier], "--model", "wfc3",
+    run("apply-persistence", folder / "ibxy04s4q_raw.fits", *[folder / e for e in earlier], "--law", "wfc3",
         "--gap", "30", "--mode", "predict", "-o", out)
     gaps = [30.0 + fits.getval(folder / earlier[1], "EXPTIME") + 30.0, 30.0]
     each = [hand_prediction(folder, "ibxy04s4q_raw.fits", [e], [g])[-1] for e, g in zip(earlier, gaps)]
@@ -163,7 +163,7 @@ def test_the_16_hour_lookback_ignores_both_with_a_note(shared_data, tmp_path):
     folder = shared_data / "wfc3"
     out = tmp_path / "pred.fits"
     result = run("apply-persistence", folder / "ibxy04s4q_raw.fits", folder / "ibh7a7lsq_raw.fits",
-                 folder / "ibxy01aoq_raw.fits", "--model", "wfc3", "--mode", "predict", "-o", out, "-v")
+                 folder / "ibxy01aoq_raw.fits", "--law", "wfc3", "--mode", "predict", "-o", out, "-v")
     assert "ibxy01aoq_raw.fits ended 341.4 h before" in result.stderr
     assert "beyond the 16 h look-back: ignored" in result.stderr
     assert "ibh7a7lsq_raw.fits ended" in result.stderr
@@ -248,7 +248,7 @@ def test_subtract_updates_err_in_quadrature_and_sets_the_dq_bit(flt_pair, tmp_pa
     p = flt_pair
     out = tmp_path / "corrected.fits"
     before = snapshot(p["earlier"], p["current"])
-    run("apply-persistence", p["current"], p["earlier"], "--model", "wfc3", "--mode", "subtract",
+    run("apply-persistence", p["current"], p["earlier"], "--law", "wfc3", "--mode", "subtract",
         "--model-error", "0.2", "--flag-above", "0.01", "-o", out)
     assert snapshot(p["earlier"], p["current"]) == before
     flagged = p["charge"] / p["window"] > 0.01
@@ -266,9 +266,9 @@ def test_subtract_updates_err_in_quadrature_and_sets_the_dq_bit(flt_pair, tmp_pa
 
 def test_predict_writes_the_model_uncertainty_as_err_and_add_keeps_err(flt_pair, tmp_path):
     p = flt_pair
-    run("apply-persistence", p["current"], p["earlier"], "--model", "wfc3", "--mode", "predict",
+    run("apply-persistence", p["current"], p["earlier"], "--law", "wfc3", "--mode", "predict",
         "-o", tmp_path / "pred.fits")
-    run("apply-persistence", p["current"], p["earlier"], "--model", "wfc3", "-o", tmp_path / "added.fits")
+    run("apply-persistence", p["current"], p["earlier"], "--law", "wfc3", "-o", tmp_path / "added.fits")
     with fits.open(tmp_path / "pred.fits") as pred, fits.open(tmp_path / "added.fits") as added:
         np.testing.assert_allclose(pred["SCI"].data, p["per_second"], rtol=1e-6, atol=1e-9)
         # the default fractional uncertainty, 0.3
@@ -284,7 +284,7 @@ def test_a_frame_without_dq_gets_one_and_model_error_0_leaves_err(flt_pair, tmp_
         bare = tmp_path / "no_dq_flt.fits"
         fits.HDUList([hdul[0].copy(), hdul["SCI"].copy(), hdul["ERR"].copy()]).writeto(bare)
     out = tmp_path / "flagged.fits"
-    run("apply-persistence", bare, p["earlier"], "--model", "wfc3", "--mode", "subtract", "--model-error", "0",
+    run("apply-persistence", bare, p["earlier"], "--law", "wfc3", "--mode", "subtract", "--model-error", "0",
         "--flag-above", "0.05", "--dq-bit", "16384", "-o", out)
     with fits.open(out, checksum=True) as hdul:
         assert [(h.name, h.ver) for h in hdul] == [("PRIMARY", 1), ("SCI", 1), ("ERR", 1), ("DQ", 1)]
@@ -315,7 +315,7 @@ def test_cli_defaults_are_the_librarys(tmp_path):
     assert options["mode"].default == ApplyOptions().mode == "add"
     assert options["model_error"].default == ApplyOptions().model_error == DEFAULT_MODEL_ERROR
     assert f"default: {DEFAULT_DQ_BIT}" in options["dq_bit"].help
-    assert "the model's lookback; 0, wfc3: 16" in options["lookback"].help
+    assert "the law's lookback; 0, wfc3: 16" in options["lookback"].help
 
 
 # -- subarrays and full frames, raw/ima and flt -------------------------------------------------------
@@ -345,7 +345,7 @@ def test_ima_subarray_onto_a_full_frame_flt(tmp_path):
     for ltv, name in (((0.0, 0.0), "with"), (None, "without")):
         later = flt(tmp_path / f"full_{name}_flt.fits", full, start=start, ltv=ltv)
         out = tmp_path / f"pred_{name}.fits"
-        run("apply-persistence", later, earlier, "--model", "wfc3", "--mode", "predict", "-o", out)
+        run("apply-persistence", later, earlier, "--law", "wfc3", "--mode", "predict", "-o", out)
         got = fits.getdata(out, "SCI").astype(np.float64)
         np.testing.assert_allclose(got, expected, rtol=2e-6, atol=0, err_msg=name)
         assert np.count_nonzero(got) == 128 * 128
@@ -360,7 +360,7 @@ def test_full_frame_flt_onto_an_ima_subarray_reference_pixels_get_nothing_and_er
     err = [np.full((138, 138), 0.1)] * len(SAMPTIMES)
     later = ima(tmp_path / "sub_ima.fits", rates, SAMPTIMES, start=start, ltv=IMA_LTV, err=err)
     out = tmp_path / "corrected.fits"
-    run("apply-persistence", later, earlier, "--model", "wfc3", "--mode", "subtract", "--flag-above", "0.5",
+    run("apply-persistence", later, earlier, "--law", "wfc3", "--mode", "subtract", "--flag-above", "0.5",
         "-o", out)
     gap = (start - (T0 + 100.0 / DAY)) * DAY
     # ima pixel y (0-indexed): detector y + 1 + 438; the flt's, 0-indexed: detector - 1 = y + 438

@@ -6,10 +6,10 @@ import logging
 
 import click
 
-from .helpers import FILE, PerscliCommand, check_outputs, progress_reporter, report_errors
+from .helpers import FILE, PerscliCommand, check_outputs, deprecated_option, file_or, progress_reporter, report_errors
 from ..detector.settings import COMBINES, MODES, PRESET_SETTINGS, PRESETS, SETTINGS, TIME_MODELS, ApplyOptions
-from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, model_opt, no_checksum_opt, output_opt,
-                      overwrite_opt, units_opt, verbosity_opts, workers_opt)
+from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, no_checksum_opt, output_opt, overwrite_opt,
+                      units_opt, verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -24,7 +24,7 @@ def _model_default(key: str) -> str:
 
     own = "".join(f", {name}: {text(PRESET_SETTINGS[name][key])}" for name in PRESETS
                   if key in PRESET_SETTINGS.get(name, {}))
-    return f"[default: the model's {key}; {text(SETTINGS[key][2])}{own}]"
+    return f"[default: the law's {key}; {text(SETTINGS[key][2])}{own}]"
 
 
 def _power_of_two(ctx, param, value):
@@ -38,19 +38,22 @@ def _power_of_two(ctx, param, value):
 @click.argument("current", metavar="CURRENT", type=FILE)
 @click.argument("previous", nargs=-1, required=True, metavar="PREVIOUS...", type=FILE)
 @output_opt
-@model_opt("typical", "NAME|MODEL.yaml|FRAME.fits",
-           "the persistence law: typical or pessimistic (the paper's Table 1), wfc3 (STScI's HST WFC3-IR "
-           "parameters, with the WFC3 pipeline's --time-model middle --combine max --max-previous 0 "
-           "--lookback 16), galsim-linear (GalSim's 8 coefficients), a YAML file (persistence parameters, or "
-           "a detector model as render takes), or a frame perscli rendered (the persistence of the model that "
-           "made it)", names=("typical", "pessimistic", "wfc3", "galsim-linear"))
+@click.option("--law", "law", default=None, metavar="NAME|LAW.yaml|FRAME.fits",
+              type=file_or("typical", "pessimistic", "wfc3", "galsim-linear"),
+              help="The persistence law: typical or pessimistic (the paper's Table 1), wfc3 (STScI's HST WFC3-IR "
+                   "parameters, with the WFC3 pipeline's --time-model middle --combine max --max-previous 0 "
+                   "--lookback 16), galsim-linear (GalSim's 8 coefficients), a YAML file (persistence parameters, "
+                   "or a detector model as render takes), or a frame perscli rendered (the persistence of the "
+                   "model that made it)  [default: typical]")
+# the older spelling: --model is the detector model in render and diagnose
+@click.option("--model", "model_spec", default=None, hidden=True, type=file_or("typical", "pessimistic", "wfc3",
+              "galsim-linear"), callback=deprecated_option("apply-persistence --model", "--law"))
 @click.option("--set", "settings", multiple=True, metavar="persistence.KEY=VALUE",
-              help="Override a model parameter (A, x0, dx, alpha, gamma, half_well) or setting (time_model, "
+              help="Override a parameter of the law (A, x0, dx, alpha, gamma, half_well) or a setting (time_model, "
                    "combine, max_previous, lookback), as render's --set does: persistence.gamma=1.1. "
                    "Repeatable.")
-@click.option("--param", "params", multiple=True, metavar="KEY=VALUE",
-              help="The same as --set persistence.KEY=VALUE (the older spelling, kept for the scripts that use "
-                   "it). Repeatable.")
+@click.option("--param", "params", multiple=True, hidden=True,
+              callback=deprecated_option("apply-persistence --param KEY=VALUE", "--set persistence.KEY=VALUE"))
 @click.option("--mode", type=click.Choice(MODES), default=D.mode, show_default=True,
               help="Add persistence, subtract it (a correction), or write the persistence alone.")
 @click.option("--time-model", type=click.Choice(TIME_MODELS), default=None,
@@ -92,7 +95,7 @@ def _power_of_two(ctx, param, value):
 @workers_opt("threads over blocks of rows (the output does not depend on N)")
 @verbosity_opts
 @report_errors
-def apply_persistence(current, previous, output, model_spec, settings, params, mode, time_model, combine,
+def apply_persistence(current, previous, output, law, model_spec, settings, params, mode, time_model, combine,
                       max_previous, lookback, model_error, flag_above, dq_bit, gap, units, gain, exptime, compress,
                       overwrite, workers):
     """Add, subtract or predict the persistence of earlier exposures on CURRENT.
@@ -106,7 +109,7 @@ def apply_persistence(current, previous, output, model_spec, settings, params, m
     Earlier exposures are ordered by their timestamps, not by their order on
     the command line, and only the --max-previous most recent count.
 
-    --model wfc3 follows STScI's WFC3-IR persistence pipeline: its Fermi
+    --law wfc3 follows STScI's WFC3-IR persistence pipeline: its Fermi
     parameters (no linear branch), the rate at the middle of CURRENT, the
     per-pixel maximum over earlier exposures, and those of the last 16 hours;
     each convention can be changed with its own option.
@@ -128,15 +131,18 @@ def apply_persistence(current, previous, output, model_spec, settings, params, m
     Examples:
       perscli apply-persistence exp4.fits exp1.fits exp2.fits exp3.fits -o exp4_pers.fits
       perscli apply-persistence exp4.fits exp3.fits --mode predict -o pers.fits
-      perscli apply-persistence exp4.fits exp3.fits --model pessimistic --set persistence.gamma=1.1 -o exp4_pess.fits
+      perscli apply-persistence exp4.fits exp3.fits --law pessimistic --set persistence.gamma=1.1 -o exp4_pess.fits
       perscli apply-persistence exp4_pers.fits exp1.fits exp2.fits exp3.fits --mode subtract --flag-above 0.01 -o exp4_corr.fits
-      perscli apply-persistence exp4.fits exp1.fits exp2.fits exp3.fits --model wfc3 --mode predict -o pers_wfc3.fits
+      perscli apply-persistence exp4.fits exp1.fits exp2.fits exp3.fits --law wfc3 --mode predict -o pers_wfc3.fits
       perscli apply-persistence exp4.fits 'exp3.fits[SCI][65:192,65:192]' --mode predict -o pers_cutout.fits
       cat exp4.fits | perscli apply-persistence - exp3.fits -o - | perscli apply-persistence - exp2.fits -o out.fits
     """
     from ..detector.apply import apply_persistence_files
     from ..detector.model import load_persistence_model
 
+    if law is not None and model_spec is not None:
+        raise click.UsageError("--law and --model name the same thing (--model is its older spelling): give --law")
+    law = law if law is not None else model_spec if model_spec is not None else "typical"
     if dq_bit is not None and flag_above is None:
         raise click.UsageError("--dq-bit sets the bit --flag-above flags: give --flag-above E_PER_S too")
     # one KEY=VALUE syntax with render and study: a dotted path; apply-persistence knows one effect
@@ -152,9 +158,9 @@ def apply_persistence(current, previous, output, model_spec, settings, params, m
                                      f"persistence.{name}=...); render's --set takes the other effects",
                                      param_hint="'--set'")
         overrides.append(f"{name}={value}")
-    check_outputs(output, inputs=[current, *previous, model_spec], overwrite=overwrite)
-    # the options --time-model, --combine, --max-previous and --lookback are the model's settings
-    model = load_persistence_model(model_spec, (*overrides, *params)).with_settings(
+    check_outputs(output, inputs=[current, *previous, law], overwrite=overwrite)
+    # the options --time-model, --combine, --max-previous and --lookback are the law's settings
+    model = load_persistence_model(law, (*overrides, *params)).with_settings(
         time_model=time_model, combine=combine, max_previous=max_previous, lookback=lookback)
     options = ApplyOptions(mode=mode, model_error=model_error, flag_above=flag_above,
                            dq_bit=D.dq_bit if dq_bit is None else dq_bit, units=units, gain=gain, exptime=exptime,

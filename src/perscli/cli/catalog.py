@@ -7,7 +7,7 @@ import logging
 import click
 
 from ..instrument import ROMAN_N_SCA, ROMAN_SCA_SIZE
-from .helpers import FILE, PerscliCommand, check_outputs, report_errors
+from .helpers import FILE, PerscliCommand, check_outputs, deprecated_option, report_errors
 from .options import columns_opt, dec_opt, no_checksum_opt, output_opt, overwrite_opt, ra_opt, seed_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
@@ -19,19 +19,22 @@ log = logging.getLogger("perscli")
 @dec_opt("Centre of the square field: declination")
 @click.option("--size", type=click.FloatRange(min=0, max=3600, min_open=True, max_open=True), default=None,
               metavar="ARCMIN", help="Side of the square field on the tangent plane  [default: 10].")
-@click.option("--footprints", "footprints", metavar="POINTINGS.fits", default=None, type=FILE,
+@click.option("--pointings", "pointings_table", metavar="POINTINGS.fits", default=None, type=FILE,
               help="Instead of a square: the union of the SCA footprints of every row of this pointings table "
-                   "(perscli pointings), each grown by --margin.")
+                   "(perscli pointings, as render --pointings takes), each grown by --margin.")
+# the older spelling: --footprints is a flag of perscli pointings (add each row's SCA corners)
+@click.option("--footprints", "footprints", default=None, hidden=True, type=FILE,
+              callback=deprecated_option("catalog --footprints POINTINGS.fits", "--pointings POINTINGS.fits"))
 @click.option("--sca", type=click.IntRange(0, ROMAN_N_SCA), default=0, show_default=True, metavar="N",
-              help=f"--footprints: the detector (1-{ROMAN_N_SCA}); 0: each row's own sca.")
+              help=f"--pointings: the detector (1-{ROMAN_N_SCA}); 0: each row's own sca.")
 @click.option("--margin", type=click.FloatRange(min=0, max=3600), default=None, metavar="ARCSEC",
-              help="--footprints: grow each footprint by this much, so that objects just off a detector still "
+              help="--pointings: grow each footprint by this much, so that objects just off a detector still "
                    "spill light onto it  [default: 30].")
 @click.option("--bounds", type=int, nargs=4, default=None, metavar="XMIN XMAX YMIN YMAX",
-              help=f"--footprints: the footprint of this cutout (1-indexed inclusive SCA pixels, as render "
+              help=f"--pointings: the footprint of this cutout (1-indexed inclusive SCA pixels, as render "
                    f"--bounds) [default: the full {ROMAN_SCA_SIZE} x {ROMAN_SCA_SIZE}].")
 @click.option("--galaxy-rows", "galaxy_rows", default=None, metavar="ROWS",
-              help="--footprints: galaxies only in the footprints of these rows of the table (0-based, e.g. "
+              help="--pointings: galaxies only in the footprints of these rows of the table (0-based, e.g. "
                    "3,4 or 3-9), stars in every row's: earlier exposures whose stars' light alone persists.")
 @click.option("--galaxy-density", type=click.FloatRange(min=0), default=40.0, show_default=True,
               metavar="PER_ARCMIN2", help="Mean number of galaxies per arcmin^2 (Poisson).")
@@ -52,12 +55,12 @@ log = logging.getLogger("perscli")
 @verbosity_opts
 @click.pass_context
 @report_errors
-def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_rows, galaxy_density, star_density,
+def catalog(ctx, ra, dec, size, pointings_table, footprints, sca, margin, bounds, galaxy_rows, galaxy_density, star_density,
             star_params, gaia, columns, seed, output, overwrite):
     """Draw a truth catalog of galaxies and stars for a square field or detector footprints.
 
     The field is a square of --size arcmin on the tangent plane at (--ra,
-    --dec), or with --footprints POINTINGS.fits the union of the SCA
+    --dec), or with --pointings POINTINGS.fits the union of the SCA
     footprints (GalSim's Roman WCS) of every row of that table (for --sca N,
     or each row's own sca), each grown by --margin arcsec (default 30) so
     that objects just off an edge still spill light onto the detector: only
@@ -100,12 +103,12 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_rows, ga
     ln(wavelength) through J129 and H158.  The output is a FITS table
     'TRUTH': id, ra, dec, kind, mag_R062 ... mag_W146, hlr, e1, e2 (as
     galsim.Shear(g1, g2)), gaia_id; its header holds the field, the models
-    and the seed (with --footprints also a table FOOTPRNT of their corners).
+    and the seed (with --pointings also a table FOOTPRNT of their corners).
     The same seed gives the same catalog.
 
     A square field at the pointing of an exposure is not where its SCAs
     look (they lie up to 0.45 degrees from the centre of the focal plane):
-    --footprints draws the catalogue where they land, and perscli render
+    --pointings draws the catalogue where they land, and perscli render
     --dry-run shows how much of a catalogue a frame covers.
 
     \b
@@ -117,8 +120,8 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_rows, ga
       perscli catalog --ra 150 --dec 2 --star-param thin_height=300 --star-param mag_min=10 -o cat_cosmos.fits
       perscli catalog --ra 10 --dec -44 --size 5 --star-density 20 -o cat_dense_stars.fits
       perscli pointings plan --ra 10 --dec -44 --n 2 --sca 7 -o cat_plan.fits
-      perscli catalog --footprints cat_plan.fits --margin 30 --gaia 145649.fits --gaia 145650.fits -o cat_sca7.fits
-      perscli catalog --footprints cat_plan.fits --sca 1 --bounds 1 128 1 128 -o cat_sca1_cut.fits
+      perscli catalog --pointings cat_plan.fits --margin 30 --gaia 145649.fits --gaia 145650.fits -o cat_sca7.fits
+      perscli catalog --pointings cat_plan.fits --sca 1 --bounds 1 128 1 128 -o cat_sca1_cut.fits
     """
     from click.core import ParameterSource
 
@@ -127,18 +130,22 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_rows, ga
 
     given = {name for name in ctx.params
              if ctx.get_parameter_source(name) not in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)}
+    if footprints is not None and pointings_table is not None:
+        raise click.UsageError("--pointings and --footprints name the same table (--footprints is its older "
+                               "spelling): give --pointings", ctx)
+    footprints = pointings_table if pointings_table is not None else footprints
     if footprints is not None:
         wrong = [name for name in ("ra", "dec", "size") if name in given]
         if wrong:
-            raise click.UsageError(f"--{wrong[0]} is for a square field, not --footprints", ctx)
+            raise click.UsageError(f"--{wrong[0]} is for a square field, not --pointings", ctx)
     else:
         wrong = [name for name in ("sca", "margin", "bounds", "galaxy_rows") if name in given]
         if wrong:
-            raise click.UsageError(f"--{wrong[0].replace('_', '-')} is for --footprints", ctx)
+            raise click.UsageError(f"--{wrong[0].replace('_', '-')} is for --pointings", ctx)
         for name, value in (("ra", ra), ("dec", dec)):
             if value is None:
                 raise click.UsageError(f"Missing option '--{name}': give --ra and --dec (a square field) or "
-                                       "--footprints POINTINGS.fits", ctx)
+                                       "--pointings POINTINGS.fits", ctx)
     if star_params and star_density is not None:
         raise click.UsageError("--star-param sets the Galactic star model and --star-density selects power-law "
                                "stars: give one of them", ctx)
@@ -165,7 +172,7 @@ def catalog(ctx, ra, dec, size, footprints, sca, margin, bounds, galaxy_rows, ga
                    f"{meta['NSTAR']} {stars} stars in {meta['FIELDAR']:.6g} arcmin^2)", err=True)
     if gaia and table.meta["NSTAR"] == 0:
         log.warning("no Gaia star of %s lies inside the field; check %s", ", ".join(gaia),
-                    "--footprints" if footprints else "--ra/--dec/--size")
+                    "--pointings" if footprints else "--ra/--dec/--size")
 
 
 def _rows(text, ctx):

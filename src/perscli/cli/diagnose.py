@@ -20,7 +20,8 @@ log = logging.getLogger("perscli")
                    "Paired with MEASURED by start time (within 1 s), else in order. Without them, a lone "
                    "ramp is predicted from its own earliest reads.")
 @model_opt(None, "MODEL.yaml|FRAME.fits",
-           "the detector model to test [default: the one stored in the simulated frames]")
+           "the one to test, a YAML list of effects or a frame perscli rendered [default: the one stored in the "
+           "simulated frames]")
 @click.option("-o", "--output", "outdir", required=True, metavar="OUTDIR", type=FOLDER,
               help="Folder to write: model.yaml, report.json, report.md and PNG figures.")
 @click.option("--fit-pixels", type=click.IntRange(min=1000), default=1_000_000, show_default=True, metavar="N",

@@ -21,6 +21,9 @@ class _StderrFormatter(logging.Formatter):
 
 def configure_logging(verbosity: int) -> None:
     """WARNING by default; -v INFO, -vv DEBUG (with tracebacks); -q ERROR."""
+    from .. import deprecation
+
+    deprecation._said.clear()           # a new command line: its deprecated spellings are said again
     level = max(10, logging.WARNING - 10 * verbosity)
     logger = logging.getLogger("perscli")
     logger.handlers[:] = []
@@ -187,6 +190,24 @@ def progress_reporter(label: str, stream=None):
     ctx = click.get_current_context(silent=True)
     verbosity = (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
     return bar(label, stream, quiet=verbosity < 0)
+
+
+def deprecated_option(old: str, new: str, *, check=None):
+    """A click callback for an option kept under an older name: one warning line when it is given
+    (:func:`perscli.deprecation.deprecated`), then its value as it is.  The option should be ``hidden``:
+    the help documents the current spelling only.  ``check(ctx, value)``, if given, runs first (a usage
+    error when the new spelling is given too)."""
+
+    def callback(ctx, param, value):
+        if value not in (None, (), False) and not ctx.resilient_parsing:
+            if check is not None:
+                check(ctx, value)
+            from ..deprecation import deprecated
+
+            deprecated(old, new)
+        return value
+
+    return callback
 
 
 # -- usage errors: one line ----------------------------------------------------------------------

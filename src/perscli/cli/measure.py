@@ -148,7 +148,7 @@ def measure(frames, catalog, psf, psf_pixel, psf_oversampling, allow_undersample
     \b
     Examples:
       perscli pointings plan --ra 10 --dec -44 --n 2 --sca 7 -o pair.fits
-      perscli catalog --footprints pair.fits --bounds 1 512 1 512 -o truth.fits
+      perscli catalog --pointings pair.fits --bounds 1 512 1 512 -o truth.fits
       perscli render truth.fits --pointings pair.fits --row 0 --bounds 1 512 1 512 --seed 1 -o frame0.fits
       perscli render truth.fits --pointings pair.fits --row 1 --bounds 1 512 1 512 --seed 2 \\
           --previous frame0.fits -o frame.fits

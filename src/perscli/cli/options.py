@@ -11,7 +11,9 @@ option            meaning                                         used by
 -o/--output       output path, '-' for standard output            every command
 --overwrite       replace an existing output (never an input)     every command
 -v/-q             more/fewer messages; also after the command     every command (and the perscli group)
---model           the model to apply: a name or a file            apply-persistence (render: its own, for now)
+--model           the detector model: roman, a YAML file or a     render, diagnose
+                  rendered frame
+--law             the persistence law: a preset or a file         apply-persistence (its --model until 0.3.0)
 --seed            random seed (same seed, same output)            catalog, pointings, correlate, render
 --workers         cores (processes, or threads for compiled       apply-persistence, render, measure,
                   loops and TreeCorr), default 1                  correlate, diagnose
@@ -87,10 +89,10 @@ def workers_opt(what: str):
 
 
 def model_opt(default: str, metavar: str, what: str, names=()):
-    """``--model NAME|FILE``: the model a command applies, ``what`` listing the names and files it takes
-    (``names`` complete in the shell beside file names)."""
+    """``--model NAME|FILE``: the detector model (one meaning in every command; apply-persistence's persistence
+    law is ``--law``), ``what`` listing the names and files it takes (``names`` complete in the shell)."""
     return click.option("--model", "model_spec", default=default, show_default=True, metavar=metavar,
-                        type=file_or(*names), help=f"Model to apply: {what}.")
+                        type=file_or(*names), help=f"Detector model: {what}.")
 
 
 def _png(ctx, param, value):

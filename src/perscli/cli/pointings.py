@@ -4,8 +4,8 @@ A group of three subcommands, one job each: ``select`` (a schedule's
 exposures of a field), ``before`` (a schedule's exposures before one of its
 rows) and ``plan`` (a dithered sequence).  Until this release the three were
 one command whose flags chose the job (``--schedule FILE``, ``--schedule FILE
---before ROW``, ``--plan``); that flag form is kept for one release as a
-deprecated alias (:class:`FlagFormGroup` hands it to :func:`pointings_flags`).
+--before ROW``, ``--plan``); that flag form still works until perscli 0.3.0, with a
+deprecation warning (:class:`FlagFormGroup` hands it to :func:`pointings_flags`).
 Both forms are built from the same option factories below and run the same
 functions (:func:`run_select`, :func:`run_before`, :func:`run_plan`), so that
 they write the same bytes for the same arguments.
@@ -298,8 +298,8 @@ def pointings_flags(ctx, schedule, plan, ra, dec, radius, filter_name, limit, af
                     exptime, gap, pa, sca, footprints, catalog, columns, schedule_columns, seed, output, overwrite):
     """Deprecated: the flag form of perscli pointings select, before and plan.
 
-    Kept for one release; it takes the options it took before and writes
-    the same bytes as the subcommand it stands for:
+    It works, with a warning, until perscli 0.3.0; it takes the options it
+    took before and writes the same bytes as the subcommand it stands for:
 
     \b
       perscli pointings --schedule FILE ...             perscli pointings select --schedule FILE ...
@@ -342,7 +342,15 @@ def pointings_flags(ctx, schedule, plan, ra, dec, radius, filter_name, limit, af
             if name not in given:
                 raise click.UsageError(f"Missing option '--{name}': the field centre", ctx)
     check_rows(ctx, sca, footprints, catalog)
+    from ..deprecation import deprecated
 
+    if plan:
+        deprecated("perscli pointings --plan ...", "perscli pointings plan ...")
+    elif before is not None:
+        deprecated("perscli pointings --schedule FILE --before ROW ...",
+                   "perscli pointings before --schedule FILE --row ROW ...")
+    else:
+        deprecated("perscli pointings --schedule FILE ...", "perscli pointings select --schedule FILE ...")
     if plan:
         options = plan_options(filter_name, dither=dither, start=start, exptime=exptime, gap=gap, pa=pa, sca=sca,
                                seed=seed, footprints=footprints, columns=columns)
@@ -372,14 +380,6 @@ def pointings():
     Roman can take (by default from the first date, from MJD 61541.972429,
     at which it can).  perscli pointings COMMAND --help says more.
 
-    Deprecated, for one release: the flag form of earlier releases, which
-    takes the same options and writes the same bytes:
-
-    \b
-      perscli pointings --schedule FILE ...             perscli pointings select --schedule FILE ...
-      perscli pointings --schedule FILE --before ROW    perscli pointings before --schedule FILE --row ROW
-      perscli pointings --plan ...                      perscli pointings plan ...
-
     \b
     Examples:
       perscli pointings select --schedule Roman_WAS_obseq_11_1_23.fits --ra 10 --dec -44 --radius 1 -o was_1deg.fits
@@ -397,7 +397,7 @@ _BORESIGHT = """
     columns corner_ra, corner_dec); with --catalog TRUTH.fits, how many of
     its stars and galaxies land on it, row by row (columns n_star,
     n_galaxy).  perscli render --dry-run shows one frame in detail, and
-    perscli catalog --footprints draws a catalogue where the SCA lands."""
+    perscli catalog --pointings draws a catalogue where the SCA lands."""
 
 
 SELECT_DOC = """The exposures of a survey schedule that look at a field.

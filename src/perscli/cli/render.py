@@ -52,8 +52,8 @@ def _list_effects(ctx, param, value):
               help="Render a cutout: 1-indexed inclusive SCA pixels "
                    f"[default: the full {ROMAN_SCA_SIZE} x {ROMAN_SCA_SIZE}].")
 @model_opt("roman", "roman|MODEL.yaml|FRAME.fits",
-           "the detector model: GalSim's Roman chain (with saturation), a YAML list of effects in physical "
-           "order, or a frame perscli rendered (the model that made it); see --list-effects", names=("roman",))
+           "roman (GalSim's Roman chain, with saturation), a YAML list of effects in physical order, or a frame "
+           "perscli rendered (the model that made it); see --list-effects", names=("roman",))
 @click.option("--set", "settings", multiple=True, metavar="EFFECT.KEY=VALUE",
               help="Override the model: e.g. read_noise.sigma=5, persistence.base=pessimistic, ipc=off.")
 @click.option("--previous", multiple=True, metavar="FRAME", type=FILE,
@@ -135,13 +135,13 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     drawing nothing; a frame on which no object lands is warned about
     (naming where the frame and the catalogue are), and refused with
     --strict.  perscli pointings select|plan --footprints --catalog counts the objects
-    on every row, and perscli catalog --footprints draws a catalogue where
+    on every row, and perscli catalog --pointings draws a catalogue where
     the SCA lands.
 
     \b
     Examples:
       perscli pointings plan --ra 10 --dec -44 --n 3 --sca 7 -o seq.fits
-      perscli catalog --footprints seq.fits --bounds 1 512 1 512 -o seq_truth.fits
+      perscli catalog --pointings seq.fits --bounds 1 512 1 512 -o seq_truth.fits
       perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 512 1 512 --dry-run --regions seq0.reg
       perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 512 1 512 --seed 1 --strict -o e0.fits
       perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 512 1 512 --seed 2 --previous e0.fits \\

@@ -145,11 +145,28 @@ def load_detector_model(spec: str | None = None, overrides=()) -> DetectorModel:
         model = default_model()
     elif _is_fits(spec):
         model = _from_fits(spec)
+    elif not spec.lower().endswith((".yaml", ".yml")) and not os.path.exists(spec):
+        raise PerscliError(unknown_detector_model(spec))
     else:
         model = _from_yaml(spec)
     for text in overrides:
         _override(model, text)
     return model
+
+
+def unknown_detector_model(spec: str) -> str:
+    """The line for a detector model that is neither a name perscli knows nor a file: the valid names, and
+    where a persistence law's name goes instead."""
+    from .settings import PRESETS
+
+    laws = (*PRESETS, "galsim-linear")
+    hint = ""
+    if spec in laws:
+        hint = (f"; {spec} is a persistence law, not a detector model: --set persistence.base={spec} (render), "
+                f"--law {spec} (apply-persistence)") if spec in PRESETS else (
+            f"; {spec} is a persistence law, not a detector model: --law {spec} (apply-persistence)")
+    return (f"{spec}: no such detector model: give roman (GalSim's Roman chain), a detector model YAML file, or a "
+            f"frame perscli rendered (its MODEL){hint}")
 
 
 def load_persistence_model(spec: str = "typical", overrides=()):
@@ -221,6 +238,13 @@ def _persistence_from_yaml(path: str) -> tuple:
     if not isinstance(doc, dict):
         raise PerscliError(f"{path}: expected a mapping of persistence parameters (A, x0, dx, alpha, gamma, "
                            "half_well)")
+    if "model" in doc:
+        from ..deprecation import deprecated
+
+        if "kind" in doc:
+            raise PerscliError(f"{path}: 'model:' and 'kind:' both given; 'model:' is the older spelling of "
+                               "'kind:': keep 'kind:'")
+        deprecated("'model:'", "'kind:' (fermi or linear)", where=path)
     params = {("kind" if k == "model" else k): v for k, v in doc.items()}
     known = ("base", "kind", "coefficients", "enabled", *FERMI_PARAMETERS, *SETTINGS, "rounding")
     unknown = [str(k) for k in params if k not in known]

@@ -421,7 +421,7 @@ def no_objects_message(report: dict, *, dry_run: bool = False) -> str:
     see = "" if dry_run else "see `perscli render ... --dry-run`, "
     return (what + f"; {see}choose a row and SCA that cover the catalogue "
             "(`perscli pointings ... --sca N --footprints --catalog CAT`) or draw a catalogue there "
-            "(`perscli catalog --footprints POINTINGS --sca N`)")
+            "(`perscli catalog --pointings POINTINGS --sca N`)")
 
 
 def simulation_area(bounds) -> tuple:

@@ -260,7 +260,7 @@ def _with_counts(chosen, catalog, sca, params, inputs, *, stdin=None, columns=No
     covered = int(np.count_nonzero(counts["star"] + counts["galaxy"]))
     if chosen and not covered:
         log.warning("no object of %s lands on SCA %s in any of the %d rows: the catalogue lies elsewhere (draw one "
-                    "where the SCA lands: perscli catalog --footprints POINTINGS.fits --sca N)", catalog,
+                    "where the SCA lands: perscli catalog --pointings POINTINGS.fits --sca N)", catalog,
                     sca or "of each row", len(chosen))
     elif chosen:
         log.info("%s: objects on the SCA in %d of %d rows (at most %d stars, %d galaxies in one)", catalog, covered,
