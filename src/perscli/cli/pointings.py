@@ -35,9 +35,14 @@ P, S = PlanOptions(), SelectOptions()
 # (no default=None where an option may be required: click (8.3+) does not enforce required=True on an option
 # whose default is given, even as None)
 
-def schedule_opt(help: str, *, required: bool = False):
-    """``--schedule FILE``: a survey schedule, '-' for standard input."""
-    return click.option("--schedule", metavar="FILE", required=required, type=FILE, help=help)
+def schedule_opt(help: str, *, default: str | None = None):
+    """``--schedule roman-was|FILE``: a survey schedule, '-' for standard input; ``default``: the bundled one."""
+    from .helpers import file_or
+
+    if default is None:
+        return click.option("--schedule", metavar="FILE", type=FILE, help=help)
+    return click.option("--schedule", metavar=f"{default}|FILE", default=default, show_default=True,
+                        type=file_or(default), help=help)
 
 
 def radius_opt(help: str, *, required: bool = False):
@@ -108,6 +113,11 @@ def _flag(mode: str, text: str) -> str:
 
 # the help of each option, written once: the subcommand's, and (through _flag) the flag form's
 SCHEDULE_HELP = "Survey schedule (FITS table: date, exptime, ra, dec, pa, filter; '-' for standard input)"
+#: the subcommands' --schedule: the bundled public schedule by default (perscli.scene.schedule.BUNDLED_SCHEDULE)
+BUNDLED_HELP = ("Survey schedule: roman-was, the Roman project's public Wide Area Survey observing sequence "
+                "(Roman_WAS_obseq_11_1_23.fits of 2023-11-01, 16,956 exposures) shipped with perscli, or a FITS "
+                "table (date, exptime, ra, dec, pa, filter; '-' for standard input)")
+BUNDLED = "roman-was"
 RADIUS_HELP = ("Radius of the field circle (great circle): pointing centres within it, or with --sca N the "
                "exposures whose SCA N overlaps it.")
 LIMIT_HELP = "Only the N earliest exposures selected."
@@ -373,8 +383,9 @@ def pointings():
     Each subcommand writes a FITS table 'POINTINGS' (expid, mjd (start),
     exptime, ra, dec, pa, filter, sca; with --footprints the SCA's corners
     on the sky, with --catalog how many objects of a truth catalogue land
-    on it): select takes the exposures of a schedule (such as the public
-    Roman Wide Area Survey sequence) that look at a field, before takes the
+    on it): select takes the exposures of a schedule (by default roman-was,
+    the public Roman Wide Area Survey sequence shipped with perscli) that
+    look at a field, before takes the
     exposures of a schedule that start last before one of its rows (what
     leaves persistence in it), and plan lays out a dithered sequence that
     Roman can take (by default from the first date, from MJD 61541.972429,
@@ -382,8 +393,8 @@ def pointings():
 
     \b
     Examples:
-      perscli pointings select --schedule Roman_WAS_obseq_11_1_23.fits --ra 10 --dec -44 --radius 1 -o was_1deg.fits
-      perscli pointings before --schedule Roman_WAS_obseq_11_1_23.fits --row 4183 --n 3 -o was_prev3.fits
+      perscli pointings select --ra 10 --dec -44 --radius 1 -o was_1deg.fits
+      perscli pointings before --row 4183 --n 3 -o was_prev3.fits
       perscli pointings plan --ra 10 --dec -44 --n 3 -o plan3.fits
     """
 
@@ -402,8 +413,9 @@ _BORESIGHT = """
 
 SELECT_DOC = """The exposures of a survey schedule that look at a field.
 
-    The exposures of --schedule FILE (such as the public Roman Wide Area
-    Survey sequence) that look at the field, the circle of --radius degrees
+    The exposures of --schedule (the public Roman Wide Area Survey sequence
+    shipped with perscli, roman-was, unless a FITS file is given) that look
+    at the field, the circle of --radius degrees
     about (--ra, --dec): without --sca, those whose pointing centre lies in
     it; with --sca N, those whose SCA N footprint on the sky (GalSim's Roman
     WCS for the pointing, position angle and date) overlaps it.  Optionally
@@ -413,18 +425,18 @@ SELECT_DOC = """The exposures of a survey schedule that look at a field.
 
     \b
     Examples:
-      perscli pointings select --schedule Roman_WAS_obseq_11_1_23.fits --ra 10 --dec -44 --radius 1 --filter J129 \\
+      perscli pointings select --ra 10 --dec -44 --radius 1 --filter J129 \\
           -o was_j129.fits
-      perscli pointings select --schedule Roman_WAS_obseq_11_1_23.fits --ra 10 --dec -44 --radius 0.05 --sca 7 \\
+      perscli pointings select --ra 10 --dec -44 --radius 0.05 --sca 7 \\
           --footprints -o was_sca7.fits
-      perscli pointings select --schedule Roman_WAS_obseq_11_1_23.fits --ra 10 --dec -44 --radius 0.5 --limit 10 \\
+      perscli pointings select --ra 10 --dec -44 --radius 0.5 --limit 10 \\
           --after 61900 -o was_after.fits
     """
 
 
 @pointings.command("select", cls=PerscliCommand, help=SELECT_DOC,
                     short_help="The exposures of a schedule that look at a field.")
-@schedule_opt(f"{SCHEDULE_HELP}.", required=True)
+@schedule_opt(f"{BUNDLED_HELP}.", default=BUNDLED)
 @ra_opt(required=True)
 @dec_opt(required=True)
 @radius_opt(RADIUS_HELP, required=True)
@@ -444,7 +456,7 @@ def select(ctx, schedule, ra, dec, radius, filter_name, limit, after, sca, footp
 
 @pointings.command("before", cls=PerscliCommand,
                    short_help="The exposures of a schedule that start last before one of its rows.")
-@schedule_opt(f"{SCHEDULE_HELP}.", required=True)
+@schedule_opt(f"{BUNDLED_HELP}.", default=BUNDLED)
 @row_opt("--row", "The schedule row (from 0) whose earlier exposures to take.", required=True)
 @n_opt("Number of earlier exposures.", required=True)
 @sca_opt(SCA_HELP)
@@ -452,8 +464,9 @@ def select(ctx, schedule, ra, dec, radius, filter_name, limit, after, sca, footp
 def before(ctx, schedule, row, n, sca, footprints, catalog, columns, schedule_columns, output, overwrite):
     """The exposures of a schedule that start last before one of its rows.
 
-    The --n exposures of --schedule FILE that start last before row --row
-    starts (rows from 0), whatever their filter and wherever they point: on
+    The --n exposures of --schedule (roman-was, the public Roman Wide Area
+    Survey sequence shipped with perscli, unless a FITS file is given) that
+    start last before row --row starts (rows from 0), whatever their filter and wherever they point: on
     one detector, they are what leaves persistence in that row.  In time
     order (the most recent last); fewer, with a warning, when the schedule
     starts sooner.  expid is the row in the schedule, and the header holds
@@ -464,8 +477,8 @@ def before(ctx, schedule, row, n, sca, footprints, catalog, columns, schedule_co
 
     \b
     Examples:
-      perscli pointings before --schedule Roman_WAS_obseq_11_1_23.fits --row 4183 --n 10 --sca 7 -o was_prev.fits
-      perscli pointings before --schedule Roman_WAS_obseq_11_1_23.fits --row 4183 --n 2 --sca 7 --footprints \\
+      perscli pointings before --row 4183 --n 10 --sca 7 -o was_prev.fits
+      perscli pointings before --row 4183 --n 2 --sca 7 --footprints \\
           -o was_prev_sca7.fits
     """
     check_rows(ctx, sca, footprints, catalog)

@@ -37,8 +37,10 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     """Run the persistence study STUDY.yaml (or a --preset) into DIR.
 
     The description (GalSim-config style; every key checked, typos named)
-    gives the field, filter and SCAs, the final exposures (from the real
-    schedule: those whose SCA footprint reaches the field, each with its N
+    gives the field, filter and SCAs, the final exposures (from a
+    schedule, by default roman-was, the Roman project's public Wide Area
+    Survey sequence shipped with perscli, or exposures.schedule: FILE:
+    those whose SCA footprint reaches the field, each with its N
     previous exposures of the same SCA whatever their filter; or a planned
     dither sequence), the truth catalogue, the persistence models and sources
     (stars: only star light persists, the paper's setting; all; or a fluence
@@ -76,8 +78,7 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     for what the paper leaves open: --set 'render.set=[persistence.floor=1e4]'
     (only star light above 1e4 e- per pixel persists), realisations=4,
     measure.joint=false, catalog.star_model.thin_height=300.
-    (examples/small.yaml needs the public Roman schedule it names; the last
-    example needs a Dask scheduler running at HOST.)
+    (The last example needs a Dask scheduler running at HOST.)
     """
     import sys
 

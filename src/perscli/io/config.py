@@ -23,11 +23,15 @@ def load_yaml(path: str, what: str):
     import yaml
 
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8") as fh:
             return yaml.safe_load(fh)
     except FileNotFoundError:
         raise PerscliError(f"{path}: {what} file not found") from None
     except IsADirectoryError:
         raise PerscliError(f"{path}: is a directory, not a {what} file") from None
+    except UnicodeDecodeError as exc:
+        raise PerscliError(f"{path}: not UTF-8 text (byte {exc.start} is 0x{exc.object[exc.start]:02x}; a UTF-16 "
+                           f"file?): save the {what} as UTF-8") from None
     except yaml.YAMLError as exc:
-        raise PerscliError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        problem = " ".join(str(getattr(exc, "problem", None) or str(exc).splitlines()[0]).split())
+        raise PerscliError(f"{path}: not valid YAML ({problem})") from None

@@ -207,7 +207,10 @@ def _parse_override(text: str) -> dict:
     if "=" not in text:
         raise PerscliError(f"override {text!r} is not KEY=VALUE (e.g. exposures.count=5)")
     key, raw = text.split("=", 1)
-    value = yaml.safe_load(raw) if raw.strip() else ""
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as exc:
+        raise PerscliError(f"override {text!r}: not a YAML value: {_yaml_problem(exc)}") from None
     out = cur = {}
     parts = key.strip().split(".")
     for part in parts[:-1]:
@@ -254,12 +257,16 @@ def load_study(path: str | None, *, preset: str | None = None, overrides=()) -> 
         settings = _merge(settings, PRESETS[preset])
     if path is not None:
         try:
-            with open(path) as fh:
+            with open(path, encoding="utf-8") as fh:
                 given = yaml.safe_load(fh) or {}
         except OSError as exc:
             raise PerscliError(f"{path}: cannot read the study description: {exc.strerror}") from None
+        except UnicodeDecodeError as exc:
+            # a UTF-16 file (a BOM of ff fe or fe ff), or Latin-1: YAML here is UTF-8 text
+            raise PerscliError(f"{path}: not UTF-8 text (byte {exc.start} is 0x{exc.object[exc.start]:02x}; a "
+                               "UTF-16 file?): save the study description as UTF-8") from None
         except yaml.YAMLError as exc:
-            raise PerscliError(f"{path}: not valid YAML: {str(exc).splitlines()[0]}") from None
+            raise PerscliError(f"{path}: not valid YAML: {_yaml_problem(exc)}") from None
         if not isinstance(given, dict):
             raise PerscliError(f"{path}: a study description is a mapping of settings")
         preset_in_file = given.pop("preset", None)
@@ -274,8 +281,34 @@ def load_study(path: str | None, *, preset: str | None = None, overrides=()) -> 
     for text in overrides:
         _deep_update(updates, _parse_override(text))
     settings = _merge(settings, updates)
+    _check_files(settings)
     check(settings)
     return settings
+
+
+def _yaml_problem(exc) -> str:
+    """A YAML error in one line: its problem, and for a tag a plain YAML value cannot carry, why it is refused."""
+    text = str(getattr(exc, "problem", None) or str(exc).splitlines()[0])
+    if "constructor for the tag" in text:
+        # safe_load refuses !!python/... and other tags that would build objects: said as such, not as a traceback
+        return f"{' '.join(text.split())} (tags that build objects are refused: give plain values)"
+    return " ".join(text.split())
+
+
+def _check_files(s: dict) -> None:
+    """Files named in the settings that do not exist: one line naming the key to set (before anything is read)."""
+    from ..scene.schedule import BUNDLED_SCHEDULE
+
+    e = s["exposures"]
+    schedule = e["schedule"]
+    if e["source"] == "schedule" and isinstance(schedule, str) and schedule != BUNDLED_SCHEDULE \
+            and not os.path.exists(schedule):
+        raise PerscliError(f"exposures.schedule: {schedule}: no such file; set exposures.schedule to a schedule "
+                           f"FITS file, or leave it out for the bundled {BUNDLED_SCHEDULE}")
+    for m in s["persistence"]["models"]:
+        if isinstance(m, str) and m not in ("typical", "pessimistic") and not os.path.exists(m):
+            raise PerscliError(f"persistence.models: {m}: no such file; set persistence.models to typical, "
+                               "pessimistic or persistence law files (YAML)")
 
 
 def _resolve_paths(settings: dict, base: str, given: dict) -> None:
