@@ -59,7 +59,7 @@ def test_a_study_names_the_key_of_a_schedule_that_is_not_there(tmp_path):
 def test_a_study_names_the_key_of_a_law_file_that_is_not_there(tmp_path):
     expect_error(tmp_path, ["--preset", "ci", "--set", "persistence.models=[typical, nothere.yaml]", "--dry-run",
                             "-o", tmp_path / "s"],
-                 "persistence.models: nothere.yaml: no such file", command="study", out=None)
+                 "persistence.models: nothere.yaml: no such law or file", command="study", out=None)
 
 
 def test_the_small_preset_plans_from_the_bundled_schedule(tmp_path):

@@ -337,7 +337,7 @@ def test_persistence_models_by_name_or_file_are_checked_before_anything_runs(tmp
     tasks = build(s)
     finals = [t for t in tasks if t.kind == "final"]
     assert finals and "persistence.A=0.03" in finals[0].params["variants"]["drawn-strong"]
-    with pytest.raises(PerscliError, match="unknown persistence model 'nomodel'"):
+    with pytest.raises(PerscliError, match="persistence.models: nomodel: no such law or file"):
         load_study(None, preset="ci", overrides=["persistence.models=[nomodel]"])
     with pytest.raises(PerscliError, match="read_noise"):
         load_study(None, preset="ci", overrides=["render.set=[read_noise.sigma=-3]"])

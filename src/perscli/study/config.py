@@ -307,7 +307,7 @@ def _check_files(s: dict) -> None:
                            f"FITS file, or leave it out for the bundled {BUNDLED_SCHEDULE}")
     for m in s["persistence"]["models"]:
         if isinstance(m, str) and m not in ("typical", "pessimistic") and not os.path.exists(m):
-            raise PerscliError(f"persistence.models: {m}: no such file; set persistence.models to typical, "
+            raise PerscliError(f"persistence.models: {m}: no such law or file; set persistence.models to typical, "
                                "pessimistic or persistence law files (YAML)")
 
 
