@@ -1,16 +1,19 @@
 """The documented examples (README.md's code blocks, every command's --help Examples) as shell commands.
 
 :func:`readme_examples` and :func:`help_examples` extract them as written;
-:func:`run_examples` runs them in order with bash in one folder, as a user
-would (``perscli`` on PATH, the sample data and, when present, the real
-inputs of ../shared/data linked in), and returns what happened to each.
+:func:`run_examples` runs them in order with bash in one folder that stands
+for the root of a clone (``perscli`` on PATH, sample_data/ and examples/ as
+the repository has them and, when present, the real inputs of
+../shared/data linked in by name, as a user who downloaded them would have
+them), and returns what happened to each.
 
 An example is *skipped* only when it names a file of ../shared/data that
-is absent (a clone without the shared folder), or a file that only a
-skipped example makes; every other example must exit 0 and must not write
-an output that an earlier example wrote (outputs are distinct, so that
-examples can be run in any order a reader picks without clobbering each
-other).
+is absent (a clone without the shared folder), when it is
+:data:`EXPENSIVE` and expensive ones are not asked for, or when it reads a
+file that only a skipped example makes; every other example must exit 0
+and must not write an output that an earlier example wrote (outputs are
+distinct, so that examples can be run in any order a reader picks without
+clobbering each other).
 """
 
 from __future__ import annotations
@@ -32,11 +35,18 @@ NOT_RUN = {
     "--scheduler tcp://HOST:8786": "needs a running Dask scheduler at HOST",
 }
 
-#: inputs in the repository that name a shared input inside them
-REQUIRES = {
-    "examples/small.yaml": "Roman_WAS_obseq_11_1_23.fits",
-    "paper": "Roman_WAS_obseq_11_1_23.fits",   # --preset paper: its exposures come from the real schedule
-}
+#: inputs in the repository that name a shared input inside them (none: the Roman schedule is bundled)
+REQUIRES: dict = {}
+
+#: examples that run a whole study, plan the paper's, or search a frame for missing effects (diagnose): tens of
+#: seconds to minutes each; run by the slow tests only
+EXPENSIVE = (re.compile(r"perscli study (?!.*--dry-run)"), re.compile(r"perscli study .*--preset paper"),
+             re.compile(r"perscli diagnose "))
+
+
+def is_expensive(command: str) -> bool:
+    """Whether an example runs a whole study, plans the paper's or runs diagnose: not seconds."""
+    return any(p.search(command) for p in EXPENSIVE)
 
 _OUTPUT_FLAGS = ("-o", "--output", "--plot", "--plots", "--write-psf", "--regions")
 
@@ -217,7 +227,7 @@ def prepare_folder(folder: Path, shared: Path, bindir: Path, *, samples_at_top: 
 
 
 def run_examples(examples, folder: Path, *, shared: Path, bindir: Path | None = None, timeout: float | None = None,
-                 known_shared=None) -> list:
+                 known_shared=None, expensive: bool = True) -> list:
     """Run examples in order in ``folder`` (prepared with :func:`prepare_folder`); one Outcome each.
 
     Parameters
@@ -226,6 +236,9 @@ def run_examples(examples, folder: Path, *, shared: Path, bindir: Path | None = 
         Names of the shared inputs (whether present or not); by default the
         files of ../shared/data as documented in its README (gaia chunks,
         the Roman schedule, the WFC3 ramps).
+    expensive : bool
+        Also run the :data:`EXPENSIVE` examples (else they are skipped, with
+        what they would have made).
     """
     bindir = bindir or script_dir()
     env = dict(os.environ)
@@ -242,6 +255,8 @@ def run_examples(examples, folder: Path, *, shared: Path, bindir: Path | None = 
         names = {Path(t).name for t in toks} | {t for t in toks}
         names |= {need for path, need in REQUIRES.items() if path in toks}
         skip = next((f"{reason}" for key, reason in NOT_RUN.items() if key in ex.command), None)
+        if skip is None and not expensive and is_expensive(ex.command):
+            skip = "a whole study, the paper's plan or diagnose (the slow tests run it)"
         if skip is None:
             missing = sorted(n for n in names if n in known and n not in present)
             if missing:

@@ -145,6 +145,7 @@ def test_two_hidden_effects_are_both_found(scene, simulated):
     assert abs(report["gap_after"] - 1.0) <= 0.05
 
 
+@pytest.mark.slow  # ~25 s: a full search with every candidate and check, on a scene of its own
 def test_persistence_with_another_decay_frees_gamma(scene, simulated):
     """The measured persistence decays with gamma = 1.4 (the model holds 1.0): A alone cannot describe it, and
     the BIC supports freeing gamma; both are reported and the gap closes."""
@@ -303,6 +304,7 @@ def test_fit_stripes_sit_where_the_simulation_is_bright():
     assert [s for k, s in enumerate(stripes) if k not in (0, 4)] == [s for k, s in enumerate(even) if k not in (0, 4)]
 
 
+@pytest.mark.slow  # ~15 s: the whole diagnose twice
 def test_threads_give_the_same_report(scene, simulated):
     """--workers spreads each likelihood evaluation over the exposures: the report is the same, byte for byte."""
     measured = sequence(scene, "persistence", "persistence.A=0.15")

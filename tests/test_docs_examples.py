@@ -1,12 +1,16 @@
-"""Every documented example runs as written: README.md's, and every command's --help Examples.
+"""Every documented example runs as written from the root of a clone: README.md's, and every command's --help
+Examples (which the man pages are made of).
 
-README's examples run in order in one temporary folder; the --help examples
-of all commands run in order (the data flow: pointings, catalog, render,
-apply-persistence, measure, correlate, budget, diagnose, study, man) in
-another, each chain building on its earlier outputs, as a reader would.
-Both folders start with the sample data and (links to) the real inputs of
-../shared/data; examples naming a shared input that is absent are skipped,
-every other one must exit 0 and write outputs no earlier example wrote.
+README's examples run in order in one folder standing for a clone; each
+command's --help examples run in order in a folder of their own, also a
+clone (sample_data/, examples/; nothing else at the top): a page's examples
+make what they need first, or read what the clone holds.  Both folders get
+(links to) the real inputs of ../shared/data by name, as a user who
+downloaded them would have them; an example naming a shared input that is
+absent is skipped, every other one must exit 0 and write outputs no earlier
+example of its folder wrote.  The examples that run whole studies, plan the
+paper's or run diagnose take tens of seconds to minutes each: the slow tests
+run them, the fast ones every other example.
 """
 
 from pathlib import Path
@@ -25,11 +29,16 @@ def _check(outcomes):
     assert not failed, "documented examples that break:\n" + docs.report(outcomes)
 
 
-def help_examples_in_order():
+def help_examples_of(name):
     from perscli.cli.main import cli
 
-    names = [n for n in HELP_ORDER if n in cli.commands] + sorted(set(cli.commands) - set(HELP_ORDER))
-    return [ex for name in names for ex in docs.help_examples(cli.commands[name])]
+    return docs.help_examples(cli.commands[name])
+
+
+def _command_names():
+    from perscli.cli.main import cli
+
+    return [n for n in HELP_ORDER if n in cli.commands] + sorted(set(cli.commands) - set(HELP_ORDER))
 
 
 def test_every_command_documents_examples():
@@ -55,30 +64,60 @@ def test_the_harness_fails_a_broken_example_and_a_clobbered_output(tmp_path):
         _check(outcomes)
 
 
-@pytest.mark.parametrize("source", [pytest.param("readme", marks=pytest.mark.slow), "help"])
-def test_documented_examples_run(tmp_path, source):
-    """README's examples in one folder (a clone as it is: it runs the small study, so it is slow), the --help
-    examples of every command in another (the sample files beside them), each in order."""
-    examples = docs.readme_examples() if source == "readme" else help_examples_in_order()
-    assert len(examples) >= 30
+def _run(examples, tmp_path, *, expensive):
     folder = tmp_path / "clone"
-    docs.prepare_folder(folder, SHARED_DATA, docs.script_dir(), samples_at_top=source == "help")
-    outcomes = docs.run_examples(examples, folder, shared=SHARED_DATA)
+    docs.prepare_folder(folder, SHARED_DATA, docs.script_dir(), samples_at_top=False)
+    outcomes = docs.run_examples(examples, folder, shared=SHARED_DATA, expensive=expensive)
     print(docs.report(outcomes))
     _check(outcomes)
+    return outcomes
+
+
+@pytest.mark.parametrize("name", _command_names())
+def test_the_help_examples_run_from_a_clone(tmp_path, name):
+    """A command's --help examples, in order, in a clone of their own: but the expensive ones (docs.EXPENSIVE)."""
+    outcomes = _run(help_examples_of(name), tmp_path, expensive=False)
+    assert outcomes and any(o.status == "ok" for o in outcomes), docs.report(outcomes)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [n for n in _command_names()
+                                  if any(docs.is_expensive(e.command) for e in help_examples_of(n))])
+def test_the_help_examples_that_run_studies(tmp_path, name):
+    _run(help_examples_of(name), tmp_path, expensive=True)
+
+
+@pytest.mark.slow
+def test_the_readme_examples_run_from_a_clone(tmp_path):
+    """README's examples in order in one clone (it runs the small study and plans the paper's: slow)."""
+    examples = docs.readme_examples()
+    assert len(examples) >= 30
+    _run(examples, tmp_path, expensive=True)
+
+
+def test_the_fast_help_examples_run_no_study():
+    """What the fast suite runs of the help examples: no whole study, no plan of the paper's (minutes each)."""
+    cheap = [e.command for n in _command_names() for e in help_examples_of(n) if not docs.is_expensive(e.command)]
+    assert any("study examples/small.yaml" in c and "--dry-run" in c for c in cheap)
+    assert not [c for c in cheap if c.startswith("perscli study") and "--dry-run" not in c]
+    assert not [c for c in cheap if "--preset paper" in c]
 
 
 def test_examples_needing_absent_shared_inputs_are_skipped_with_what_they_make(tmp_path):
-    """Without ../shared: an example naming a shared file, or a repository file that names one, is skipped,
-    and so is every later example reading what it would have made (a file inside its output folder too)."""
+    """Without ../shared: an example naming a shared file is skipped, and so is every later example reading what
+    it would have made (a file inside its output folder too); the bundled schedule needs nothing."""
     absent = tmp_path / "no-shared" / "data"
-    examples = [docs.Example("t", "perscli study examples/small.yaml -o small_study"),
+    examples = [docs.Example("t", "perscli catalog --ra 10 --dec -44 --gaia 145649.fits -o g.fits"),
+                docs.Example("t", "perscli pointings plan --ra 10 --dec -44 --n 2 --sca 7 -o p.fits"),
+                docs.Example("t", "perscli catalog --pointings p.fits --sca 7 --margin 5 --gaia 145650.fits -o c.fits"),
+                docs.Example("t", "perscli measure x.fits --catalog g.fits -o m.fits"),
+                docs.Example("t", "perscli study examples/small.yaml -o small_study"),
                 docs.Example("t", "perscli study --preset paper -o plan --dry-run --cost-from small_study/cost.json"),
-                docs.Example("t", "perscli pointings --schedule Roman_WAS_obseq_11_1_23.fits --before 3 --n 2 -o p.fits"),
-                docs.Example("t", "perscli catalog --pointings p.fits --sca 7 -o c.fits")]
+                docs.Example("t", "perscli pointings before --row 3 --n 2 -o b.fits")]
     folder = tmp_path / "clone"
-    docs.prepare_folder(folder, absent, docs.script_dir())
-    outcomes = docs.run_examples(examples, folder, shared=absent)
-    assert [o.status for o in outcomes] == ["skipped"] * 4
-    assert "small_study/cost.json" in outcomes[1].reason or "Roman_WAS" in outcomes[1].reason
-    assert "p.fits, made by a skipped example" in outcomes[3].reason
+    docs.prepare_folder(folder, absent, docs.script_dir(), samples_at_top=False)
+    outcomes = docs.run_examples(examples, folder, shared=absent, expensive=False)
+    assert [o.status for o in outcomes] == ["skipped", "ok", "skipped", "skipped", "skipped", "skipped", "ok"], \
+        docs.report(outcomes)
+    assert "145649.fits" in outcomes[0].reason and "g.fits, made by a skipped example" in outcomes[3].reason
+    assert "whole study" in outcomes[4].reason and "slow tests" in outcomes[4].reason

@@ -87,6 +87,7 @@ def test_real_schedule_selection_around_the_gaia_field(was, tmp_path):
     assert np.median(starts) == pytest.approx(169.8, abs=1.0)
 
 
+@pytest.mark.slow  # ~15 s: SCA footprints of every exposure near the field in the real schedule
 def test_real_schedule_all_filters_limit_after_and_sca(was):
     sched = read_schedule(was)
     assert len(sched) == 16956
@@ -436,6 +437,7 @@ def test_polygon_meets_circle_exactly():
     assert far > 0 and not polygon_meets_circle(ra, dec, cra + 5, cdec, 1.0)
 
 
+@pytest.mark.slow  # ~10 s: SCA footprints of the real schedule
 def test_real_schedule_sca_footprint_selection(was):
     """SCA 7 on a small field: every exposure whose SCA 7 footprint (checked independently, pixel by
     pixel along its edges through GalSim) comes within the radius, and no other."""

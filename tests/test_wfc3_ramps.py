@@ -121,7 +121,9 @@ def _photon_transfer_read_noise(shared_data):
     return float(np.sqrt(d.var() / 4.0)) * 2.5
 
 
-@pytest.mark.parametrize("files", [[OTHER], [LATER], [EARLIER, LATER]], ids=["ibh7a7lsq", "ibxy04s4q", "pair"])
+# the pair (~15 s: two 266 x 266 ramps of 14 reads) is slow; one ramp of each subarray stays in the fast suite
+@pytest.mark.parametrize("files", [[OTHER], [LATER], pytest.param([EARLIER, LATER], marks=pytest.mark.slow)],
+                         ids=["ibh7a7lsq", "ibxy04s4q", "pair"])
 def test_diagnose_keeps_the_header_gain_and_measures_the_read_noise(shared_data, tmp_path, files):
     """The real grism ramps: no effect is named with a gain far from the header's 2.5 e-/DN, the read noise
     agrees with a photon-transfer estimate, and what the ramps hold that no candidate describes (light

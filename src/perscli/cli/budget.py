@@ -80,10 +80,24 @@ def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, columns, ch
     \b
     Examples:
       perscli budget -o budget.fits --plot budget.png
+      perscli pointings plan --ra 10 --dec -44 --n 2 --sca 7 -o pair.fits
+      perscli catalog --pointings pair.fits --bounds 1 256 1 256 -o truth.fits
+      perscli render truth.fits --pointings pair.fits --row 0 --bounds 1 256 1 256 --seed 1 -o frame0.fits
+      perscli render truth.fits --pointings pair.fits --row 1 --bounds 1 256 1 256 --seed 2 \\
+          --previous frame0.fits -o frame.fits
+      perscli render truth.fits --pointings pair.fits --row 1 --bounds 1 256 1 256 --seed 2 \\
+          --set persistence=off -o frame_nop.fits
+      perscli measure frame.fits frame_nop.fits --catalog truth.fits -o both.fits
+      perscli correlate both.fits --frames 0 1 --min-sep 0.05 --max-sep 2 --nbins 5 -o xi.fits
       perscli budget xi.fits -o cmp.fits --plot xi_vs_budget.png
       perscli budget xi.fits --bands hirata --modes EB --sigma 3 -o cmp_hirata.fits
       perscli correlate both.fits --frames 0 1 --min-sep 0.05 --max-sep 2 --nbins 5 -o - | perscli budget - -o cmp_pipe.fits
       perscli budget xi.fits --check -o cmp_check.fits || [ $? -eq 3 ]   # 3: xi+ exceeds the budget
+
+    (The second to the eighth make a measured xi+, as perscli correlate
+    --help does: the shape changes De of the galaxies of a 256 x 256 cutout
+    of SCA 7 between an exposure with and without the persistence of the
+    one before.)
     """
     if xi is not None and (theta_range is not None or nbins is not None):
         raise click.UsageError("--theta-range and --nbins are for the budget alone; with XI the separations "

@@ -122,6 +122,10 @@ def catalog(ctx, ra, dec, size, pointings_table, footprints, sca, margin, bounds
       perscli pointings plan --ra 10 --dec -44 --n 2 --sca 7 -o cat_plan.fits
       perscli catalog --pointings cat_plan.fits --margin 30 --gaia 145649.fits --gaia 145650.fits -o cat_sca7.fits
       perscli catalog --pointings cat_plan.fits --sca 1 --bounds 1 128 1 128 -o cat_sca1_cut.fits
+
+    (145649.fits and 145650.fits are chunks of the Gaia DR2 reference
+    catalog in LSST's format, the two that cover RA 10, Dec -44,
+    downloaded into the current folder.)
     """
     from click.core import ParameterSource
 

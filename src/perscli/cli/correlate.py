@@ -161,19 +161,30 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
 
     \b
     Examples:
+      perscli pointings plan --ra 10 --dec -44 --n 2 --sca 7 -o pair.fits
+      perscli catalog --pointings pair.fits --bounds 1 256 1 256 -o truth.fits
+      perscli render truth.fits --pointings pair.fits --row 0 --bounds 1 256 1 256 --seed 1 -o frame0.fits
+      perscli render truth.fits --pointings pair.fits --row 1 --bounds 1 256 1 256 --seed 2 \\
+          --previous frame0.fits -o frame.fits
+      perscli render truth.fits --pointings pair.fits --row 1 --bounds 1 256 1 256 --seed 2 \\
+          --set persistence=off -o frame_nop.fits
+      perscli measure frame.fits --catalog truth.fits -o shapes.fits
+      perscli measure frame_nop.fits --catalog truth.fits -o shapes_nop.fits
+      perscli measure frame.fits frame_nop.fits --catalog truth.fits -o both.fits
       perscli correlate both.fits --frames 0 1 --min-sep 0.05 --max-sep 2 --nbins 5 -o xi.fits --plots figs
-      perscli correlate shapes.fits shapes_nop.fits --min-sep 0.05 --max-sep 2 --nbins 5 -o xi_ab.fits \
+      perscli correlate shapes.fits shapes_nop.fits --min-sep 0.05 --max-sep 2 --nbins 5 -o xi_ab.fits \\
           --plot xi_ab.png
       perscli correlate --pair shapes.fits shapes_nop.fits --min-sep 0.05 --max-sep 2 --nbins 5 -o xi_pairs.fits
       perscli correlate both.fits --de1 g1 --de2 g2 --min-sep 0.05 --max-sep 2 --nbins 5 -o xi_g.fits
 
-    (both.fits, shapes.fits and shapes_nop.fits are made by the examples of
-    perscli measure --help, on 512 x 512 cutouts: a few dozen galaxies, hence
-    arcsecond separations and shot-noise errors.  A study pools many pairs:
-    --pair A B --pair C D ..., or --pairs FILE with one 'A.fits B.fits' per
-    line; with --patch-centers an earlier output's PATCHES fixes the
-    jackknife patches.  The last example correlates one table's own columns,
-    here g itself.)
+    (The first eight make the inputs, as perscli measure --help does: two
+    exposures of a 256 x 256 cutout of SCA 7, the second with and without
+    the persistence of the first, and their shapes: a dozen galaxies or so,
+    hence arcsecond separations and shot-noise errors.  A study pools many
+    pairs: --pair A B --pair C D ..., or --pairs FILE with one
+    'A.fits B.fits' per line; with --patch-centers an earlier output's
+    PATCHES fixes the jackknife patches.  The last example correlates one
+    table's own columns, here g itself.)
     """
     from ..stats.correlate import correlate_files
 

@@ -64,18 +64,26 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
 
     \b
     Examples:
-      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 512 1 512 --seed 21 \
+      perscli pointings plan --ra 10 --dec -44 --n 2 --sca 7 -o seq.fits
+      perscli catalog --pointings seq.fits --bounds 1 256 1 256 -o seq_truth.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 256 1 256 --seed 1 -o e0.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 256 1 256 --seed 2 \\
+          --previous e0.fits -o e1.fits
+      perscli render seq_truth.fits --pointings seq.fits --row 0 --bounds 1 256 1 256 --seed 21 \\
           --set dark.current=0.3 -o meas0.fits
-      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 512 1 512 --seed 22 \
+      perscli render seq_truth.fits --pointings seq.fits --row 1 --bounds 1 256 1 256 --seed 22 \\
           --set dark.current=0.3 --previous meas0.fits -o meas1.fits
       perscli diagnose meas0.fits meas1.fits --simulated e0.fits --simulated e1.fits -o diag
-      perscli diagnose meas0.fits meas1.fits --simulated e0.fits --simulated e1.fits \
-          --model roman_detector.yaml -o diag_model
+      perscli diagnose meas0.fits meas1.fits --simulated e0.fits --simulated e1.fits \\
+          --model sample_data/roman_detector.yaml -o diag_model
       perscli diagnose ibh7a7lsq_raw.fits -o wfc3_diag
 
-    (meas0/meas1 are "measured" frames with a dark current 20 times Roman's;
-    e0/e1, seq.fits and seq_truth.fits are made by the examples of perscli
-    render --help.)
+    (e0 and e1 are two exposures of a 256 x 256 cutout of SCA 7 rendered
+    with the Roman model, the second with the persistence of the first;
+    meas0 and meas1 the same exposures "measured": with a dark current 20
+    times Roman's.  ibh7a7lsq_raw.fits is an HST WFC3-IR raw ramp as MAST
+    serves it (XO-1, a 138 x 138 subarray), downloaded into the current
+    folder: a lone ramp is predicted from its own earliest reads.)
     """
     import os
 

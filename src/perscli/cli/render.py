@@ -156,7 +156,7 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
           --persistence-source all --hdus SCI,PERSIST -o e1_all.fits
       perscli catalog --ra 9.5 --dec -44.06 --size 10 -o sca7_truth.fits
       perscli render sca7_truth.fits --ra 10 --dec -44 --pa 30 --mjd 61541.97 --filter J129 --sca 7 \\
-          --bounds 1 512 1 512 --model roman_detector.yaml --set read_noise.sigma=5 --seed 4 --plot explicit.png \\
+          --bounds 1 512 1 512 --model sample_data/roman_detector.yaml --set read_noise.sigma=5 --seed 4 --plot explicit.png \\
           -o explicit.fits
       perscli render --list-effects
     """

@@ -67,6 +67,7 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
 
     \b
     Examples:
+      perscli study examples/small.yaml -o small_plan --dry-run
       perscli study --preset ci -o ci_study --scheduler serial
       perscli study --preset ci -o ci_dask --scheduler local --workers 2
       perscli study --preset paper -o paper_study --dry-run --cost-from ci_study/cost.json
