@@ -135,6 +135,20 @@ def test_the_null_case_names_nothing(scene, simulated):
     assert "no missing effect" in (outdir / "report.md").read_text()
 
 
+def test_the_search_says_each_step_on_stderr_without_a_terminal_and_nothing_with_q(scene, simulated, tmp_path):
+    """diagnose takes tens of seconds to minutes: one line per step on stderr, in a log as at a terminal."""
+    measured = sequence(scene, "steps", seed=400)
+    args = ["diagnose", *measured, *[a for s in simulated for a in ("--simulated", s)]]
+    result = run(*args, "-o", tmp_path / "d")
+    said = result.stderr.splitlines()
+    assert said[0].startswith("diagnose: 3 measured exposure(s), ") and said[1].startswith("diagnose: gap before: ")
+    rounds = [line for line in said if line.startswith("diagnose: round 1: ")]
+    assert len(rounds) >= 8, result.stderr               # every candidate fitted in the first round
+    assert said[-1].startswith("no missing effect; gap ")
+    quiet = run("-q", *args, "-o", tmp_path / "q")
+    assert quiet.stderr == "" and (tmp_path / "q" / "report.md").exists()
+
+
 def test_two_hidden_effects_are_both_found(scene, simulated):
     measured = sequence(scene, "two", "dark.current=0.3", "nonlinearity.beta=-1.5e-6")
     report, _ = diagnose(scene, measured, simulated, "two")

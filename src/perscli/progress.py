@@ -9,9 +9,13 @@ looks like is the caller's choice:
 - :func:`bar`: a bar redrawn in place, for a person at a terminal (the
   commands' objects, rows, galaxies); nothing when stderr is not a terminal;
 - :func:`lines`: one line per finished step, for logs and batch jobs (the
-  study's tasks, whose log a cluster keeps).
+  study's tasks, whose log a cluster keeps); with ``every``, one line per
+  that fraction of the work (a frame's thousands of objects in ten lines);
+- :func:`reporter`: what a command uses: the bar at a terminal, else lines,
+  for work of at least ``least`` steps (a cutout's few dozen objects take a
+  second: a log is not told about them).
 
-Both are silent with ``quiet`` (``-q``).  This module imports nothing heavy
+All are silent with ``quiet`` (``-q``).  This module imports nothing heavy
 (click only when a bar is drawn).
 """
 
@@ -52,26 +56,65 @@ def bar(label: str, stream=None, *, quiet: bool = False):
     return progress
 
 
-def lines(label: str, stream=None, *, quiet: bool = False):
+def lines(label: str, stream=None, *, quiet: bool = False, every: float | None = None, least: int = 1):
     """A callback writing ``LABEL: [done/total] NAME; N s elapsed`` on ``stream`` (stderr) per step.
 
     Parameters
     ----------
     label : str
-        The line's first word ('study').
+        The line's first word ('study', 'render: objects').
     stream : file, optional
         Where to write (default stderr, flushed at each line).
     quiet : bool
         Write nothing (``-q``).
+    every : float, optional
+        Write a line at the first step (the work has started), then only
+        when the work done crosses another multiple of this fraction of the
+        total (0.1: eleven lines in all), and at the end; None: a line per
+        step.
+    least : int
+        Write nothing for work of fewer steps than this.
     """
     stream = stream if stream is not None else sys.stderr
     start = time.perf_counter()
+    state = {"said": -1}
 
     def progress(done, total, name=None):
-        if quiet:
+        if quiet or total < least:
             return
+        if every is not None and done < total:
+            step = int(done / (total * every)) if total else 0
+            if step <= state["said"]:
+                return
+            state["said"] = step
         elapsed = time.perf_counter() - start
         print(f"{label}: [{done}/{total}] {name or ''}; {elapsed:.0f} s elapsed".replace(" ;", ";"),
               file=stream, flush=True)
 
     return progress
+
+
+def reporter(label: str, stream=None, *, quiet: bool = False, least: int = 1, command: str = "perscli"):
+    """The progress of a command: a bar at a terminal, else a line per tenth of the work; None when quiet.
+
+    Parameters
+    ----------
+    label : str
+        What is counted ('objects', 'galaxies', 'rows').
+    stream : file, optional
+        Where to report (default stderr).
+    quiet : bool
+        Nothing (``-q``).
+    least : int
+        Work of fewer steps says nothing when stderr is not a terminal (a
+        cutout's objects take a second; a full frame's, minutes).
+    command : str
+        The lines' first word ('render'), so that a log says whose they are.
+    """
+    stream = stream if stream is not None else sys.stderr
+    if quiet:
+        return None
+    isatty = getattr(stream, "isatty", None)
+    if isatty is not None and isatty():
+        return bar(label, stream)
+    return lines(f"{command}: {label}", stream, every=0.1, least=least)

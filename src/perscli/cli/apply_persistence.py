@@ -13,6 +13,10 @@ from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, no_check
 
 log = logging.getLogger("perscli")
 
+#: work below this many steps tells a log (stderr not a terminal) nothing: blocks of 64 rows, a full frame's 64
+#: are worth telling a log about, a sample frame's 4 are not
+PROGRESS_LEAST = 32
+
 #: the defaults, written once (perscli.detector.settings)
 D = ApplyOptions()
 
@@ -176,7 +180,7 @@ def apply_persistence(current, previous, output, law, model_spec, settings, para
                            dq_bit=D.dq_bit if dq_bit is None else dq_bit, units=units, gain=gain, exptime=exptime,
                            gap=gap, compress=compress)
     result = apply_persistence_files(current, previous, output, model=model, options=options, overwrite=overwrite,
-                                     workers=workers, progress=progress_reporter("rows"))
+                                     workers=workers, progress=progress_reporter("blocks of rows", least=PROGRESS_LEAST))
     log.info("%s: persistence from %d earlier exposure(s): max %.4g e-, total %.6g e- (last plane)%s",
              "stdout" if output == "-" else output, len(result.used), result.max_electrons,
              result.total_electrons, f"; {result.flagged} pixel(s) flagged in DQ" if flag_above is not None else "")

@@ -98,22 +98,20 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
         raise PerscliError(f"{parent}: folder does not exist; create it or choose another output")
     check_output_folder(outdir, overwrite=overwrite, inputs=inputs)
 
-    import sys
+    from .helpers import verbosity
 
-    ctx = click.get_current_context(silent=True)
-    verbosity = (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
-    # progress lines on a terminal (not in logs or pipes unless -v), none with -q
-    show = verbosity >= 0 and sys.stderr.isatty()
+    # a search takes tens of seconds to minutes: one line per step (each candidate fitted in each round, the
+    # gaps) on stderr, at a terminal or in a log alike; none with -q
+    quiet = verbosity() < 0
 
     def progress(text):
-        if show and verbosity == 0:
+        if not quiet:
             click.echo(f"diagnose: {text}", err=True)
-        else:
-            log.info("diagnose: %s", text)
 
     outcome = run(measured, simulated=simulated, model_spec=model_spec, fit_pixels=fit_pixels, gain=gain,
                   exptime=exptime, progress=progress, workers=workers)
     write_report(outcome, outdir, overwrite=overwrite)
     report = outcome["report"]
-    click.echo(f"{report['verdict']}; gap {report['gap_before']:.4g} -> {report['gap_after']:.4g} "
-               f"(report in {outdir}/report.md)", err=True)
+    if not quiet:
+        click.echo(f"{report['verdict']}; gap {report['gap_before']:.4g} -> {report['gap_after']:.4g} "
+                   f"(report in {outdir}/report.md)", err=True)

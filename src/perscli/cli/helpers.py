@@ -179,17 +179,23 @@ def _debug_traceback() -> None:
         logging.getLogger("perscli").exception("traceback")
 
 
-def progress_reporter(label: str, stream=None):
-    """A ``progress(done, total, name=None)`` callback drawing a bar on stderr (:func:`perscli.progress.bar`).
+def verbosity() -> int:
+    """The command line's -v/-q count (-v: 1, -q: -1; 0 without either or outside a command)."""
+    ctx = click.get_current_context(silent=True)
+    return (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
 
-    Silent (None) when stderr is not a terminal or with -q, so logs and pipes
-    stay clean.
+
+def progress_reporter(label: str, stream=None, *, least: int = 1):
+    """A ``progress(done, total, name=None)`` callback for the current command (:func:`perscli.progress.reporter`).
+
+    A bar at a terminal; elsewhere (a log, a pipe, a batch job) one line per
+    tenth of the work, for work of at least ``least`` steps; nothing with -q.
     """
-    from ..progress import bar
+    from ..progress import reporter
 
     ctx = click.get_current_context(silent=True)
-    verbosity = (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
-    return bar(label, stream, quiet=verbosity < 0)
+    command = ctx.command_path.replace("perscli ", "", 1) if ctx is not None else "perscli"
+    return reporter(label, stream, quiet=verbosity() < 0, least=least, command=command)
 
 
 def deprecated_option(old: str, new: str, *, check=None):

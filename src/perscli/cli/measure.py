@@ -12,6 +12,10 @@ from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, ve
 
 log = logging.getLogger("perscli")
 
+#: work below this many steps tells a log (stderr not a terminal) nothing: a full SCA's galaxies take minutes, a
+#: cutout's few dozen seconds
+PROGRESS_LEAST = 500
+
 #: the defaults, written once (perscli.measure.settings, light: --help does not import the fitter)
 D = MeasureOptions()
 
@@ -181,7 +185,8 @@ def measure(frames, catalog, psf, psf_pixel, psf_oversampling, allow_undersample
         allow_undersampled_psf=allow_undersampled_psf, method=method, stamp=stamp, sky=sky, read_noise=read_noise,
         blend_radius=blend_radius, kinds=kinds, min_snr=min_snr, all_rows=all_rows, joint=joint, columns=columns)
     summary = measure_files(frames, catalog, output, options=options, write_psf=write_psf, workers=workers,
-                            overwrite=overwrite, progress=progress_reporter("galaxies" if joint else "objects"))
+                            overwrite=overwrite,
+                            progress=progress_reporter("galaxies" if joint else "objects", least=PROGRESS_LEAST))
     log.info("%s: %d rows (%d without flags) from %d frame(s); %d fitted, %d below --min-snr",
              "stdout" if output == "-" else output, summary["rows"], summary["good"], summary["frames"],
              summary["fitted"], summary["cut"])

@@ -30,6 +30,9 @@ log = logging.getLogger("perscli")
 #: the defaults, written once (perscli.scene.settings)
 P, S = PlanOptions(), SelectOptions()
 
+#: footprints below this many tell a log (stderr not a terminal) nothing: ~15 ms each, so a few seconds
+PROGRESS_LEAST = 300
+
 
 # -- options: each defined once; ``help`` says what it does in the command that takes it ----------
 # (no default=None where an option may be required: click (8.3+) does not enforce required=True on an option
@@ -187,8 +190,12 @@ def run_select(ctx, schedule, ra, dec, radius, options: SelectOptions, catalog, 
     """``perscli pointings select``: the exposures of a schedule that look at the field."""
     from ..scene.pointings import select_covering_file
 
+    from .helpers import progress_reporter
+
     check_outputs(output, inputs=[schedule, catalog], overwrite=overwrite)
-    chosen = select_covering_file(output, schedule, ra, dec, radius, options, catalog=catalog, overwrite=overwrite)
+    # with --sca, each exposure near the field has its footprint computed (~15 ms): a wide field takes minutes
+    chosen = select_covering_file(output, schedule, ra, dec, radius, options, catalog=catalog, overwrite=overwrite,
+                                  progress=progress_reporter("footprints", least=PROGRESS_LEAST))
     if not chosen:
         sca = options.sca
         what = f"whose SCA {sca} overlaps the circle of {radius:g} degrees" if sca else f"within {radius:g} degrees"

@@ -15,6 +15,10 @@ from .options import (columns_opt, compress_opt, dec_opt, mjd_opt, model_opt, no
 
 log = logging.getLogger("perscli")
 
+#: work below this many steps tells a log (stderr not a terminal) nothing: a full SCA draws thousands of objects
+#: (minutes), a cutout's few dozen take seconds
+PROGRESS_LEAST = 1000
+
 #: the defaults, written once (perscli.render.settings)
 D = RenderOptions()
 
@@ -196,7 +200,8 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
     options = RenderOptions(hdus=hdus, compress=compress, persistence_source=persistence_source, strict=strict,
                             columns=columns)
     summary = render_file(truth, exposure, output, options, model=model, seed=seed, previous=previous,
-                          overwrite=overwrite, workers=workers, progress=progress_reporter("objects"), plot=plot)
+                          overwrite=overwrite, workers=workers, plot=plot,
+                          progress=progress_reporter("objects", least=PROGRESS_LEAST))
     log.info("%s: %d objects, sky %.3f e-/pixel/s, units %s, persistence max %.3g e-",
              "stdout" if output == "-" else output, summary["objects"], summary["sky_rate"], summary["unit"],
              summary["persistence_max"])

@@ -94,7 +94,11 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     # before the description is even built: a study's folder may exist (it resumes), never be a file
     check_output_folder(outdir, resume=True, inputs=[description])
     s = load_study(description, preset=preset, overrides=settings)
-    tasks = task_dicts(build(s))
+    from ..progress import lines
+
+    # planning from a schedule takes seconds per SCA (GalSim's WCS of every exposure near the field): a line each,
+    # at a terminal or in a log alike, none with -q
+    tasks = task_dicts(build(s, progress=lines("study: planning", quiet=verbosity < 0)))
     n = _counts(tasks)
     if dry_run:
         from ..study.summary import load_cost, project

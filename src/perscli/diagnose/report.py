@@ -73,7 +73,6 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
 
     say = progress or (lambda text: None)
     exposures = read_measured(measured, gain=gain, exptime=exptime)
-    say(f"{len(exposures)} measured exposure(s), {exposures[0].data.shape[-2]} x {exposures[0].data.shape[-1]} px")
     if simulated:
         models = attach_simulations(exposures, simulated)
         if model_spec is not None:
@@ -93,6 +92,9 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         model = load_detector_model(model_spec) if model_spec is not None else ramp_model(exposures)
         problem = RampProblem(exposures, fit_pixels=fit_pixels)
         mode = "self-predicted"
+    # said once the inputs are known to make a problem: a refusal stays the one line on stderr
+    say(f"{len(exposures)} measured exposure(s), {exposures[0].data.shape[-2]} x {exposures[0].data.shape[-1]} px, "
+        f"{mode}")
     chi2, n = problem.chi2_full(model)
     gap_before = chi2 / max(n, 1)
     before_eval = problem.evaluate(model)

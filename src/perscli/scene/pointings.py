@@ -274,7 +274,7 @@ def _with_counts(chosen, catalog, sca, params, inputs, *, stdin=None, columns=No
 
 def select_covering_file(dest: str, schedule: str, ra: float, dec: float, radius: float,
                          options: SelectOptions | None = None, *, catalog: str | None = None,
-                         overwrite: bool = False, stdin=None, stdout=None) -> list:
+                         overwrite: bool = False, stdin=None, stdout=None, progress=None) -> list:
     """``perscli pointings select`` as a function: the exposures of a schedule file that look at a field.
 
     Checks ``dest``, selects from the schedule (:func:`select_covering`) and
@@ -298,6 +298,8 @@ def select_covering_file(dest: str, schedule: str, ra: float, dec: float, radius
         A truth catalogue whose objects are counted on each row's SCA.
     overwrite, stdin, stdout
         Replace an existing output; the streams read and written for '-'.
+    progress : callable, optional
+        ``progress(done, total, name)`` over the exposures whose SCA footprint is computed (with an SCA).
 
     Returns
     -------
@@ -312,7 +314,8 @@ def select_covering_file(dest: str, schedule: str, ra: float, dec: float, radius
     if filter is not None:
         filter = check_filter(filter)
     sched = read_schedule(schedule, stdin=stdin, columns=o.schedule_columns)
-    chosen = select_covering(sched, ra, dec, radius, filter=filter, after=after, limit=limit, sca=sca)
+    chosen = select_covering(sched, ra, dec, radius, filter=filter, after=after, limit=limit, sca=sca,
+                             progress=progress)
     params = {
         "PTMODE": ("schedule", "pointings: selected from a schedule"),
         "PTRA": (float(ra), "[deg] field centre, RA"),

@@ -208,7 +208,7 @@ def _check_sca(sca: int) -> int:
 
 
 def select_covering(schedule: Schedule, ra: float, dec: float, radius: float, *, filter: str | None = None,
-                    after: float | None = None, limit: int | None = None, sca: int = 0) -> list:
+                    after: float | None = None, limit: int | None = None, sca: int = 0, progress=None) -> list:
     """The exposures of ``schedule`` that look at the field (ra, dec, radius), in time order.
 
     Parameters
@@ -232,6 +232,10 @@ def select_covering(schedule: Schedule, ra: float, dec: float, radius: float, *,
         pointing.  (A boresight up to :data:`FPA_REACH_DEG` beyond the
         radius can qualify; a boresight inside it need not, since the SCA
         may point elsewhere.)
+    progress : callable, optional
+        ``progress(done, total, name)`` after each exposure whose SCA
+        footprint is computed (GalSim's WCS: ~15 ms each, thousands for a
+        wide field).
 
     Returns
     -------
@@ -270,12 +274,14 @@ def select_covering(schedule: Schedule, ra: float, dec: float, radius: float, *,
     from .regions import polygon_meets_circle
 
     chosen = []
-    for i in rows:
+    for k, i in enumerate(rows):
         if limit is not None and len(chosen) >= limit:
             break
         p = schedule_pointing(schedule, i, sca=sca)
         if polygon_meets_circle(*sca_footprint(p, sca), ra, dec, radius):
             chosen.append(p)
+        if progress is not None:
+            progress(k + 1, len(rows), f"{len(chosen)} on the field")
     return chosen
 
 

@@ -140,13 +140,15 @@ def model_settings(model: str) -> list:
     return [f"persistence.{k}={float(getattr(pm, k))!r}" for k in ("A", "x0", "dx", "alpha", "gamma", "half_well")]
 
 
-def select_exposures(s: dict) -> Exposures:
+def select_exposures(s: dict, progress=None) -> Exposures:
     """The finals and their histories, from the schedule or a planned sequence.
 
     Parameters
     ----------
     s : dict
         Study settings (:func:`perscli.study.config.load_study`).
+    progress : callable, optional
+        ``progress(done, total, name)`` after each SCA of a schedule (its footprints take seconds each).
 
     Returns
     -------
@@ -166,7 +168,9 @@ def select_exposures(s: dict) -> Exposures:
                 history[(sca, p.expid)] = [_with_sca(q, sca) for q in seq[max(0, k - e["history"]):k][::-1]]
     else:
         schedule = P.read_schedule(e["schedule"])
-        for sca in s["scas"]:
+        for k, sca in enumerate(s["scas"]):
+            if progress is not None:
+                progress(k, len(s["scas"]), f"SCA {sca}: its footprints in {len(schedule)} exposures")
             chosen = P.select_covering(schedule, f["ra"], f["dec"], f["radius"], filter=s["filter"],
                                        after=e["after"] or None, limit=e["count"] or None, sca=sca)
             if not chosen:
@@ -180,6 +184,8 @@ def select_exposures(s: dict) -> Exposures:
                 history[(sca, p.expid)] = [_with_sca(q, sca) for q in
                                            P.previous_exposures(schedule, p.expid, e["history"])] \
                     if e["history"] else []
+        if progress is not None:
+            progress(len(s["scas"]), len(s["scas"]), f"{sum(map(len, finals.values()))} finals")
     for sca, ps in finals.items():
         for p in ps:
             every[(sca, p.expid)] = p
@@ -219,7 +225,7 @@ def realisation_seeds(s: dict) -> list:
     return [int(s["seed"]) + k for k in range(int(s["realisations"]))]
 
 
-def build(s: dict, exposures: Exposures | None = None) -> list:
+def build(s: dict, exposures: Exposures | None = None, progress=None) -> list:
     """The task graph of a study, in an order where every task follows its dependencies.
 
     Parameters
@@ -227,7 +233,7 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
     s : dict
         Study settings.
     exposures : Exposures, optional
-        Already selected (else :func:`select_exposures`).
+        Already selected (else :func:`select_exposures`, reporting to ``progress``).
 
     Returns
     -------
@@ -235,7 +241,7 @@ def build(s: dict, exposures: Exposures | None = None) -> list:
         With several realisations, each realisation's products live in
         ``r<seed>/`` and one summary covers them all.
     """
-    ex = exposures or select_exposures(s)
+    ex = exposures or select_exposures(s, progress)
     seeds = realisation_seeds(s)
     tasks = [Task("pointings", "pointings", "pointings.fits",
                   params=dict(rows=[_pointing_row(ex, key) for key in sorted(ex.all)]))]
