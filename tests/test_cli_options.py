@@ -118,14 +118,15 @@ def _file(path, content=b"SIMPLE  =                    T" + b" " * 50):
     return str(path)
 
 
-def refused(tmp_path, args, *, needle="is also an input", inputs=()):
-    """The command fails with one line (exit 1), leaves its inputs unchanged and writes nothing."""
+def refused(tmp_path, args, *, needle="is also an input", inputs=(), code=1):
+    """The command fails with one line (exit 1; 2 for a usage error), leaves its inputs unchanged and writes
+    nothing."""
     before, files = snapshot(*inputs), listing(tmp_path)
     for extra in ([], ["--overwrite"]):
         result = invoke(*args, *extra)
-        assert result.exit_code == 1, (args, extra, result.exit_code, result.output)
+        assert result.exit_code == code, (args, extra, result.exit_code, result.output)
         lines = result.stderr.splitlines()
-        assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
+        assert len(lines) == 1 and lines[0].startswith("Error: " if code == 1 else "perscli "), result.stderr
         assert needle in lines[0], lines[0]
         assert "Traceback" not in result.stderr
     assert snapshot(*inputs) == before
@@ -141,7 +142,9 @@ def test_apply_persistence_refuses_output_over_an_input(tmp_path, frames):
     cur, prev = frames
     refused(tmp_path, ["apply-persistence", cur, prev, "-o", prev], inputs=[cur, prev])
     model = _file(tmp_path / "model.yaml", b"A: 0.02\n")
-    refused(tmp_path, ["apply-persistence", cur, prev, "--law", model, "-o", model], inputs=[cur, prev, model])
+    # a law file as -o: refused by its name first (apply-persistence writes FITS, not YAML); either way untouched
+    refused(tmp_path, ["apply-persistence", cur, prev, "--law", model, "-o", model], inputs=[cur, prev, model],
+            needle="writes FITS, not YAML", code=2)
     # an input given with CFITSIO's extended syntax is the same file
     refused(tmp_path, ["apply-persistence", cur, f"{prev}[SCI]", "-o", prev], inputs=[cur, prev])
 
@@ -163,8 +166,9 @@ def test_render_refuses_plot_over_an_input_or_the_output(tmp_path):
     picture = _file(tmp_path / "sched.png")
     refused(tmp_path, ["render", truth, *POINTING, "--pointings", picture, "--plot", picture,
                        "-o", tmp_path / "out.fits"], inputs=[truth, picture])
+    # -o and --plot naming the same PNG: the -o name is refused first (render writes FITS, not PNG)
     refused(tmp_path, ["render", truth, *POINTING, "--plot", tmp_path / "f.png", "-o", tmp_path / "f.png"],
-            needle="same file", inputs=[truth])
+            needle="writes FITS, not PNG", inputs=[truth], code=2)
 
 
 @pytest.mark.parametrize("role", ["frame", "--catalog", "--psf"])
@@ -181,7 +185,8 @@ def test_budget_refuses_output_over_an_input(tmp_path):
     refused(tmp_path, ["budget", xi, "-o", xi], inputs=[xi])
     xi_png = _file(tmp_path / "xi.png")
     refused(tmp_path, ["budget", xi_png, "-o", tmp_path / "b.fits", "--plot", xi_png], inputs=[xi_png])
-    refused(tmp_path, ["budget", "-o", tmp_path / "b.png", "--plot", tmp_path / "b.png"], needle="same file")
+    refused(tmp_path, ["budget", "-o", tmp_path / "b.png", "--plot", tmp_path / "b.png"],
+            needle="writes FITS, not PNG", code=2)
 
 
 @pytest.mark.parametrize("role", ["shapes", "--patch-centers", "--plot"])
@@ -198,7 +203,7 @@ def test_correlate_refuses_output_over_an_input(tmp_path, role):
         refused(tmp_path, ["correlate", picture, "--frames", "0", "1", "--plot", picture, "-o",
                            tmp_path / "xi.fits"], inputs=[picture])
         args = base + ["--plot", tmp_path / "xi.png", "-o", tmp_path / "xi.png"]
-        refused(tmp_path, args, needle="same file", inputs=[shapes])
+        refused(tmp_path, args, needle="writes FITS, not PNG", inputs=[shapes], code=2)
         return
     refused(tmp_path, args, inputs=[shapes, centres])
 
@@ -227,7 +232,8 @@ def test_sample_model_file_is_never_replaced(tmp_path):
     model = tmp_path / "roman_detector.yaml"
     shutil.copy(SAMPLE_DATA / "roman_detector.yaml", model)
     truth = _file(tmp_path / "truth.fits")
-    refused(tmp_path, ["render", truth, *POINTING, "--model", model, "-o", model], inputs=[truth, model])
+    refused(tmp_path, ["render", truth, *POINTING, "--model", model, "-o", model], inputs=[truth, model],
+            needle="writes FITS, not YAML", code=2)
 
 
 # -- coordinates: one definition, range-checked everywhere ---------------------------------------

@@ -185,11 +185,15 @@ def test_no_object_on_the_frame_warns_at_default_verbosity(work, elsewhere):
     out = work / "empty.fits"
     result = invoke("render", elsewhere, *EXPOSURE, "--bounds", *BOUNDS, "--seed", 1, "-o", out)
     assert result.exit_code == 0, result.stderr
+    # a short line (what and where), then indented lines saying how to fix it: not one line of 600 characters
     lines = result.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("perscli: warning: no object of ")
+    assert len(lines) == 4 and lines[0].startswith("perscli: warning: no object of ")
+    assert all(len(line.replace(str(elsewhere), "CAT")) <= 160 for line in lines)
+    assert all(line.startswith("  ") for line in lines[1:])
     ra0, dec0 = sky(galsim_wcs(), (BOUNDS[0] + BOUNDS[1]) / 2, (BOUNDS[2] + BOUNDS[3]) / 2)
-    assert f"SCA {SCA} (x 1001..1128, y 2001..2128) points at ra {ra0:.4f} dec {dec0:+.4f}" in lines[0]
-    assert "--dry-run" in lines[0] and "--footprints" in lines[0] and "--strict" in lines[0]
+    assert f"lands on this cutout of SCA {SCA} (ra {ra0:.4f}, dec {dec0:+.4f})" in lines[0]
+    assert "--footprints" in lines[1] and "catalog --pointings" in lines[2]
+    assert "--dry-run" in lines[3] and "--strict" in lines[3]
     cat = Table.read(elsewhere)
     assert f"ra {np.mean(cat['ra']):.4f}" in lines[0]                       # where the catalogue is
     with fits.open(out) as hdul:
@@ -200,7 +204,7 @@ def test_no_object_on_the_frame_warns_at_default_verbosity(work, elsewhere):
 
 def test_strict_refuses_a_frame_without_objects(tmp_path, elsewhere):
     expect_error(tmp_path, ["render", elsewhere, *EXPOSURE, "--bounds", *BOUNDS, "--seed", 1, "--strict"],
-                 "--strict: no object of", "points at ra")
+                 "--strict: no object of", "lands on this cutout of SCA")
 
 
 def test_strict_dry_run(work, elsewhere, truth):
@@ -209,7 +213,7 @@ def test_strict_dry_run(work, elsewhere, truth):
     assert result.stderr.startswith("Error: --strict: no object of") and len(result.stderr.splitlines()) == 1
     result = invoke("render", elsewhere, *EXPOSURE, "--dry-run")
     assert result.exit_code == 0 and "0 objects centred on the frame" in result.stdout
-    assert result.stderr.startswith("perscli: warning: no object of") and "--dry-run`" not in result.stderr
+    assert result.stderr.startswith("perscli: warning: no object of") and "--dry-run" not in result.stderr
     assert dry_run(truth, "--strict").exit_code == 0
 
 

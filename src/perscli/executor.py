@@ -104,9 +104,28 @@ def keep_freed_memory() -> None:
         pass
 
 
+#: the most workers any command takes (--workers): more than the cores of any machine perscli runs on, and far
+#: below what breaks a library: TreeCorr's OpenMP pool crashes the process (SIGSEGV) at 100,000 threads
+MAX_WORKERS = 1024
+
+
+def check_workers(workers) -> int:
+    """``workers`` as an int from 1 to :data:`MAX_WORKERS`, else a one-line error.
+
+    Raises
+    ------
+    PerscliError
+        Fewer than 1 or more than :data:`MAX_WORKERS`.
+    """
+    n = int(workers or 1)
+    if not 1 <= n <= MAX_WORKERS:
+        raise PerscliError(f"{workers} workers: give 1 to {MAX_WORKERS} (this machine has {os.cpu_count()} cores)")
+    return n
+
+
 def threads(workers) -> int:
-    """Threads for a library with its own thread pool (OpenMP): ``workers``, 1 when not given."""
-    return max(1, int(workers or 1))
+    """Threads for a library with its own thread pool (OpenMP): ``workers`` (checked), 1 when not given."""
+    return check_workers(workers)
 
 
 def run(func, items, *, context=None, workers: int = 1, chunksize: int | None = None, progress=None) -> list:

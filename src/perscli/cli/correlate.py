@@ -8,7 +8,7 @@ import click
 from click.core import ParameterSource
 
 from ..stats.settings import CorrelateOptions, default_text
-from .helpers import FILE, FOLDER, PerscliCommand, check_outputs, report_errors
+from .helpers import FILE, FOLDER, PerscliCommand, check_outputs, report_errors, require_inputs
 from .options import (columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, seed_opt, verbosity_opts,
                       workers_opt)
 
@@ -188,6 +188,8 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
     """
     from ..stats.correlate import correlate_files
 
+    # a table that is not there is said first: the options that would go with it come after
+    require_inputs(*shapes, *(name for pair in pair_list for name in pair), pairs_file, patch_centers)
     pooled = bool(pair_list) or pairs_file is not None
     if pooled and shapes:
         raise click.UsageError("give SHAPES tables or --pair/--pairs, not both", ctx)

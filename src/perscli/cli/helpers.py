@@ -40,20 +40,54 @@ class DataError(click.ClickException):
     exit_code = 1
 
 
-def check_outputs(output: str, *, inputs=(), plot: str | None = None, overwrite: bool = False) -> None:
+#: suffixes of formats other than FITS, and their names: an output named so is refused (its bytes would be FITS)
+FOREIGN_SUFFIXES = {
+    ".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".gif": "GIF", ".tif": "TIFF", ".tiff": "TIFF", ".bmp": "BMP",
+    ".pdf": "PDF", ".svg": "SVG", ".eps": "EPS", ".ps": "PostScript", ".txt": "text", ".csv": "CSV",
+    ".tsv": "TSV", ".ecsv": "ECSV", ".json": "JSON", ".yaml": "YAML", ".yml": "YAML", ".md": "Markdown",
+    ".html": "HTML", ".xml": "XML", ".votable": "VOTable", ".vot": "VOTable", ".h5": "HDF5", ".hdf5": "HDF5",
+    ".npy": "NumPy", ".npz": "NumPy", ".parquet": "Parquet", ".asdf": "ASDF", ".reg": "ds9 region",
+}
+
+
+def check_fits_name(output: str, option: str = "-o") -> None:
+    """Refuse an output name whose suffix says another format (``-o shapes.png``): the command writes FITS.
+
+    A usage error (exit status 2) in one line; '-' and names without such a suffix (.fits, .fits.gz, .fz,
+    none at all) pass.
+    """
+    import os
+
+    if output is None or output == "-":
+        return
+    suffix = os.path.splitext(str(output).lower().removesuffix(".gz"))[1]
+    if suffix in FOREIGN_SUFFIXES:
+        ctx = click.get_current_context(silent=True)
+        what = ctx.command_path if ctx is not None else "this command"
+        raise click.BadParameter(f"{output}: {what} writes FITS, not {FOREIGN_SUFFIXES[suffix]}: name it "
+                                 f"{os.path.splitext(os.path.basename(str(output)))[0]}.fits (or .fits.gz)",
+                                 ctx, param_hint=f"'{option}'")
+
+
+def check_outputs(output: str, *, inputs=(), plot: str | None = None, overwrite: bool = False,
+                  fits: bool = True) -> None:
     """Refuse, before any work, an output (-o, --plot) that would replace any input or each other.
 
     ``inputs`` are every file the command reads (None, '-' and names that
     are not files, such as a model's name, are skipped).  The outputs become
     the command's output group (:class:`perscli.io.output.OutputGroup`):
     published together when the command succeeds, none of them when it
-    fails.  Raises PerscliError: one line, exit status 1.
+    fails.  Raises PerscliError: one line, exit status 1.  ``fits``: the
+    output is a FITS file, and a name saying another format is a usage
+    error (:func:`check_fits_name`).
     """
     import os
 
     from .. import PerscliError
     from ..io.output import check_output, declare_output, is_stdout
 
+    if fits:
+        check_fits_name(output)
     inputs = [str(name) for name in inputs if name is not None]
     check_output(output, overwrite=overwrite, inputs=inputs)
     declare_output(output)
@@ -64,6 +98,24 @@ def check_outputs(output: str, *, inputs=(), plot: str | None = None, overwrite:
         if not is_stdout(output) and os.path.abspath(plot) == os.path.abspath(output):
             raise PerscliError(f"{plot}: --plot and -o name the same file: choose another name for the figure")
         declare_output(plot)
+
+
+def require_inputs(*names) -> None:
+    """Refuse, before anything else is said, an input file that is not there (one line naming it, exit 1).
+
+    For commands whose usage checks depend on what is given (one table or two): a missing file is the first
+    thing to fix, not the options that would go with it.  '-' (standard input) and None are skipped.
+    """
+    import os
+
+    for name in names:
+        if name is None or name == "-":
+            continue
+        from ..io.sources import split_selector
+
+        path = split_selector(str(name))[0]
+        if not os.path.lexists(path):
+            raise PerscliError(f"{path}: no such file")
 
 
 def describe_os_error(exc: OSError, outputs=()) -> str:

@@ -179,6 +179,9 @@ def measure(frames, catalog, psf, psf_pixel, psf_oversampling, allow_undersample
 
     check_outputs(output, inputs=[catalog, *frames, psf], overwrite=overwrite)
     if write_psf is not None:
+        from .helpers import check_fits_name
+
+        check_fits_name(write_psf, "--write-psf")
         check_outputs(write_psf, inputs=[catalog, *frames, psf], overwrite=overwrite)
     options = MeasureOptions(
         psf=psf, psf_pixel=psf_pixel, psf_oversampling=psf_oversampling,

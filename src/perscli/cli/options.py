@@ -82,9 +82,12 @@ exptime_opt = click.option(
     help="Exposure time (more than 0 s) for inputs whose header has no EXPTIME or XPOSURE.")
 
 def workers_opt(what: str):
-    """``--workers N``: cores to use, ``what`` saying for what (processes or threads; see perscli.executor)."""
+    """``--workers N``: cores to use, ``what`` saying for what (processes or threads; see perscli.executor),
+    1 to :data:`perscli.executor.MAX_WORKERS` (a million threads crash TreeCorr's OpenMP pool)."""
+    from ..executor import MAX_WORKERS
+
     return click.option(
-        "--workers", type=click.IntRange(min=1), metavar="N", default=1, show_default=True,
+        "--workers", type=click.IntRange(min=1, max=MAX_WORKERS), metavar="N", default=1, show_default=True,
         help=f"Cores to use: {what}.")
 
 

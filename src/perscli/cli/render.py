@@ -176,7 +176,8 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
             raise click.UsageError("Missing option '--seed' (only --dry-run draws nothing).")
     if dry_run:
         if regions is not None:
-            check_outputs(regions, inputs=[truth, pointings_file, model_spec, *previous], overwrite=overwrite)
+            check_outputs(regions, inputs=[truth, pointings_file, model_spec, *previous], overwrite=overwrite,
+                          fits=False)
         exposure = _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds)
         load_detector_model(model_spec, settings)          # a dry run checks what the run would check
         report = footprint_report(truth, exposure, columns=columns)
@@ -186,7 +187,9 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
             message = no_objects_message(report, dry_run=True)
             if strict:
                 raise PerscliError("--strict: " + message)
-            log.warning("%s", message)
+            from ..render.run import no_objects_fix
+
+            log.warning("%s%s", message, no_objects_fix(dry_run=True))
         source = f"{pointings_file} row {row}" if pointings_file is not None else ""
         if regions is not None:
             write_regions(report, regions, overwrite=overwrite)

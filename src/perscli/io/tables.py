@@ -61,6 +61,8 @@ class InputTable:
     hdu: object = field(repr=False, default=None)
     aliases: dict = field(default_factory=dict)
     mappable: bool = False
+    #: the option that names the columns (pointings names a schedule's with --schedule-columns)
+    option: str = "--columns"
     _cache: dict = field(repr=False, default_factory=dict)
 
     def __len__(self) -> int:
@@ -87,7 +89,7 @@ class InputTable:
         file_names = {n.lower(): n for n in self.hdu.colnames}
         mapped = self.aliases.get(name.lower())
         if mapped is not None:
-            return file_names.get(mapped.lower()), f"'{mapped}' (--columns {name.lower()}={mapped})"
+            return file_names.get(mapped.lower()), f"'{mapped}' ({self.option} {name.lower()}={mapped})"
         return file_names.get(name.lower()), f"'{name}'"
 
     def _tform(self, real: str) -> str:
@@ -116,7 +118,7 @@ class InputTable:
         where = f"{self.label}: HDU {self.index}"
         if real is None:
             listed = ", ".join(needed) if needed else name
-            fix = (f", or name its column with --columns {name.lower()}=COLUMN" if self.mappable and
+            fix = (f", or name its column with {self.option} {name.lower()}=COLUMN" if self.mappable and
                    name.lower() not in self.aliases else "")
             raise PerscliError(f"{where} has no column {shown}; a {self.what} needs the columns {listed}: "
                                f"check that this is a {self.what}{fix}")
@@ -181,20 +183,20 @@ def parse_column_mapping(specs) -> dict:
     return mapping
 
 
-def _check_mapping(label: str, colnames, aliases: dict, what: str, known) -> None:
+def _check_mapping(label: str, colnames, aliases: dict, what: str, known, option: str = "--columns") -> None:
     """Every mapped file column exists, and (when ``known`` is given) every perscli name is one perscli reads."""
     file_names = {n.lower() for n in colnames}
     for logical, real in aliases.items():
         if real.lower() not in file_names:
             shown = ", ".join(colnames[:30]) + (", ..." if len(colnames) > 30 else "")
-            raise PerscliError(f"{label}: --columns {logical}={real}: the file has no column '{real}'; "
+            raise PerscliError(f"{label}: {option} {logical}={real}: the file has no column '{real}'; "
                                f"its columns are {shown}")
         if known is not None and not any(fnmatch.fnmatch(logical, k.lower()) for k in known):
-            raise PerscliError(f"{label}: --columns {logical}={real}: a {what} has no column '{logical}' for "
+            raise PerscliError(f"{label}: {option} {logical}={real}: a {what} has no column '{logical}' for "
                                f"perscli to read; it reads {', '.join(known)}")
 
 
-def read_table(name: str, *, what: str, stdin=None, columns=None, known=None) -> InputTable:
+def read_table(name: str, *, what: str, stdin=None, columns=None, known=None, option: str = "--columns") -> InputTable:
     """Open the first binary table of a FITS file (``file[EXT]`` chooses another).
 
     The file stays open until the process ends or the table is garbage
@@ -216,6 +218,9 @@ def read_table(name: str, *, what: str, stdin=None, columns=None, known=None) ->
         The names perscli reads from this kind of table (glob patterns such
         as 'mag_*' allowed): a mapping of any other name is refused, since it
         would be silently ignored.
+    option : str
+        The command's option that maps the columns, named in messages
+        (``--columns``; pointings' schedule: ``--schedule-columns``).
 
     Raises
     ------
@@ -239,7 +244,7 @@ def read_table(name: str, *, what: str, stdin=None, columns=None, known=None) ->
         datasum = hdu.verify()
         colnames = list(hdu.colnames)  # a table CFITSIO cannot describe fails here, as one line
         aliases = {k.lower(): v for k, v in (columns or {}).items()}
-        _check_mapping(fits.label, colnames, aliases, what, known)
+        _check_mapping(fits.label, colnames, aliases, what, known, option)
     except (OSError, ValueError) as exc:
         fits.close()
         raise PerscliError(f"{fits.label}: not a readable FITS binary table ({exc}); check that this is a {what}") from None
@@ -247,7 +252,7 @@ def read_table(name: str, *, what: str, stdin=None, columns=None, known=None) ->
         fits.close()
         raise
     return InputTable(name=name, label=fits.label, index=hdu.index, header=hdu.header, datasum=datasum,
-                      what=what, hdu=hdu, aliases=aliases, mappable=columns is not None)
+                      what=what, hdu=hdu, aliases=aliases, mappable=columns is not None, option=option)
 
 
 def _first_table(label: str, hdus, what: str):

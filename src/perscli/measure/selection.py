@@ -71,7 +71,9 @@ def read_positions(path: str, *, columns=None):
         out["x"] = table.column("x").astype(np.float64)
         out["y"] = table.column("y").astype(np.float64)
     else:
-        raise PerscliError(f"{table.label}: the catalogue needs ra/dec (degrees) or x/y (pixels) columns")
+        fix = (": name them with --columns ra=COLUMN,dec=COLUMN (or x=COLUMN,y=COLUMN)" if table.mappable else "")
+        raise PerscliError(f"{table.label}: HDU {table.index} has no ra/dec (degrees) or x/y (pixels) columns; a "
+                           f"catalogue needs one pair{fix}")
     for optional in ("hlr", "kind", "e1", "e2"):
         if optional in names:
             out[optional] = table.column(optional, kind="text" if optional == "kind" else "number")
@@ -87,7 +89,7 @@ def read_positions(path: str, *, columns=None):
             raise PerscliError(f"{table.label}: column {key} has {bad} non-finite value(s); drop those rows")
     # the values render would refuse are refused here too (one check for both): repeated ids (whose SHAPES
     # rows correlate refuses), RA/Dec off the sky (WCS tracebacks), negative or zero sizes, |e| >= 1
-    check_catalog(table.label, out, header=table.header)
+    check_catalog(table.label, out, header=table.header, names={name.lower(): name for name in mags})
     return out
 
 

@@ -180,7 +180,7 @@ def read_truth(path: str, filter_name: str, *, columns=None):
 
     # the catalogue check measure makes too: ids, positions, sizes and ellipticities that GalSim can draw
     # (hlr = 0 divided by zero, |e| >= 1 raised GalSim's range error)
-    check_catalog(label, cols, header=table.header)
+    check_catalog(label, cols, header=table.header, names={"mag": mag})
     cols["datasum"] = table.datasum
     return cols
 

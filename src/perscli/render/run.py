@@ -191,13 +191,23 @@ def open_history(name: str, source: str):
                       "--persistence-source drawn",
            "FLUENCE": "an earlier exposure leaves persistence through the charge it collected: render it with "
                       "FLUENCE in --hdus (the default)"}[want]
+
+    def missing(label, hdus) -> PerscliError:
+        # a table and no image: a catalogue (most likely the truth catalogue) given where a frame belongs
+        if not any(h.is_image and h.shape for h in hdus) and any(h.kind == "table" for h in hdus):
+            names = ", ".join(h.name or f"HDU {h.index}" for h in hdus if h.kind == "table")
+            return PerscliError(f"{label}: is a table ({names}), a catalogue, not a frame: --previous takes an "
+                                f"earlier exposure perscli rendered (with {want}); the truth catalogue is render's "
+                                "first argument")
+        return PerscliError(f"{label}: no {want} extension: {why}")
+
     if name == "-":
         # standard input is read once: the whole frame, then its extension by name
         frame = open_frame(name)
         found = [h.index for h in frame.hdus if h.name == want and h.is_image and h.shape]
         if not found:
             frame.close()
-            raise PerscliError(f"stdin: no {want} extension: {why}")
+            raise missing("stdin", frame.hdus)
         from ..io.frames import normalize_unit
 
         frame.sci, frame.fluence_hdu = found[:1], None
@@ -212,7 +222,7 @@ def open_history(name: str, source: str):
             raise
         with open_fits(path) as probe:          # why it failed: most often, no such extension
             if not any(h.name == want for h in probe.hdus):
-                raise PerscliError(f"{path}: no {want} extension: {why}") from None
+                raise missing(path, probe.hdus) from None
         raise
     used = frame.hdus[frame.sci[0]].name
     if used != want:
@@ -403,25 +413,30 @@ def write_regions(report: dict, dest: str, *, overwrite: bool = False, stdout=No
 
 
 def no_objects_message(report: dict, *, dry_run: bool = False) -> str:
-    """One line: no object of the catalogue lands on the frame, where the frame and the catalogue are, and the fix.
+    """One short line: no object of the catalogue lands on the frame, where the frame and the catalogue are.
 
-    ``dry_run``: the line is for ``--dry-run`` itself, which needs no pointer to it.
+    What to do about it is :func:`no_objects_fix` (the warning's further lines).  ``dry_run``: for
+    ``--dry-run`` itself (the same line).
     """
     e, cat = report["exposure"], report["catalog"]
-    xmin, xmax, ymin, ymax = report["bounds"]
     _, _, rc, dc = report["centre"]
     name = "stdin" if report["truth"] == "-" else report["truth"]
-    frame = "cutout" if e.bounds else "SCA"
-    where = (f"SCA {e.sca} (x {xmin}..{xmax}, y {ymin}..{ymax}) points at ra {rc:.4f} dec {dc:+.4f}")
+    frame = f"this cutout of SCA {e.sca}" if e.bounds else f"SCA {e.sca}"
+    where = f"ra {rc:.4f}, dec {dc:+.4f}"
     if cat["n"]:
-        what = (f"no object of {name} lands on this {frame}: {where}, {report['separation']:.3f} deg from the "
-                f"catalogue, which lies within {cat['radius']:.3f} deg of ra {cat['ra']:.4f} dec {cat['dec']:+.4f}")
-    else:
-        what = f"{name} holds no object: {where}"
-    see = "" if dry_run else "see `perscli render ... --dry-run`, "
-    return (what + f"; {see}choose a row and SCA that cover the catalogue "
-            "(`perscli pointings ... --sca N --footprints --catalog CAT`) or draw a catalogue there "
-            "(`perscli catalog --pointings POINTINGS --sca N`)")
+        return (f"no object of {name} lands on {frame} ({where}), {report['separation']:.3f} deg from the "
+                f"catalogue (ra {cat['ra']:.4f}, dec {cat['dec']:+.4f})")
+    return f"{name} holds no object: {frame} ({where}) draws nothing"
+
+
+def no_objects_fix(*, dry_run: bool = False) -> str:
+    """The lines after :func:`no_objects_message` in its warning: how to find a frame that covers the catalogue, or
+    a catalogue that covers the frame (indented continuation lines)."""
+    lines = ["to find rows and SCAs that cover it: perscli pointings ... --sca N --footprints --catalog CAT",
+             "to draw a catalogue where the SCA lands: perscli catalog --pointings POINTINGS --sca N"]
+    if not dry_run:
+        lines.append("(render --dry-run shows where a frame lands; --strict makes this an error)")
+    return "\n  " + "\n  ".join(lines)
 
 
 def simulation_area(bounds) -> tuple:
@@ -645,7 +660,8 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
         message = no_objects_message(footprint_report(truth, exposure, cols=cols, optics=optics))
         if strict:
             raise PerscliError("--strict: " + message)
-        log.warning("%s; --strict makes this an error", message)
+        # short lines rather than one of 600 characters: what, then how to fix it
+        log.warning("%s%s", message, no_objects_fix())
     previous = list(previous)
     if previous and not model.enabled("persistence"):
         log.warning("--previous given but the persistence effect is off in the detector model: ignored")

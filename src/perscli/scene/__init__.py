@@ -149,7 +149,12 @@ def check_column_scaling(label: str, header) -> None:
                                    "regenerate it")
 
 
-def check_catalog(label: str, cols: dict, *, header=None) -> None:
+#: AB magnitudes brighter than this are no star's (the brightest in the sky are about -3 in J): a catalogue holding
+#: one has another quantity in the column (a flux, a log); GalSim's Poisson draw fails past ~-25 ('lam too large')
+MAG_BRIGHTEST = -5.0
+
+
+def check_catalog(label: str, cols: dict, *, header=None, names=None) -> None:
     """Refuse a catalogue whose values cannot describe objects: the one check of catalogue columns.
 
     Used by every reader of a truth catalogue that draws or measures its
@@ -165,7 +170,10 @@ def check_catalog(label: str, cols: dict, *, header=None) -> None:
     - ``hlr`` (half-light radius, arcsec): never negative or infinite, and
       > 0 for every galaxy (a profile of zero size cannot be drawn);
     - ``e1``, ``e2``: |e| = sqrt(e1^2 + e2^2) < 1 wherever given (an
-      ellipticity of 1 is a line), and finite for every galaxy.
+      ellipticity of 1 is a line), and finite for every galaxy;
+    - ``mag`` and ``mag_*`` (AB): a number for every row, and not brighter
+      than :data:`MAG_BRIGHTEST` (a magnitude of -30 is no star's: the
+      column holds something else).
 
     Galaxies are the rows whose ``kind`` is 'galaxy'; without a kind column
     no row is known to be one, and only the checks that hold for any row
@@ -181,6 +189,9 @@ def check_catalog(label: str, cols: dict, *, header=None) -> None:
     header : mapping, optional
         The table's header: its column scaling is checked too
         (:func:`check_column_scaling`).
+    names : dict, optional
+        The file's name of a column read under another key (render reads
+        ``mag_J129`` as ``mag``), for the messages.
 
     Raises
     ------
@@ -223,6 +234,21 @@ def check_catalog(label: str, cols: dict, *, header=None) -> None:
             raise PerscliError(f"{label}: column hlr has {int(bad.sum())} value(s) that cannot be a half-light "
                                f"radius (first at {first(bad)}: hlr = {hlr[i]:g}): hlr is in arcsec, >= 0, and > 0 "
                                "for a galaxy; fix or drop those rows")
+    for key in [k for k in cols if k == "mag" or k.startswith("mag_")]:
+        mag = np.asarray(cols[key], dtype=np.float64)
+        shown = (names or {}).get(key, key)
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(mag)
+            bright = np.isfinite(mag) & (mag < MAG_BRIGHTEST)
+        if np.any(bad):
+            raise PerscliError(f"{label}: column {shown} has {int(bad.sum())} value(s) that are not a magnitude "
+                               f"(first at {first(bad)}: {mag[np.flatnonzero(bad)[0]]:g}); give every row one, or "
+                               "drop those rows")
+        if np.any(bright):
+            i = int(np.flatnonzero(bright)[0])
+            raise PerscliError(f"{label}: column {shown} has {int(bright.sum())} value(s) brighter than any star "
+                               f"(first at {first(bright)}: {mag[i]:g}; the brightest stars are about -3): AB "
+                               "magnitudes expected; check what the column holds (a flux? a log?)")
     if "e1" in cols and "e2" in cols:
         e1 = np.asarray(cols["e1"], dtype=np.float64)
         e2 = np.asarray(cols["e2"], dtype=np.float64)

@@ -395,6 +395,18 @@ class GaiaStars:
     median_bp_rp: float = DEFAULT_BP_RP
 
 
+def _check_unique_sources(label: str, ids) -> None:
+    """Refuse a reference-catalog chunk that holds a source twice: each source is one row of its chunk, so a
+    repeated id is a damaged or concatenated file (and which of its rows is right cannot be told)."""
+    ids = np.asarray(ids, dtype=np.int64)
+    s = np.sort(ids)
+    dup = s[1:][s[1:] == s[:-1]]
+    if len(dup):
+        raise PerscliError(f"{label}: source id {int(dup[0])} appears more than once ({len(np.unique(dup))} "
+                           "repeated id(s)); a reference-catalog chunk holds each source once: re-download the "
+                           "chunk, or drop the repeated rows")
+
+
 def read_gaia_stars(paths, fld, *, stdin=None, columns=None) -> GaiaStars:
     """The stars of Gaia DR2 reference-catalog chunks that lie inside ``fld``.
 
@@ -428,11 +440,22 @@ def read_gaia_stars(paths, fld, *, stdin=None, columns=None) -> GaiaStars:
                                    f"reference catalogs with {col} in '{expected}' (LSST format): "
                                    "check that this is such a catalog")
             chunks[col].append(values)
+        _check_unique_sources(table.label, chunks["id"][-1])
         inputs.append((name, table.datasum))
     cols = {k: np.concatenate(v) if v else np.empty(0) for k, v in chunks.items()}
     ids = cols["id"].astype(np.int64)
-    # chunks of a sky index do not overlap, but the same file given twice must not double its stars
-    _, first = np.unique(ids, return_index=True)
+    # chunks of a sky index do not overlap, but the same file given twice must not double its stars; a source in
+    # two files with other positions or fluxes is no copy, and which one is right cannot be told
+    _, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
+    for col in GAIA_COLUMNS:
+        values = np.asarray(cols[col], dtype=np.float64)
+        kept = values[first][inverse.ravel()]
+        differ = ~((values == kept) | (np.isnan(values) & np.isnan(kept)))
+        if np.any(differ):
+            k = int(np.flatnonzero(differ)[0])
+            raise PerscliError(f"source id {int(ids[k])} is in more than one --gaia file with another {col} "
+                               f"({kept[k]:.10g} and {values[k]:.10g}): give each chunk once (chunks of a "
+                               "reference catalog do not overlap)")
     first.sort()
     cols = {k: v[first] for k, v in cols.items()}
     n_read = first.size

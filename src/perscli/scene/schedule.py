@@ -152,7 +152,8 @@ def read_schedule(path: str, *, stdin=None, columns=None) -> Schedule:
         <= 0 (:func:`check_exptimes`).
     """
     path = schedule_path(path)
-    table = read_table(path, what="schedule", stdin=stdin, columns=columns or {}, known=tuple(SCHEDULE_COLUMNS))
+    table = read_table(path, what="schedule", stdin=stdin, columns=columns or {}, known=tuple(SCHEDULE_COLUMNS),
+                       option="--schedule-columns")
     cols = {name: table.column(name, kind=kind, needed=tuple(SCHEDULE_COLUMNS))
             for name, kind in SCHEDULE_COLUMNS.items()}
     check_exptimes(table.label, cols["exptime"], what="schedule")
@@ -327,4 +328,34 @@ def previous_exposures(schedule: Schedule, row: int, n: int, *, sca: int = 0) ->
     # time order, ties by row; the last n are the most recent
     earlier = earlier[np.lexsort((earlier, schedule.mjd[earlier]))]
     picked = earlier[len(earlier) - int(n):] if n else earlier[:0]
+    check_sequence(schedule, [*picked.tolist(), row])
     return [schedule_pointing(schedule, i, sca=sca) for i in picked]
+
+
+#: seconds by which one exposure may seem to run into the next: the rounding of an MJD (1e-11 day ~ 1 us)
+OVERLAP_TOLERANCE = 1e-3
+
+
+def check_sequence(schedule: Schedule, rows) -> None:
+    """Refuse exposures of one detector whose times overlap: each must end before the next starts.
+
+    Parameters
+    ----------
+    schedule : Schedule
+    rows : sequence of int
+        Schedule rows in time order (an exposure's history, then the exposure).
+
+    Raises
+    ------
+    PerscliError
+        One line naming the two rows, by how much they overlap, and the fix.
+    """
+    for a, b in zip(rows[:-1], rows[1:]):
+        end = schedule.mjd[a] + schedule.exptime[a] / DAY
+        overlap = (end - schedule.mjd[b]) * DAY
+        if overlap > OVERLAP_TOLERANCE:
+            where = f"{schedule.name}: " if schedule.name else ""
+            raise PerscliError(f"{where}rows {a} and {b} overlap in time: row {a} (MJD {schedule.mjd[a]:.6f}, "
+                               f"{schedule.exptime[a]:g} s) ends {overlap:.1f} s after row {b} starts; one "
+                               "detector takes one exposure at a time: fix the dates or exposure times of the "
+                               "schedule")
