@@ -57,15 +57,15 @@ demo-diagnose: $(STAMP)
 	    --simulated $(DIAG)/sim1.fits --simulated $(DIAG)/sim2.fits -o demo_output/diagnose --overwrite
 
 # A small real field: Gaia DR2 stars plus simulated galaxies, observed by three
-# consecutive J129 exposures of the public Roman WAS schedule (rows 4182-4184,
+# consecutive J129 exposures of the public Roman WAS schedule (bundled: rows 4182-4184,
 # 170 s apart) on the same 2048x2048 pixels of SCA 1; the third exposure is
 # rendered with and without the persistence of the first two.
 SHARED ?= ../shared/data
 FIELD  := demo_output/field
 demo-field: $(STAMP)
-	@test -d $(SHARED)/gaia || { echo "demo-field needs $(SHARED) (Gaia chunks, Roman schedule)"; exit 1; }
+	@test -d $(SHARED)/gaia || { echo "demo-field needs the Gaia DR2 chunks in $(SHARED)/gaia"; exit 1; }
 	mkdir -p $(FIELD)
-	$(BIN)/perscli pointings select --schedule $(SHARED)/roman/Roman_WAS_obseq_11_1_23.fits --ra 9.98 --dec -43.86 \
+	$(BIN)/perscli pointings select --ra 9.98 --dec -43.86 \
 	    --radius 0.04 --filter J129 --limit 3 --sca 1 -o $(FIELD)/pointings.fits --overwrite
 	$(BIN)/perscli catalog --ra 10.0477 --dec -43.7909 --size 20 --gaia $(SHARED)/gaia/145650.fits \
 	    --seed 1 -o $(FIELD)/truth.fits --overwrite

@@ -201,17 +201,13 @@ def shared_files(shared: Path) -> dict:
 def prepare_folder(folder: Path, shared: Path, bindir: Path, *, samples_at_top: bool = True) -> None:
     """The sample data, the examples folder, the shared inputs (links) and a .venv/bin/perscli link.
 
-    ``folder`` stands for a clone: ``../shared`` beside it is linked to the
-    shared folder (as examples/small.yaml names its schedule relative to itself).
-    The shared inputs are linked by name, as a user who downloaded them (MAST's
-    WFC3 ramps, the public Roman schedule) would have them.  ``samples_at_top``:
-    the sample files are also copied to the top (for the --help examples, which
-    name files in the current folder); README's examples run from a clone as it is.
+    ``folder`` stands for a clone, with nothing beside it: no example may reach
+    outside the clone (the Roman schedule is bundled).  The shared inputs are
+    linked by name, as a user who downloaded them (MAST's WFC3 ramps, Gaia
+    chunks) would have them.  ``samples_at_top``: the sample files are also
+    copied to the top; the documented examples run from a clone as it is.
     """
     folder.mkdir(parents=True, exist_ok=True)
-    beside = folder.parent / "shared"
-    if shared.is_dir() and not beside.exists():
-        os.symlink(shared.parent, beside)
     for p in (ROOT / "sample_data").iterdir():
         if p.is_file() and samples_at_top:
             shutil.copy(p, folder / p.name)

@@ -212,7 +212,7 @@ def test_console_script_usage_error_exit_2(tmp_path, frames):
                                     "(see 'perscli apply-persistence -h')\n")
 
 
-def test_progress_bar_on_a_terminal_and_silent_otherwise():
+def test_progress_bar_on_a_terminal_and_no_lines_for_small_work_otherwise():
     import io
 
     from perscli.cli.helpers import progress_reporter
@@ -226,4 +226,9 @@ def test_progress_bar_on_a_terminal_and_silent_otherwise():
     for done in range(1, 5):
         progress(done, 4)
     assert "rows" in term.getvalue() and "100%" in term.getvalue()
-    assert progress_reporter("rows", stream=io.StringIO()) is None
+    # not a terminal: a line per tenth of work of at least `least` steps (tests/test_progress.py), none for less
+    log = io.StringIO()
+    small = progress_reporter("rows", stream=log, least=5)
+    for done in range(1, 5):
+        small(done, 4)
+    assert log.getvalue() == ""

@@ -346,7 +346,7 @@ def test_usage_errors(two_frames, tmp_path):
     for args in ([two_frames["both"]], [two_frames["both"], "--de1", "de1"],
                  [two_frames["a"], two_frames["b"], "--de1", "a", "--de2", "b"],
                  [two_frames["both"], "--frames", 0, 1, "--min-sep", 10, "--max-sep", 5],
-                 [two_frames["both"], "--frames", 0, 1, "--patch-centers", "p.fits", "--npatch", 5]):
+                 [two_frames["both"], "--frames", 0, 1, "--patch-centers", two_frames["both"], "--npatch", 5]):
         run("correlate", *args, "-o", out, code=2)
     assert not out.exists()
 

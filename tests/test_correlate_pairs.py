@@ -276,7 +276,13 @@ def test_pair_errors_are_one_line(three, tmp_path):
     listing = tmp_path / "list.txt"
     listing.write_text(f"{pairs[0][0]} {pairs[0][1]}\n")
     one_line_error(invoke("correlate", *p0, "--pair", pairs[1][0], pairs[1][1], "-o", pairs[1][1], "--overwrite"))
-    one_line_error(invoke("correlate", "--pairs", listing, "-o", listing, "--overwrite"))
+    # -o naming the pairs list: its name says text, not FITS (a usage error); a list without a suffix is "also an
+    # input"; either way the list is untouched
+    one_line_error(invoke("correlate", "--pairs", listing, "-o", listing, "--overwrite"), "writes FITS", code=2)
+    bare = tmp_path / "pairs"
+    bare.write_text(f"{pairs[0][0]} {pairs[0][1]}\n")
+    one_line_error(invoke("correlate", "--pairs", bare, "-o", bare, "--overwrite"))
+    assert bare.read_text().startswith(pairs[0][0])
     assert listing.read_text().startswith(pairs[0][0])
     assert not out.exists() and not [p for p in os.listdir(tmp_path) if p.startswith(".xi.fits")]
 

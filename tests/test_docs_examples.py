@@ -73,11 +73,25 @@ def _run(examples, tmp_path, *, expensive):
     return outcomes
 
 
-@pytest.mark.parametrize("name", _command_names())
-def test_the_help_examples_run_from_a_clone(tmp_path, name):
-    """A command's --help examples, in order, in a clone of their own: but the expensive ones (docs.EXPENSIVE)."""
-    outcomes = _run(help_examples_of(name), tmp_path, expensive=False)
-    assert outcomes and any(o.status == "ok" for o in outcomes), docs.report(outcomes)
+def test_the_help_examples_run_from_a_clone(tmp_path):
+    """Each command's --help examples, in order, in a clone of their own: but the expensive ones (docs.EXPENSIVE).
+
+    Two commands' examples at a time: each is a chain of short processes (interpreter start, GalSim import), one
+    core's work, and the suite would otherwise leave the second core of a 2-core machine idle for minutes.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(name):
+        folder = tmp_path / name
+        docs.prepare_folder(folder, SHARED_DATA, docs.script_dir(), samples_at_top=False)
+        return name, docs.run_examples(help_examples_of(name), folder, shared=SHARED_DATA, expensive=False)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        results = dict(pool.map(one, _command_names()))
+    print("\n".join(docs.report(outcomes) for outcomes in results.values()))
+    _check([o for outcomes in results.values() for o in outcomes])
+    idle = [name for name, outcomes in results.items() if not any(o.status == "ok" for o in outcomes)]
+    assert not idle, f"commands none of whose --help examples ran: {idle}"
 
 
 @pytest.mark.slow

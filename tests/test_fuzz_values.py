@@ -454,7 +454,7 @@ def test_study_takes_no_checksum_and_passes_it_to_its_tasks(tmp_path, monkeypatc
     seen = []
     monkeypatch.setattr(config, "load_study", lambda description, preset=None, overrides=(): {"name": "stub"})
     monkeypatch.setattr(config, "dump", lambda s: "name: stub\n")
-    monkeypatch.setattr(plan, "build", lambda s: [])
+    monkeypatch.setattr(plan, "build", lambda s, **kw: [])
     monkeypatch.setattr(runner, "task_dicts", lambda tasks: [])
     from perscli.io.checksum import checksums_enabled
 

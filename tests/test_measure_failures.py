@@ -256,14 +256,14 @@ def test_faint_and_empty_positions_are_flagged(psf, failure_scene, tmp_path):
         assert row["flags"] != 0, (row["id"], moved, row["s2n"])
 
 
-def test_missing_magnitude_falls_back_to_the_default_start(psf, tmp_path):
+def test_a_magnitude_that_is_not_a_number_is_refused_as_render_refuses_it(psf, tmp_path):
+    """A NaN magnitude was fitted from the default start, in silence; render refuses the same catalogue."""
+    from fits_factory import expect_error
+
     frame = write_frame(tmp_path / "f.fits", draw(psf, [(25.3, 30.6, 0.2, 0.1, 2e4)], seed=2))
     Table(dict(id=[1, 2], x=[25.3, 25.3], y=[30.6, 30.6], mag_J129=[np.nan, mag(2e4)])).write(tmp_path / "c.fits")
-    # the same object twice on purpose: no blend flag here
-    measure(frame, tmp_path / "c.fits", tmp_path / "o.fits", "--blend-radius", "0")
-    s = shapes(tmp_path / "o.fits")
-    assert s["flags"][1] == 0  # with the magnitude: fine
-    assert s["flags"][0] == 0 and abs(s["g1"][0] - s["g1"][1]) < 1e-6
+    expect_error(tmp_path, [frame, "--catalog", tmp_path / "c.fits", "--blend-radius", "0"], "mag_J129",
+                 "not a magnitude", "id 1", command="measure")
 
 
 def test_bright_galaxy_converges_without_a_catalogue_flux(psf, tmp_path):

@@ -188,8 +188,9 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
     """
     from ..stats.correlate import correlate_files
 
-    # a table that is not there is said first: the options that would go with it come after
-    require_inputs(*shapes, *(name for pair in pair_list for name in pair), pairs_file, patch_centers)
+    # a table that is not there is said first: the options that would go with it come after (--pairs and
+    # --patch-centers are checked where they are read, naming the option)
+    require_inputs(*shapes, *(name for pair in pair_list for name in pair))
     pooled = bool(pair_list) or pairs_file is not None
     if pooled and shapes:
         raise click.UsageError("give SHAPES tables or --pair/--pairs, not both", ctx)

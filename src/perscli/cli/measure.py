@@ -69,8 +69,9 @@ D = MeasureOptions()
                    "[default: galaxy; every row of a catalogue without a kind column].")
 @click.option("--min-snr", type=float, default=D.min_snr, show_default=True, metavar="X",
               help="Fit only objects whose S/N predicted from the catalogue (magnitude through ZPT_AB, hlr, "
-                   "PSF, sky + dark + read noise; never the pixels) is at least X; 0: no cut.  Objects "
-                   "without a magnitude are always fitted.")
+                   "PSF, sky + dark + read noise; never the pixels) is at least X; 0: no cut.  The objects "
+                   "of a catalogue without a magnitude column for the frame's filter are always fitted (a "
+                   "magnitude that is not a number is refused).")
 @click.option("--all-rows", is_flag=True, default=D.all_rows,
               help="Also write rows, without a fit, for selected objects off the frame (flag 256) and below "
                    "--min-snr (flag 4096).")

@@ -62,7 +62,7 @@ class MeasureOptions:
         None the galaxies, or every row of a catalogue without a kind column.
     min_snr : float
         Fit only objects whose S/N predicted from the catalogue reaches this
-        (0: no cut; objects without a magnitude are always fitted).
+        (0: no cut; a catalogue without a magnitude column for the frame's filter: every object fitted).
     all_rows : bool
         Also write rows, without a fit, for selected objects off the frame
         (flag 256) and below ``min_snr`` (flag 4096).
