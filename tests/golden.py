@@ -144,6 +144,8 @@ RULES = [
     ("*e[0-9]*.fits", "SCI", "*", EXACT),
     ("frames/*", "SCI", "*", EXACT),
     ("frames/*", "STARS-*", "*", EXACT),               # a final's SCI with persistence: whole DN too
+    ("frames/*", "REFPIX", "*", EXACT),                # a final's stamps: the reference's pixels, whole DN
+    ("frames/*", "D_*", "*", EXACT),                   # ... and each variant's difference from them, whole DN
     ("*e[0-9]*.fits", "*", "*", F32),
     ("frames/*", "*", "*", F32),
     # apply-persistence: CURRENT's structure, float32 data
@@ -155,6 +157,7 @@ RULES = [
     # the study's shape changes: fits, their differences, and arithmetic on the catalogue
     ("shapes/*", "*", "de*", DE), ("shapes/*", "*", "dabs", DE),
     ("shapes/*", "*", "g[12]*", FIT),
+    ("shapes/*", "*", "bound", FIT),                   # the last Newton correction: within a fit's tolerance
     ("shapes/*", "*", "*", F64),
     # correlate: TreeCorr's sums; the De statistics
     ("xi/*", "XI", "r_nom", F64), ("xi/*", "XI", "meanr", SUMS), ("xi/*", "XI", "meanlogr", SUMS),
