@@ -197,8 +197,7 @@ def open_history(name: str, source: str):
         if not any(h.is_image and h.shape for h in hdus) and any(h.kind == "table" for h in hdus):
             names = ", ".join(h.name or f"HDU {h.index}" for h in hdus if h.kind == "table")
             return PerscliError(f"{label}: is a table ({names}), a catalogue, not a frame: --previous takes an "
-                                f"earlier exposure perscli rendered (with {want}); the truth catalogue is render's "
-                                "first argument")
+                                f"earlier exposure perscli rendered (with {want})")
         return PerscliError(f"{label}: no {want} extension: {why}")
 
     if name == "-":
@@ -415,8 +414,7 @@ def write_regions(report: dict, dest: str, *, overwrite: bool = False, stdout=No
 def no_objects_message(report: dict, *, dry_run: bool = False) -> str:
     """One short line: no object of the catalogue lands on the frame, where the frame and the catalogue are.
 
-    What to do about it is :func:`no_objects_fix` (the warning's further lines).  ``dry_run``: for
-    ``--dry-run`` itself (the same line).
+    What to do about it is :func:`no_objects_fix` (the warning's further lines).
     """
     e, cat = report["exposure"], report["catalog"]
     _, _, rc, dc = report["centre"]
@@ -430,13 +428,11 @@ def no_objects_message(report: dict, *, dry_run: bool = False) -> str:
 
 
 def no_objects_fix(*, dry_run: bool = False) -> str:
-    """The lines after :func:`no_objects_message` in its warning: how to find a frame that covers the catalogue, or
-    a catalogue that covers the frame (indented continuation lines)."""
-    lines = ["to find rows and SCAs that cover it: perscli pointings ... --sca N --footprints --catalog CAT",
-             "to draw a catalogue where the SCA lands: perscli catalog --pointings POINTINGS --sca N"]
-    if not dry_run:
-        lines.append("(render --dry-run shows where a frame lands; --strict makes this an error)")
-    return "\n  " + "\n  ".join(lines)
+    """The indented lines after :func:`no_objects_message` in its warning: how to find a frame that covers the
+    catalogue, or draw a catalogue that covers the frame."""
+    return ("\n  to find rows and SCAs that cover it: perscli pointings ... --sca N --footprints --catalog CAT"
+            "\n  to draw a catalogue where the SCA lands: perscli catalog --pointings POINTINGS --sca N"
+            + ("" if dry_run else "\n  (render --dry-run shows where a frame lands; --strict makes this an error)"))
 
 
 def simulation_area(bounds) -> tuple:
