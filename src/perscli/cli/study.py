@@ -95,16 +95,15 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     check_output_folder(outdir, resume=True, inputs=[description])
     s = load_study(description, preset=preset, overrides=settings)
     from ..progress import lines
+    from ..study.summary import load_cost, project
 
+    # read before anything is planned or printed: a bad file is the only line
+    measured = load_cost(cost_from) if dry_run and cost_from else None
     # planning from a schedule takes seconds per SCA (GalSim's WCS of every exposure near the field): a line each,
     # at a terminal or in a log alike, none with -q
     tasks = task_dicts(build(s, progress=lines("study: planning", quiet=verbosity < 0)))
     n = _counts(tasks)
     if dry_run:
-        from ..study.summary import load_cost, project
-
-        # read before anything is printed: a bad file is the only line
-        measured = load_cost(cost_from) if cost_from else None
         click.echo(f"study {s['name']}: {len(tasks)} tasks: " + ", ".join(f"{v} {k}" for k, v in n.items()))
         if cost_from:
             p = project(tasks, measured)

@@ -247,7 +247,10 @@ def build(s: dict, exposures: Exposures | None = None, progress=None) -> list:
                   params=dict(rows=[_pointing_row(ex, key) for key in sorted(ex.all)]))]
     make = _build_differential if is_differential(s) else _build_full
     prefixes = [f"r{seed:04d}/" if len(seeds) > 1 else "" for seed in seeds]
-    for seed, prefix in zip(seeds, prefixes):
+    nfinals = sum(len(ps) for ps in ex.finals.values())
+    for k, (seed, prefix) in enumerate(zip(seeds, prefixes)):
+        if progress is not None and nfinals >= 100:   # each final's footprint again: a minute for the paper's
+            progress(k, len(seeds), f"the tasks of seed {seed}: the footprints of {nfinals} finals")
         tasks += make(s, ex, seed, prefix)
     finals_sorted = [(sca, p.expid) for sca, ps in sorted(ex.finals.items()) for p in ps]
     variants = list(variant_settings(s))
