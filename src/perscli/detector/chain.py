@@ -83,6 +83,17 @@ def run_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
                origin=(1, 1), active=None, blocks: BlockStack | None = None) -> dict:
     """:func:`run_chain` for several models of one exposure, sharing the steps they have in common.
 
+    The results of :func:`iter_chains`, all at once.
+    """
+    return dict(iter_chains(sources, models, exptime=exptime, seed=seed, sky_rate=sky_rate,
+                            persistence=persistence, origin=origin, active=active, blocks=blocks))
+
+
+def iter_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
+                sky_rate: Callable[[], float] | float = 0.0, persistence: dict | None = None,
+                origin=(1, 1), active=None, blocks: BlockStack | None = None):
+    """:func:`run_chain` for several models of one exposure, sharing the steps they have in common.
+
     The same frame with and without persistence, or with two persistence
     laws, differs from the persistence step on: the steps before it (sky,
     Poisson noise, reciprocity, dark current) are taken once, and each model
@@ -101,10 +112,12 @@ def run_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
         are the results (:class:`BlockStack`).
     Others as for :func:`run_chain`.
 
-    Returns
-    -------
-    dict
-        Name -> ChainResult.
+    Yields
+    ------
+    (name, ChainResult)
+        In the order of ``models``, one at a time: a caller that keeps only
+        what it needs of each holds one model's frames at a time (a study's
+        final with twenty persistence variants).
     """
     persistence = persistence or {}
     names = list(models)
@@ -121,7 +134,6 @@ def run_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
     state = _Steps()
     for eff in chains[0][:shared]:
         img = state.step(eff, img, ctx0)
-    out = {}
     for n, chain in zip(names, chains):
         ctx = ChainContext(exptime=exptime, seed=seed, sky_rate=ctx0.sky, persistence=persistence.get(n),
                            origin=tuple(origin), active=active, blocks=blocks)
@@ -130,8 +142,8 @@ def run_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
         mine = img.copy() if len(names) > 1 else img
         for eff in chain[shared:]:
             mine = branch.step(eff, mine, ctx)
-        out[n] = branch.result(mine, ctx)
-    return out
+        yield n, branch.result(mine, ctx)
+        del mine, branch, ctx
 
 
 class _Steps:

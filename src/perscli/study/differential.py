@@ -26,6 +26,8 @@ which variant; :func:`perscli.measure.changes.measure_changes` fits those.
 
 from __future__ import annotations
 
+import functools
+
 import logging
 from dataclasses import dataclass, field
 
@@ -33,7 +35,7 @@ import numpy as np
 
 from .. import PerscliError
 from ..detector.blocks import NOISE_BLOCK, BlockStack
-from ..detector.chain import run_chains
+from ..detector.chain import iter_chains
 from ..detector.effects import Persistence
 from ..detector.model import DetectorModel
 from ..optics import Optics
@@ -177,7 +179,7 @@ def object_light(truth: str, exposure: Exposure, source: str = "drawn", floor: f
 
 
 def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=None, area=None,
-                    region: Region | None = None) -> dict:
+                    region: Region | None = None, lazy: bool = False) -> dict:
     """The persistence charge that the light of ``histories`` leaves in ``final``, per law.
 
     The computation of ``perscli render --previous`` with the earlier
@@ -197,11 +199,17 @@ def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=N
     region : Region, optional
         The earlier exposures' light drawn only where the task's finals need it
         (:func:`object_light`): it must cover ``blocks``.
+    lazy : bool
+        Each law's charge as a function computing it when called (the
+        earlier exposures' light drawn once for all): a caller running the
+        laws one after the other then holds one charge at a time.
 
     Returns
     -------
     dict
-        Name -> electrons per pixel of the final's frame (or the stack of ``blocks``).
+        Name -> electrons per pixel of the final's frame (or the stack of
+        ``blocks``), or None when no earlier exposure counts for that law;
+        with ``lazy``, a function returning it.
     """
     from ..detector.persistence import order_earlier, persistence_charge
     from ..io.frames import SECONDS_PER_DAY
@@ -232,16 +240,21 @@ def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=N
         return lambda: persisting_fluence(light(i, source, floor), 1.0, threshold=threshold, cap=cap, floor=floor,
                                           out=scratch)
 
-    for name, (pmodel, source, threshold, cap, floor) in laws.items():
-        keep, _ = order_earlier(ends, 0.0, pmodel, names)
-        if not histories or not keep:
-            charges[name] = None
-            continue
+    def charge(pmodel, source, threshold, cap, floor, keep):
         shape = light(keep[0], source, floor).shape
         scratch = np.empty(shape, dtype=np.float32)
         # exposures beyond the law's look-back or count are left out by persistence_charge: never called
         fluences = [fluence(i, source, threshold, cap, floor, scratch) for i in range(len(histories))]
-        charges[name] = persistence_charge(fluences, ends, 0.0, window, pmodel)[0]
+        return persistence_charge(fluences, ends, 0.0, window, pmodel)[0]
+
+    for name, (pmodel, source, threshold, cap, floor) in laws.items():
+        keep, _ = order_earlier(ends, 0.0, pmodel, names)
+        if not histories or not keep:
+            charges[name] = None
+        elif lazy:
+            charges[name] = functools.partial(charge, pmodel, source, threshold, cap, floor, keep)
+        else:
+            charges[name] = charge(pmodel, source, threshold, cap, floor, keep)
     return charges
 
 
@@ -249,21 +262,29 @@ def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=N
 STACK_FRACTION = 0.25
 
 
-def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, area, blocks=None) -> dict:
-    """Every model's SCI over ``area`` (NaN outside the active blocks).
+def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, area, blocks=None):
+    """Every model's SCI over ``area`` (NaN outside the active blocks), one model at a time.
 
     With ``blocks`` (few active blocks), the chain runs on the stack of them
     (:class:`perscli.detector.effects.BlockStack`; ``charges`` are stacks
     too) and the result is put back in the area; noise is keyed on blocks,
     so each pixel is the bits the whole area gives.
+
+    Yields
+    ------
+    (name, (sci, unit, sky_rate))
+        In the order of ``models``.
     """
     if blocks is None:
-        results = run_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=sky_rate,
-                             persistence=charges, origin=(area[0], area[2]), active=active)
-        return {name: (r.sci, r.unit, r.sky_rate) for name, r in results.items()}
-    results = run_chains(blocks.gather(sources), models, exptime=exposure.exptime, seed=seed, sky_rate=sky_rate,
-                         persistence=charges, origin=(area[0], area[2]), blocks=blocks)
-    return {name: (blocks.scatter(r.sci, dtype=np.float32), r.unit, r.sky_rate) for name, r in results.items()}
+        for name, r in iter_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=sky_rate,
+                                   persistence=charges, origin=(area[0], area[2]), active=active):
+            yield name, (r.sci, r.unit, r.sky_rate)
+            del r
+        return
+    for name, r in iter_chains(blocks.gather(sources), models, exptime=exposure.exptime, seed=seed,
+                               sky_rate=sky_rate, persistence=charges, origin=(area[0], area[2]), blocks=blocks):
+        yield name, (blocks.scatter(r.sci, dtype=np.float32), r.unit, r.sky_rate)
+        del r
 
 
 def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, variants: dict, seed: int,
@@ -353,13 +374,17 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     if active.any() and histories:
         laws = {name: (vm.persistence_model(), *Persistence.fluence_input(vm), Persistence.floor(vm))
                 for name, vm in variants.items()}
-        charges = history_charges(truth, exposure, histories, laws, blocks, area, region)
+        # each law's charge made when its chain needs it, and dropped with its frame: one at a time in memory
+        charges = history_charges(truth, exposure, histories, laws, blocks, area, region, lazy=True)
         if blocks is None:
-            charges = {name: pad_to(charge, bounds, area) for name, charge in charges.items()}
+            charges = {name: charge if charge is None else
+                       (lambda charge=charge: pad_to(charge(), bounds, area)) for name, charge in charges.items()}
     models = {"": model, **variants}
     results = _simulate(sources, models, charges, exposure=exposure, seed=seed, sky_rate=optics.sky_rate,
                         active=active, area=area, blocks=blocks)
-    ref = crop(results[""][0], area, bounds)
+    name, (ref, unit, sky_rate) = next(results)
+    assert name == ""
+    ref = crop(ref, area, bounds)
     inside = np.zeros(ref.shape, dtype=bool)
     for x0, x1, y0, y1 in windows[1]:
         inside[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
@@ -379,8 +404,8 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
 
     ref_pix = cut(ref32)
     changed, deltas, var_full = {}, {}, {}
-    for name in variants:
-        sci = crop(results[name][0], area, bounds).astype(np.float32)
+    for name, (sci, _, _) in results:
+        sci = crop(sci, area, bounds).astype(np.float32)
         # a stamp changed when any of its pixels (as written: float32) differs from the reference's
         flags = touches(inside & (sci != ref32), win, bounds)
         d = cut(sci).astype(np.float64) - ref_pix.astype(np.float64)
@@ -391,8 +416,8 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
             for x0, x1, y0, y1 in win[flags]:
                 keep[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
             var_full[name] = np.where(keep, sci, np.float32(np.nan))
+        del sci
     gain = model.value("gain", "gain", off=1.0)
-    unit, sky_rate = results[""][1], results[""][2]
     common = _wcs_cards(optics, bounds)
     frame_cards = common + _exposure_cards(exposure, optics, seed, unit, gain) + [
         format_card("SKYRATE", sky_rate, "[e-/pixel/s] sky background used"),
