@@ -358,7 +358,7 @@ def diagnose_inputs(tmp_path_factory):
 def test_diagnose_folder_that_cannot_be_written(fault, can_mount, diagnose_inputs, tmp_path):
     name, options, message = fault
     run, left = faulty_run(can_mount, (name, "size=100k" if name == "ENOSPC" else options, message),
-                           ["diagnose", *diagnose_inputs, "-o", "mnt/d"], cwd=tmp_path, limit=30 << 10)
+                           ["diagnose", *diagnose_inputs, "-o", "mnt/d", "-q"], cwd=tmp_path, limit=30 << 10)
     refused(run, "mnt/d: cannot write", message)
     assert left == []
 
