@@ -52,6 +52,9 @@ class Exposure:
         Pixels that see the sky: False for a WFC3-IR raw or ima frame's
         5-pixel border of reference pixels and for pixels with a DQ flag in
         any read (they are left out of every fit, gap and estimate).
+    persist : ndarray, optional
+        The persistence the simulation's own law added (its PERSIST), in
+        electrons: the part of FLUENCE a fitted law replaces by its own.
     """
 
     label: str
@@ -69,6 +72,7 @@ class Exposure:
     datasum: int = 0
     extra: dict = field(default_factory=dict)
     valid: np.ndarray | None = None
+    persist: np.ndarray | None = None
 
     @property
     def is_ramp(self) -> bool:
@@ -230,6 +234,9 @@ def attach_simulations(exposures, sims) -> list:
             flu = [h for h in frame.hdus if h.name == "FLUENCE"]
             if flu:
                 exp.fluence = np.asarray(flu[0].read(), dtype=np.float32)
+                pers = [h for h in frame.hdus if h.name == "PERSIST"]
+                if pers and tuple(pers[0].shape[-2:]) == exp.fluence.shape:
+                    exp.persist = np.asarray(pers[0].read(), dtype=np.float32)
             exp.extra["sky_rate"] = frame.keyword("SKYRATE")
             models.append(model_of_frame(frame))
         return models

@@ -81,6 +81,9 @@ class Evaluation:
         return out
 
 
+#: sets of the persistence law's parameters whose charges on the fit rows are kept
+CHARGE_SETS = 8
+
 #: pixels whose expected charge is within this many sigma (Poisson) of the full well are not fitted
 NEAR_WELL_SIGMA = 5.0
 
@@ -122,46 +125,131 @@ class Problem:
             self._stripe_start[(r.start, r.stop)] = pos
             pos += r.stop - (r.start or 0)
         self._charges = {}
+        self._charge_sets = {}
+        #: persisted charge persists again: the histories follow the law being fitted (:meth:`history`) when
+        #: the simulated frames say how much of their FLUENCE their own law put in
+        self._feedback = any(e.persist is not None for e in exposures[1:-1])
+        #: per piece of rows, the pixels left out as near the full well (see :meth:`_pieces`)
+        self._near_well = {}
         self._lock = threading.Lock()
 
     # -- persistence history ----------------------------------------------------------------------
-    def charge(self, index: int, pmodel, region: str = "full"):
-        """The persistence that the earlier exposures leave in exposure ``index``: ``(unit, A)``, electrons
-        ``unit * A`` (the law is proportional to A, so ``unit`` is computed once); None for the first.
+    def charge(self, index: int, pmodel, region: str = "full", well=None):
+        """The persistence that the earlier exposures leave in exposure ``index``: ``(array, scale)``, electrons
+        ``array * scale``; None for the first.
 
-        ``region`` 'fit': only the rows of the fit stripes, stacked (:attr:`fit_rows`), so that a fit that
-        frees the law's shape recomputes a few per cent of each frame; 'full': every row.
+        Without feedback (see :meth:`history`) the law is proportional to A:
+        ``array`` is computed once for A = 1 and ``scale`` is A.  With it,
+        the earlier exposures' histories depend on A too: ``array`` is the
+        charge itself and ``scale`` 1.  ``region`` 'fit': only the rows of the
+        fit stripes, stacked (:attr:`fit_rows`), so that a fit that frees the
+        law's shape recomputes a few per cent of each frame; 'full': every
+        row.  ``well``: the model's full well (the histories are clipped there).
         """
         from ..detector.persistence import persistence_charge
 
         if index == 0:
             return None
-        key = (region, index, pmodel.kind, pmodel.x0, pmodel.dx, pmodel.alpha, pmodel.gamma, pmodel.half_well,
-               pmodel.coefficients, pmodel.time_model, pmodel.combine, pmodel.max_previous)
+        feedback = self._feedback and pmodel.kind == "fermi"
+        params = (pmodel.kind, pmodel.x0, pmodel.dx, pmodel.alpha, pmodel.gamma, pmodel.half_well,
+                  pmodel.coefficients, pmodel.time_model, pmodel.combine, pmodel.max_previous,
+                  (pmodel.A, well) if feedback else None)
+        key = (region, index) + params
         with self._lock:
             have = self._charges.get(key)
         if have is None:
             import dataclasses
 
-            # the law is proportional to A: computed once for A = 1 and scaled
-            unit = dataclasses.replace(pmodel, A=1.0) if pmodel.kind == "fermi" else pmodel
+            # without feedback the law is proportional to A: computed once for A = 1 and scaled
+            unit = dataclasses.replace(pmodel, A=1.0) if pmodel.kind == "fermi" and not feedback else pmodel
             cur = self.exposures[index]
             earlier = self.exposures[:index]
             ends = [(e.end - cur.start) * SECONDS_PER_DAY for e in earlier]
             window = (cur.end - cur.start) * SECONDS_PER_DAY
-            from .data import measured_fluence
-
-            fluences = [e.fluence if e.fluence is not None else measured_fluence(e) for e in earlier]
-            if region == "fit":
-                fluences = [f[self.fit_rows] for f in fluences]
+            fluences = [self.history(j, pmodel, region, well) for j in range(index)]
             have = persistence_charge(fluences, ends, 0.0, window, unit)[0].astype(np.float32)
             with self._lock:
-                # one set of Fermi shape parameters at a time for each region: when a fit frees gamma or x0,
-                # the charges of other values are dropped, not kept (the exposures' threads share the set)
-                self._charges = {k: v for k, v in self._charges.items() if k[0] != region or k[2:] == key[2:]}
+                # a few sets of the law's parameters for the fit rows (a fit that moves A or gamma goes back and
+                # forth between nearby values), one for every row (each set is frames of charge): the charges
+                # of other sets are dropped (the exposures' threads share the current set)
+                sets = self._charge_sets.setdefault(region, [])
+                if params in sets:
+                    sets.remove(params)
+                sets.append(params)
+                keep = sets[-(CHARGE_SETS if region == "fit" else 1):]
+                self._charge_sets[region] = keep
+                self._charges = {k: v for k, v in self._charges.items() if k[0] != region or k[2:] in keep}
                 self._charges[key] = have
-        scale = pmodel.A if pmodel.kind == "fermi" else 1.0
+        scale = pmodel.A if pmodel.kind == "fermi" and not feedback else 1.0
         return have, scale
+
+    def history(self, index: int, pmodel, region: str = "full", well=None) -> np.ndarray:
+        """The electrons exposure ``index`` collected (what its persistence is made of), as the persistence law
+        ``pmodel`` of the earlier exposures makes it.
+
+        The simulation's FLUENCE holds the persistence the simulation's own
+        law put in (its PERSIST); the measured detector's holds its own.
+        When the simulated frames carry PERSIST, the history is FLUENCE less
+        PERSIST plus the persistence ``pmodel`` leaves (clipped at ``well``;
+        pixels the simulation saturated stay saturated): persisted charge
+        persists again, and a persistence several times the simulation's
+        would otherwise leave too little of it two and more exposures later
+        (7% at lag 2 for A = 0.3 against 0.017: the decay law's shape fitted
+        wrong).  Without PERSIST (or from the measured frames) the history is
+        FLUENCE as it is.
+        """
+        from .data import measured_fluence
+
+        exp = self.exposures[index]
+        base = exp.fluence if exp.fluence is not None else measured_fluence(exp)
+        rows = self.fit_rows if region == "fit" else slice(None)
+        base = base[rows]
+        if not self._feedback or index == 0 or exp.persist is None or exp.fluence is None:
+            return base
+        own = self.charge(index, pmodel, region, well)
+        now = base - np.nan_to_num(exp.persist[rows]) + own[0] * np.float32(own[1])
+        if well:
+            now = np.where(base >= np.float32(well * (1.0 - 1e-6)), base, np.minimum(now, np.float32(well)))
+        return np.maximum(now, 0.0).astype(np.float32)
+
+    def persistence_parts(self, model: DetectorModel, split) -> dict:
+        """The persistence of the law in ``model`` at A = 1 split into parts: {part: {exposure index: electrons
+        on the fit rows}}.
+
+        ``split(j, i, fluence)`` gives, for earlier exposure ``j`` seen by
+        exposure ``i``, {part: boolean mask of the earlier fluence}; a part
+        is the charge those pixels of those earlier exposures leave (each
+        earlier exposure keeps its place among the others, as the law's time
+        model and its limit on earlier exposures count it).  The law must add
+        up the earlier exposures (``combine: sum``) for the parts to add up to
+        the whole.
+        """
+        import dataclasses
+
+        from ..detector.persistence import persistence_charge
+
+        pm = model.persistence_model()
+        unit = dataclasses.replace(pm, A=1.0)
+        well = model.value("saturation", "full_well", off=None)
+        # the histories as the model makes them (no persistence in them when the model has none)
+        lived = pm if model.enabled("persistence") else dataclasses.replace(pm, A=0.0)
+        fluences = [self.history(j, lived, "fit", well) for j in range(len(self.exposures))]
+        out = {}
+        for i in range(1, len(self.exposures)):
+            cur = self.exposures[i]
+            ends = [(e.end - cur.start) * SECONDS_PER_DAY for e in self.exposures[:i]]
+            window = (cur.end - cur.start) * SECONDS_PER_DAY
+            masks = {j: split(j, i, fluences[j]) for j in range(i)}
+            zero = np.zeros_like(fluences[0])
+            for part in {p for m in masks.values() for p in m}:
+                chosen = [np.where(masks[j][part], fluences[j], 0.0) if part in masks[j] else zero
+                          for j in range(i)]
+                if not any(np.any(c) for c in chosen):
+                    continue
+                charge = persistence_charge(chosen, ends, 0.0, window, unit)[0]
+                if np.any(charge):
+                    out.setdefault(part, {})[i] = charge
+        return out
 
     def covariates(self, evaluation) -> list:
         return covariates_2d(self, evaluation)
@@ -189,14 +277,15 @@ class Problem:
                 out[key] = self._model_for(model, exp)
         return out
 
-    def _pieces(self, i, model, pieces, region: str = "full", prepared=None):
+    def _pieces(self, i, model, pieces, region: str = "full", prepared=None, extra=None):
         """(rows kept, mean, variance, data, mask) of exposure ``i`` for each (rows, keep0, keep1); ``region``
-        'fit' when ``pieces`` are the fit stripes; ``prepared`` from :meth:`_prepared`."""
+        'fit' when ``pieces`` are the fit stripes; ``prepared`` from :meth:`_prepared`; ``extra``: electrons
+        added to the persistence charge (the fit rows, stacked as :attr:`fit_rows`), or None."""
         exp = self.exposures[i]
         pmodel = model.persistence_model() if model.enabled("persistence") else None
         m = prepared[(exp.counts, exp.gain)] if prepared is not None else self._model_for(model, exp)
-        charge = self.charge(i, pmodel, region) if pmodel is not None else None
         well = model.value("saturation", "full_well", off=None)
+        charge = self.charge(i, pmodel, region, well) if pmodel is not None else None
         # a measured ramp is compared by its last read minus its first: the part of the exposure
         # between them (IDEAL spreads evenly over the exposure; the dark current accrues as long)
         exptime = float(exp.read_times[-1]) if exp.is_ramp else exp.exptime
@@ -210,6 +299,10 @@ class Problem:
                 pers = charge[0][at:at + (rows.stop - (rows.start or 0))] * charge[1]
             else:
                 pers = charge[0][rows] * charge[1]
+            if extra is not None:
+                at = self._stripe_start[(rows.start, rows.stop)]
+                add = extra[at:at + (rows.stop - (rows.start or 0))]
+                pers = add if pers is None else pers + add
             fw = forward(ideal, m, exptime=exptime, persistence=pers)
             sl = slice(keep0, keep1)
             mean, var = fw.mean[sl], fw.variance[sl]
@@ -217,24 +310,41 @@ class Problem:
             mask = np.isfinite(data) & (var > 0) & np.isfinite(mean)
             if well:
                 # within a few sigma of the full well the clipped signal's mean and variance are not the
-                # first-order ones the chain gives: those pixels are left out
-                mask &= fw.fluence[sl] < well - NEAR_WELL_SIGMA * math.sqrt(well)
+                # first-order ones the chain gives: those pixels are left out.  Which pixels those are is
+                # decided once, by the first model evaluated (the starting model): were it decided by each
+                # model, a fit that moves charge (brighter-fatter, reciprocity, persistence) would move pixels
+                # in and out of the likelihood, and -2 ln L would jump by their residuals
+                key = (i, rows.start, rows.stop, keep0, keep1)
+                with self._lock:
+                    near = self._near_well.get(key)
+                if near is None:
+                    near = fw.fluence[sl] >= well - NEAR_WELL_SIGMA * math.sqrt(well)
+                    with self._lock:
+                        near = self._near_well.setdefault(key, near)
+                mask &= ~near
             if exp.valid is not None:
                 mask &= exp.valid[rows][sl]
             start = (rows.start or 0) + keep0
             yield slice(start, start + (keep1 - keep0)), mean, np.where(mask, var, 1.0), data, mask
 
-    def evaluate(self, model: DetectorModel, *, full: bool = False) -> Evaluation:
+    def evaluate(self, model: DetectorModel, *, full: bool = False, extra=None) -> Evaluation:
         """Expectation and variance of the fit stripes of every exposure (every pixel with ``full``:
-        small frames only; :meth:`chi2_full` streams large ones)."""
+        small frames only; :meth:`chi2_full` streams large ones).
+
+        ``extra``: {exposure index: electrons on the fit rows} added to the
+        persistence charge (the fit stripes only): how the chain passes a
+        change of the persistence on to the measured counts."""
         from ..executor import thread_map
 
         out = Evaluation([], [], [], [], [])
         out.pieces = []
         pieces = [(slice(0, self.shape[0]), 0, self.shape[0])] if full else self.stripes
         region = "full" if full else "fit"
+        if extra and full:
+            raise ValueError("an extra persistence charge is given on the fit rows only")
         prepared = self._prepared(model)
-        per_exposure = thread_map(lambda i: list(self._pieces(i, model, pieces, region, prepared)),
+        extra = extra or {}
+        per_exposure = thread_map(lambda i: list(self._pieces(i, model, pieces, region, prepared, extra.get(i))),
                                   range(len(self.exposures)), workers=self.workers)
         for i, done in enumerate(per_exposure):
             for rows, mean, var, data, mask in done:
