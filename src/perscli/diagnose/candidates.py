@@ -92,7 +92,7 @@ def _put_persistence(model, value):
     return with_effect(model, "persistence", params)
 
 
-# -- IPC: the mean coupling to the 4 nearest neighbours; the kernel's shape kept ------------------
+# -- IPC: one coupling strength first (the model's kernel shape scaled), all 8 couplings when the data ask --
 
 _CROSS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
 
@@ -109,6 +109,15 @@ def _get_ipc(model, exposures):
 
 
 def _put_ipc(model, value):
+    """The model's kernel with its couplings scaled so that the 4 nearest neighbours' mean is ``value``
+    (a symmetric nearest-neighbour cross when the model has no coupling): the one-parameter template.
+
+    Interpixel capacitance comes from the capacitance between a pixel and its neighbours; a detector whose
+    coupling is stronger or weaker than the model's keeps the kernel's shape (its diagonal couplings, ~8% of
+    the nearest ones in Roman's kernel, and its small asymmetry) and changes its strength.  One parameter
+    has the power of a matched filter; the 8 free couplings of :func:`ipc_free_shape` cost about half of it
+    (their mean is correlated with every one of them) and are fitted only when the data ask for them.
+    """
     k = _kernel(model)
     shape = _CROSS if k is None or _get_ipc(model, None) <= 0 else k.copy()
     shape = shape.copy()
@@ -124,30 +133,39 @@ _OFFSETS = [(j, i) for j in range(3) for i in range(3) if (j, i) != (1, 1)]
 _NN = [k for k, (j, i) in enumerate(_OFFSETS) if abs(j - 1) + abs(i - 1) == 1]
 
 
-def _fit_ipc(problem, model):
-    """The 8 couplings of a 3x3 kernel by weighted linear least squares (charge conserved), alpha their
-    4 nearest neighbours' mean.
+def ipc_free_shape(problem, model) -> dict:
+    """The 8 couplings of a 3x3 kernel fitted freely, against the one-parameter template of ``model``.
 
-    IPC is linear in the kernel, so the expectation is that without IPC plus one
-    column per coupling (a neighbour's signal minus the pixel's own); the
-    shape of the kernel is free (the Roman kernel is asymmetric and has
-    diagonal terms), so a kernel of another shape is still recovered.
+    IPC is linear in the kernel, so the expectation is that without IPC plus
+    one column per coupling (a neighbour's signal minus the pixel's own:
+    charge is conserved); the couplings come from weighted linear least
+    squares with the variance of ``model`` held.  The template (the kernel
+    of ``model`` scaled, :func:`_put_ipc`) is the same least squares along
+    one direction of the 8; the difference of the two chi^2 is the evidence
+    for another shape, a chi^2 with 7 degrees of freedom when the template's
+    shape is right.
+
+    Returns
+    -------
+    dict
+        ``kernel`` (3x3 list), ``alpha`` (the 4 nearest neighbours' mean
+        coupling) and ``error`` (its marginal error, the other 7 free),
+        ``delta_chi2`` (chi^2 of the template minus that of the free fit),
+        ``model`` (``model`` with the free kernel).
     """
     base = with_effect(model, "ipc", enabled=False)
     ev0 = problem.evaluate(base)
-    current = _put_ipc(model, max(_get_ipc(model, None), 1e-3))
-    variances = problem.evaluate(current).variance
+    variances = problem.evaluate(model).variance
     columns = []
     for j, i in _OFFSETS:
         kernel = np.zeros((3, 3))
-        kernel[1, 1] = 0.0
         kernel[j, i] = 1.0
         # the kernel e_j - e_centre + delta = e_j: what one unit of coupling to neighbour j adds
-        columns.append([m - m0 for m, m0 in zip(problem.evaluate(with_effect(model, "ipc", {"kernel": kernel.tolist(),
-                                                                                             "alpha": None})).mean,
-                                                 ev0.mean)])
+        moved = problem.evaluate(with_effect(model, "ipc", {"kernel": kernel.tolist(), "alpha": None})).mean
+        columns.append([m - m0 for m, m0 in zip(moved, ev0.mean)])
     ata = np.zeros((8, 8))
     atb = np.zeros(8)
+    rwr = 0.0
     for piece in range(len(ev0.mean)):
         mask = ev0.mask[piece]
         w = 1.0 / variances[piece][mask]
@@ -155,19 +173,24 @@ def _fit_ipc(problem, model):
         cols = np.stack([c[piece][mask] for c in columns])
         ata += (cols * w) @ cols.T
         atb += cols @ (w * r)
+        rwr += float(np.sum(w * r * r))
     cov = np.linalg.pinv(ata)
     k = cov @ atb
+    free_chi2 = rwr - float(k @ atb)
+    # the template's direction in the couplings: the model's off-centre kernel (or the cross), per unit of alpha
+    shape = _kernel(_put_ipc(model, 1.0))
+    u = np.array([shape[j, i] for j, i in _OFFSETS])
+    s = float(u @ atb) / float(u @ ata @ u)
+    template_chi2 = rwr - s * float(u @ atb)
     kernel = np.zeros((3, 3))
     for (j, i), v in zip(_OFFSETS, k):
         kernel[j, i] = v
     kernel[1, 1] = 1.0 - k.sum()
     alpha = float(np.mean(k[_NN]))
     error = float(np.sqrt(max(np.sum(cov[np.ix_(_NN, _NN)]) / 16.0, 0.0)))
-    # the decision is on alpha, the parameter reported (one degree of freedom: a change of the coupling's
-    # strength, the shape fitted with it); a test of all 8 couplings would need 8 times the evidence
-    wald = ((alpha - _get_ipc(model, None)) / error) ** 2 if error > 0 else 0.0
-    return alpha, error, with_effect(model, "ipc", {"kernel": kernel.tolist(), "alpha": None}), 1, \
-        {"delta_chi2": wald}
+    return {"kernel": kernel.tolist(), "alpha": alpha, "error": error,
+            "delta_chi2": max(template_chi2 - free_chi2, 0.0),
+            "model": with_effect(model, "ipc", {"kernel": kernel.tolist(), "alpha": None})}
 
 
 # -- gain: only when the measured frames are in DN ---------------------------------------------------
@@ -207,8 +230,8 @@ CANDIDATES = (
               "the paper's Fermi model (x0, dx, alpha, gamma held), exact time integral",
               _get_persistence, _put_persistence, lambda exposures: len(exposures) > 1),
     Candidate("ipc", "alpha", "", (0.0, 0.1), 0.01, "neighbours",
-              "mean coupling to the 4 nearest neighbours of a 3x3 kernel (its shape fitted too)", _get_ipc, _put_ipc,
-              fit=_fit_ipc),
+              "mean coupling to the 4 nearest neighbours: the model's kernel scaled (all 8 couplings free when "
+              "the data ask for another shape)", _get_ipc, _put_ipc),
     Candidate("nonlinearity", "beta", "1/e-", (-1e-5, 1e-5), 5e-7, "signal",
               "x -> x + beta x^2, per electron", _value("nonlinearity", "beta"), _set("nonlinearity", "beta")),
     Candidate("reciprocity", "alpha", "", (0.0, 0.1), 0.005, "signal",

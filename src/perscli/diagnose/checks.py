@@ -33,9 +33,10 @@ The checks:
   (star by star, and all together): sources or the PSF displaced.
 - ``psf_shape``: each source's residual against its expectation's
   Laplacian: sources wider or narrower than any named effect makes them.
-- ``persistence_time``: the persistence amplitude fitted on each exposure
-  alone, against one amplitude for all: a persistence that decays with time
-  otherwise than the law.
+- ``persistence_decay`` and ``persistence_fluence``: the persistence law
+  split by how many exposures back the light came and by its fluence, each
+  part's amplitude fitted: a persistence that decays otherwise in time than
+  the law, or depends otherwise on the fluence (only saturated pixels).
 
 Their false-alarm rates with the right model are measured on null
 simulations from an independent detector chain by
@@ -67,6 +68,12 @@ class Check:
     description: str
     blocks: tuple = ()
     detail: dict = field(default_factory=dict)
+    #: why a fit it withdraws cannot stand, in a few words (the description when not given)
+    why: str = ""
+
+    @property
+    def reason(self) -> str:
+        return self.why or self.description
 
     @property
     def fired(self) -> bool:
@@ -74,9 +81,14 @@ class Check:
 
     @property
     def sigma(self) -> float:
-        """The p-value as a two-sided Gaussian significance."""
+        """The p-value as a two-sided Gaussian significance (for a chi^2 statistic on the log scale, so that
+        strong signals are not all cut at the 37 sigma of p = 1e-300)."""
         from scipy.stats import norm
 
+        if self.name != "outliers" and self.dof and self.dof >= 1 and self.p_value < 1e-200:
+            from .search import _sigma
+
+            return _sigma(self.statistic, int(round(self.dof)))
         p = max(self.p_value, 1e-300)
         return float(norm.isf(p / 2.0))
 
@@ -454,35 +466,146 @@ def psf_shape(problem, evaluation) -> Check:
                  "interpixel coupling no candidate describes)")
 
 
-def persistence_time(problem, model) -> Check | None:
-    """The persistence amplitude of each later exposure alone, against one amplitude for all of them."""
-    from .likelihood import with_effect
+#: the earlier exposures' lags (1, 2, 3 and more back) whose persistence the decay check compares
+LAG_GROUPS = 3
+#: fluences below this share of the law's half well leave a persistence indistinguishable from an offset (the
+#: sky's ~0.05 e- pedestal): the fluence check leaves them as the law has them
+FAINT_SHARE = 0.02
+#: a pixel at this share of the full well or above is saturated
+SATURATED_SHARE = 0.999
 
-    if len(problem.exposures) < 3 or not hasattr(problem, "charge"):
-        return None
-    base = with_effect(model, "persistence", enabled=False)
-    if not model.enabled("persistence"):
-        return None
-    ev0 = problem.evaluate(base)
-    ev1 = problem.evaluate(model)
-    num, den = {}, {}
-    for (i, _), m0, m1, v, d, mask in zip(ev0.pieces, ev0.mean, ev1.mean, ev1.variance, ev1.data, ev1.mask):
-        t = (m1 - m0)[mask]
-        if not np.any(t):
+
+def persistence_law(problem, evaluation, model) -> list:
+    """Whether the persistence in the data has the law's shape: its decay with time, its dependence on fluence.
+
+    The law of ``model`` (at A = 1; its parameters as the model has them,
+    freed ones included, whether or not persistence is on) is split into
+    parts by the earlier exposure's lag (1, 2, 3 or more exposures back)
+    and by its fluence (from 2% of the half well to the half well: the
+    linear branch; to the full well; saturated).  Each part passes through
+    the chain of ``model`` (:meth:`~perscli.diagnose.likelihood.Problem.evaluate`
+    with the part added to the persistence) and its amplitude is fitted to
+    the residuals by weighted least squares, in units of the law's A.  With
+    the law's shape right every part has the same amplitude (the model's A
+    fitted, or not, leaves a common one), so:
+
+    - ``persistence_decay``: the amplitudes per lag (the fluence ranges
+      summed as the law has them) against one common value, chi^2 with one
+      degree of freedom less than lags: persistence that decays otherwise in
+      time than the law (an exponential, another power);
+    - ``persistence_fluence``: the amplitudes per fluence range against one
+      value: persistence that depends otherwise on the earlier fluence
+      (only saturated pixels persisting, another turn-on).
+
+    Their chi^2 are divided by the noise correlation's dispersion along the
+    law's direction (:func:`perscli.diagnose.search.dispersion`).  Each check
+    blocks persistence: a fitted A would only absorb it.  Returns the checks
+    the data allow (none for one exposure, a law that is not the Fermi law,
+    or earlier exposures combined by their maximum).
+    """
+    from .search import dispersion, noise_correlation
+
+    if len(problem.exposures) < 2 or not hasattr(problem, "persistence_parts"):
+        return []
+    pm = model.persistence_model()
+    if pm.kind != "fermi" or pm.combine != "sum":
+        return []
+    well = model.value("saturation", "full_well", off=None)
+    faint = FAINT_SHARE * pm.half_well
+
+    def split(j, i, fluence):
+        lag = min(i - j, LAG_GROUPS)
+        bins = {0: (fluence > faint) & (fluence <= pm.half_well)}
+        if well:
+            bins[1] = (fluence > pm.half_well) & (fluence < SATURATED_SHARE * well)
+            bins[2] = fluence >= SATURATED_SHARE * well
+        else:
+            bins[1] = fluence > pm.half_well
+        return {(lag, b): m for b, m in bins.items() if m.any()}
+
+    parts = problem.persistence_parts(model, split)
+    if not parts:
+        return []
+    keys = sorted(parts)
+    # each part through the chain: a small amplitude (the chain is linear over it), per unit of A
+    eps = 0.01
+    cols = []
+    masks = evaluation.mask
+    for key in keys:
+        moved = problem.evaluate(model, extra={i: eps * c for i, c in parts[key].items()})
+        cols.append([(m1 - m0) / eps for m1, m0 in zip(moved.mean, evaluation.mean)])
+    k = len(keys)
+    ata, atb = np.zeros((k, k)), np.zeros(k)
+    for piece, (e, v, d, m) in enumerate(zip(evaluation.mean, evaluation.variance, evaluation.data, masks)):
+        x = np.stack([c[piece][m] for c in cols])
+        if not np.any(x):
             continue
-        w = 1.0 / v[mask]
-        num[i] = num.get(i, 0.0) + float(np.sum(w * t * (d[mask] - m0[mask])))
-        den[i] = den.get(i, 0.0) + float(np.sum(w * t * t))
-    keys = [i for i in num if den[i] > 0]
-    if len(keys) < 2:
-        return None
-    scale = np.array([num[i] / den[i] for i in keys])
-    err2 = np.array([1.0 / den[i] for i in keys])
-    mean = float(np.sum(scale / err2) / np.sum(1.0 / err2))
-    chi2 = float(np.sum((scale - mean) ** 2 / err2))
-    return Check("persistence_time", chi2, len(keys) - 1, _chi2_p(chi2, len(keys) - 1),
-                 "the persistence of earlier exposures decays otherwise in time than the law says",
-                 blocks=("persistence",), detail={"amplitude_per_exposure": scale.tolist()})
+        w = 1.0 / v[m]
+        ata += (x * w) @ x.T
+        atb += x @ (w * (d[m] - e[m]))
+    keep = np.diag(ata) > 0
+    keys = [kk for kk, ok in zip(keys, keep) if ok]
+    ata, atb = ata[np.ix_(keep, keep)], atb[keep]
+    cols = [c for c, ok in zip(cols, keep) if ok]
+    if not keys:
+        return []
+    # the noise neighbouring pixels share, along the law's whole direction
+    from types import SimpleNamespace
+
+    whole = SimpleNamespace(mean=[e + sum(c[p] for c in cols) * max(pm.A, 0.01) for p, e in
+                                  enumerate(evaluation.mean)])
+    disp = dispersion(noise_correlation(problem, model), evaluation, whole)
+    base_a = pm.A if model.enabled("persistence") else 0.0
+    out = []
+    for name, index, labels in (("persistence_decay", 0, {1: "1", 2: "2", LAG_GROUPS: f">={LAG_GROUPS}"}),
+                                ("persistence_fluence", 1, {0: "below half the well", 1: "half the well to the well",
+                                                             2: "saturated"})):
+        groups = sorted({kk[index] for kk in keys})
+        if len(groups) < 2:
+            continue
+        # the parts summed within each group: the law's own shape along the other axis
+        s = np.array([[1.0 if kk[index] == g else 0.0 for kk in keys] for g in groups])
+        f = s @ ata @ s.T
+        b = s @ atb
+        try:
+            cov = np.linalg.inv(f)
+        except np.linalg.LinAlgError:
+            continue
+        amp = cov @ b
+        ones = np.ones(len(groups))
+        w = np.linalg.solve(cov, ones)
+        common = float(w @ amp / (w @ ones))
+        diff = amp - common
+        chi2 = float(diff @ np.linalg.solve(cov, diff)) / disp
+        signal = float(amp @ np.linalg.solve(cov, amp)) / disp
+        dof = len(groups) - 1
+        err = np.sqrt(np.clip(np.diag(cov) * disp, 0.0, None))
+        total = base_a + amp
+        detail = {"groups": [labels.get(g, str(g)) for g in groups], "amplitude": total.tolist(),
+                  "error": err.tolist(), "law_A": base_a, "gamma": pm.gamma,
+                  "signal_sigma": _sigma_of(signal, len(groups)), "dispersion": disp}
+        shown = ", ".join(f"{labels.get(g, g)}: {t:.3g} +- {e:.2g}" for g, t, e in zip(groups, total, err))
+        detail["shown"] = shown
+        if name == "persistence_decay":
+            why = f"persistence-like signal whose decay is not the model's law (t^-{pm.gamma:.3g})"
+            description = (f"{why}: its amplitude, in units of the law's A, by how many exposures back the light "
+                           f"came: {shown}")
+        else:
+            saturated_only = (groups[-1] == 2 and total[-1] > 5 * err[-1]
+                              and all(abs(t) < 3 * e or abs(t) < 0.1 * total[-1]
+                                      for t, e in zip(total[:-1], err[:-1])))
+            why = ("persistence from saturated pixels only" if saturated_only
+                   else "persistence whose dependence on the earlier fluence is not the law's")
+            description = f"{why}: its amplitude, in units of the law's A, by earlier fluence: {shown}"
+        out.append(Check(name, chi2, dof, _chi2_p(chi2, dof), description, blocks=("persistence",),
+                         detail=detail, why=why))
+    return out
+
+
+def _sigma_of(delta_chi2: float, dof: int) -> float:
+    from .search import _sigma
+
+    return _sigma(delta_chi2, dof)
 
 
 def run_checks(problem, evaluation, model=None, *, ramp: bool = False, final: bool = False) -> list:
@@ -497,9 +620,7 @@ def run_checks(problem, evaluation, model=None, *, ramp: bool = False, final: bo
     if not ramp:
         out += [flat_field(problem, evaluation), psf_shift(problem, evaluation)]
         if model is not None:
-            t = persistence_time(problem, model)
-            if t is not None:
-                out.append(t)
+            out += persistence_law(problem, evaluation, model)
         if final:
             out.append(psf_shape(problem, evaluation))
     return out

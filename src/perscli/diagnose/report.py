@@ -97,55 +97,49 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         f"{mode}")
     chi2, n = problem.chi2_full(model)
     gap_before = chi2 / max(n, 1)
+    # chi^2 / N of N independent unit Gaussians scatters by sqrt(2 / N): the gap's own noise
+    gap_noise = math.sqrt(2.0 / max(n, 1))
     before_eval = problem.evaluate(model)
-    say(f"gap before: chi2/dof = {gap_before:.4g} over {n} pixels")
+    say(f"gap before: chi2/dof = {gap_before:.4g} +- {gap_noise:.2g} over {n} pixels")
     probes_before = run_probes(problem, before_eval)
     result = search(problem, model, progress=say, ramp=mode == "self-predicted")
-    after_eval = problem.evaluate(result.model)
     chi2_after, n_after = problem.chi2_full(result.model)
-    nfit = sum(len(f["params"]) for f in result.found)
+    _effect_gaps(problem, model, result, chi2_after / max(n_after, 1), gap_before, gap_noise)
+    worse = [e for e in result.found if e["gap_closed"] == "worse"]
+    if worse:
+        # an effect whose addition moved the gap away from 1 by more than its noise is not written into
+        # model.yaml: its likelihood gain on the fit pixels comes from absorbing what the model lacks
+        from .search import _reset
+
+        final = result.model
+        for e in worse:
+            final = _reset(final, model, e["effect"])
+            result.withdrawn.append({**e, "withdrawn_because": e["gap_note"], "checks": ["gap"]})
+            result.unexplained.append({"probe": "withdrawn", "effect": e["effect"],
+                                       "significance": e["significance_sigma"], "reason": e["gap_note"],
+                                       "description": f"{e['effect']} fitted at {e['significance_sigma']:.1f} "
+                                                      f"sigma and withdrawn: {e['gap_note']}"})
+        result.found = [e for e in result.found if e not in worse]
+        result.model = final
+        result.correlations = {k: v for k, v in result.correlations.items()
+                               if not any(k.startswith(e["effect"] + ".") or ("~" + e["effect"] + ".") in k
+                                          for e in worse)}
+        chi2_after, n_after = problem.chi2_full(result.model)
+    after_eval = problem.evaluate(result.model)
+    nfit = sum(f.get("free_parameters", len(f["params"])) for f in result.found)
     gap_after = chi2_after / max(n_after - nfit, 1)
     probes_after = run_probes(problem, after_eval, reference=before_eval)
-    say(f"gap after: chi2/dof = {gap_after:.4g}")
-    # what each found effect closes on its own probe, and of the whole gap (cumulatively, in order)
-    current = model
-    gap_prev = gap_before
+    say(f"gap after: chi2/dof = {gap_after:.4g} +- {gap_noise:.2g}")
     for entry in result.found:
         cand = by_name(entry["effect"])
         # one exposure time: a dark current shows as an offset
         entry["probe"] = cand.probe if cand.probe in probes_before else "offset"
-        if cand.fit is not None:
-            current = _refit(problem, current, cand)
-        elif len(entry["params"]) > 1:      # persistence with freed shape parameters
-            from .likelihood import with_effect
-
-            current = with_effect(cand.put(current, entry["params"][cand.param]), cand.name,
-                                  {k: v for k, v in entry["params"].items() if k != cand.param})
-        else:
-            current = cand.put(current, entry["params"][cand.param])
-        c2, nn = (chi2_after, n_after) if entry is result.found[-1] else problem.chi2_full(current)
-        gap_now = c2 / max(nn, 1)
-        entry["gap_after_adding"] = gap_now
-        # how much of the distance to 1 (pure noise) this effect removes: a gap below 1 closes upwards
-        entry["fraction_of_gap_closed"] = ((abs(gap_prev - 1.0) - abs(gap_now - 1.0)) / abs(gap_before - 1.0)
-                                           if gap_before != 1.0 else 0.0)
-        gap_prev = gap_now
         pb, pa = probes_before.get(entry["probe"]), probes_after.get(entry["probe"])
         entry["probe_gap_before"] = pb.gap if pb is not None else None
         entry["probe_gap_after"] = pa.gap if pa is not None else None
         # an effect explains its probe when the binned residuals there are noise once it is added
         entry["probe_explained"] = bool(pa is None or not pa.flagged)
-    if result.found:
-        names = [f"{e['effect']} ({e['significance_sigma']:.0f} sigma)"
-                 + (" (or " + ", ".join(e["degenerate_with"]) + ": the data cannot tell them apart)"
-                    if e["degenerate_with"] else "") for e in result.found]
-        verdict = "missing or mis-set: " + "; ".join(names)
-    else:
-        verdict = "no missing effect"
-    if result.unexplained:
-        what = ("unexplained: " + ", ".join(u["probe"] for u in result.unexplained)
-                + " (a disagreement no candidate describes; nothing is named for it)")
-        verdict = what if not result.found else verdict + "; " + what
+    verdict = _verdict(result.found, result.unexplained)
     report = {
         "perscli": __version__, "mode": mode, "verdict": verdict,
         "measured": [e.label for e in exposures], "simulated": [e.sim for e in exposures],
@@ -154,7 +148,8 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         "correlations": result.correlations,
         "checks": result.checks, "threshold": {"delta_chi2_one_parameter": MIN_DELTA_CHI2,
                                                "check_p_value": CHECK_ALPHA},
-        "gap_before": gap_before, "gap_after": gap_after,
+        "gap_before": gap_before, "gap_after": gap_after, "gap_noise": gap_noise,
+        "gap_closed": _closed(gap_before, gap_after, gap_noise), "eliminated": result.eliminated,
         "pixels": n, "candidates": result.candidates, "rounds": result.rounds,
         "probes_before": {k: p.as_dict() for k, p in probes_before.items()},
         "probes_after": {k: p.as_dict() for k, p in probes_after.items()},
@@ -165,8 +160,73 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
     return {"report": report, "model": result.model, "probes_before": probes_before, "probes_after": probes_after}
 
 
-def _refit(problem, model, cand):
-    return cand.fit(problem, model)[2]
+def _closed(before: float, after: float, noise: float) -> str:
+    """Whether going from gap ``before`` to ``after`` brought it closer to 1 by more than its noise."""
+    change = abs(before - 1.0) - abs(after - 1.0)
+    if change > noise:
+        return "closed"
+    if change < -noise:
+        return "worse"
+    return "within noise"
+
+
+def _effect_gaps(problem, original, result, gap_after: float, gap_before: float, noise: float) -> None:
+    """Each found effect's part in the gap: the gap over every pixel of the final model without it (its value
+    reset to the original model's, the others as fitted), against the final model's.
+
+    ``gap_without``, ``gap_change`` (how much closer to 1 the gap is with it),
+    ``gap_closed`` ('closed', 'within noise' or 'worse': beyond the gap's
+    own noise sqrt(2/N), or not), ``share_of_gap_closed`` (the change over
+    the distance of the gap before from 1; only when both that distance and
+    the change exceed the noise: a share of noise is no share) and
+    ``gap_note`` are set in each entry.
+    """
+    from .search import _reset
+
+    found = result.found
+    for entry in found:
+        if len(found) == 1 and not result.withdrawn:
+            # the final model without its only effect is the original one
+            without = gap_before
+        else:
+            c2, nn = problem.chi2_full(_reset(result.model, original, entry["effect"]))
+            without = c2 / max(nn, 1)
+        change = abs(without - 1.0) - abs(gap_after - 1.0)
+        entry["gap_without"] = without
+        entry["gap_change"] = change
+        entry["gap_closed"] = _closed(without, gap_after, noise)
+        distance = abs(gap_before - 1.0)
+        entry["share_of_gap_closed"] = (min(change / distance, 1.0) if distance > noise and change > noise
+                                        else None)
+        entry["gap_note"] = {
+            "closed": f"brings the gap from {without:.5g} to {gap_after:.5g} (noise {noise:.2g})",
+            "within noise": f"moves the gap by less than its noise ({without:.5g} -> {gap_after:.5g}, noise "
+                            f"{noise:.2g})",
+            "worse": f"adding it moved the gap away from 1 ({without:.5g} -> {gap_after:.5g}, beyond its noise "
+                     f"{noise:.2g}): it absorbs what the model lacks"}[entry["gap_closed"]]
+
+
+def _verdict(found, unexplained) -> str:
+    """One line: the effects named (with their degenerate groups), then what stays unexplained (checks that
+    fired, fits withdrawn with their significance and reason); "no missing effect" only when neither."""
+    parts = []
+    if found:
+        names = [f"{e['effect']} ({e['significance_sigma']:.0f} sigma)"
+                 + (" (or " + ", ".join(e["degenerate_with"]) + ": the data cannot tell them apart)"
+                    if e["degenerate_with"] else "") for e in found]
+        parts.append("missing or mis-set: " + "; ".join(names))
+    if unexplained:
+        said = []
+        for u in unexplained:
+            if u["probe"] == "withdrawn":
+                said.append(f"{u['effect']} withdrawn ({u['significance']:.0f} sigma: {u['reason']})")
+            elif u.get("reason") and u["reason"] != u.get("description"):
+                said.append(f"{u['probe']} ({u['significance']:.0f} sigma: {u['reason']})")
+            else:
+                said.append(f"{u['probe']} ({u['significance']:.0f} sigma)")
+        parts.append("unexplained: " + ", ".join(said) + " (a disagreement no candidate describes; nothing is "
+                     "named for it)")
+    return "; ".join(parts) if parts else "no missing effect"
 
 
 def write_report(outcome: dict, outdir: str, *, overwrite: bool = False) -> None:
@@ -275,12 +335,21 @@ def _fmt(v):
     return f"{v:.4g}" if isinstance(v, float) else str(v)
 
 
+_GAP_WORDS = {"closed": "closer to 1 by more than its noise", "within noise": "the change is within its noise",
+              "worse": "further from 1 by more than its noise"}
+
+
+def _share(value) -> str:
+    return "-" if value is None else f"{100 * value:.0f} %"
+
+
 def _markdown(report) -> str:
     lines = [f"# perscli diagnose: {report['verdict']}", "",
              f"- mode: {report['mode']}; measured: {', '.join(report['measured'])}",
              f"- model: {report['model_source']}",
-             f"- gap (chi^2 per pixel; 1 for pure noise): **{_fmt(report['gap_before'])}** before, "
-             f"**{_fmt(report['gap_after'])}** after, over {report['pixels']} pixels", ""]
+             f"- gap (chi^2 per pixel; 1 for pure noise, within +- {_fmt(report.get('gap_noise'))}, its own noise "
+             f"sqrt(2/N)): **{_fmt(report['gap_before'])}** before, **{_fmt(report['gap_after'])}** after, over "
+             f"{report['pixels']} pixels: {_GAP_WORDS[report.get('gap_closed', 'within noise')]}", ""]
     if "jumps_masked" in report:
         lines += [f"- pixels masked as jumps (cosmic rays, changes of illumination): {report['jumps_masked']}", ""]
     if report.get("photon_transfer"):
@@ -289,15 +358,18 @@ def _markdown(report) -> str:
     thr = report.get("threshold", {})
     lines += ["![gaps before and after](gap.png)", "", "## Found", "",
               f"An effect is named when it improves -2 ln L by more than {_fmt(thr.get('delta_chi2_one_parameter'))} "
-              "for one free parameter (a false-alarm probability of 1e-3; the same for more), its value is physical, and no "
-              "misspecification check it would only absorb fires.  Errors are marginal, from the joint fit "
-              "of every named effect.", ""]
+              "for one free parameter (a false-alarm probability of 1e-3; the same for more) with the effects "
+              "already named refitted beside it, its value is physical, no misspecification check it would only "
+              "absorb fires, it still passes beside all the others (backward elimination), and adding it does not "
+              "move the gap away from 1 by more than the gap's noise.  Values, errors (marginal) and "
+              "significances are those of one joint fit of the final set.", ""]
     if not report["found"]:
         lines += ["No candidate improves the likelihood significantly: no missing effect.", ""]
     else:
         lines += ["| effect | parameter | fitted | error | model had | delta chi2 | significance (sigma) | "
-                  "share of gap closed | probe gap before -> after | probe explained | degenerate with |",
-                  "|" + "---|" * 11]
+                  "gap without it -> with it | share of gap closed | probe gap before -> after | probe explained | "
+                  "degenerate with |",
+                  "|" + "---|" * 12]
         for e in report["found"]:
             param = next(iter(e["params"]))
             value = e["params"][param]
@@ -307,7 +379,8 @@ def _markdown(report) -> str:
                 e = dict(e, errors={param: ", ".join(_fmt(v) for v in e["errors"].values())})
             lines.append(f"| {e['effect']} | {param} | {_fmt(value)} | {_fmt(e['errors'][param])} | "
                          f"{_fmt(e['model_value'])} | {_fmt(e['delta_chi2'])} | {_fmt(e.get('significance_sigma'))} | "
-                         f"{_fmt(100 * e.get('fraction_of_gap_closed', 0.0))} % | "
+                         f"{_fmt(e.get('gap_without'))} -> {_fmt(report['gap_after'])} ({e.get('gap_closed', '-')}) | "
+                         f"{_share(e.get('share_of_gap_closed'))} | "
                          f"{e.get('probe')}: {_fmt(e.get('probe_gap_before'))} -> {_fmt(e.get('probe_gap_after'))} | "
                          f"{'yes' if e.get('probe_explained') else 'no: a trend remains'} | "
                          f"{', '.join(e['degenerate_with']) or '-'} |")
@@ -315,8 +388,12 @@ def _markdown(report) -> str:
     if report.get("correlations"):
         lines += ["Correlations of the named effects' parameters (joint fit):", ""]
         lines += [f"- {k}: {_fmt(v)}" for k, v in report["correlations"].items()] + [""]
+    if report.get("eliminated"):
+        lines += ["Named in the forward search, then not significant beside the others (backward elimination):", ""]
+        lines += [f"- {w['effect']}: {w['eliminated_because']}" for w in report["eliminated"]] + [""]
     if report.get("withdrawn"):
-        lines += ["Withdrawn (their fits may only absorb what a check found):", ""]
+        lines += ["Withdrawn (their fits may only absorb what a check found; their evidence is under Unexplained):",
+                  ""]
         lines += [f"- {w['effect']} ({_fmt(w.get('significance_sigma'))} sigma): {w['withdrawn_because']}"
                   for w in report["withdrawn"]] + [""]
     lines += ["## Unexplained", ""]

@@ -105,7 +105,8 @@ class Fit:
         return {"effect": self.candidate.name, "params": params, "errors": errors, "model_value": self.start,
                 "unit": self.candidate.unit, "delta_chi2": self.delta_chi2, "delta_bic": self.delta_bic,
                 "significance_sigma": _sigma(self.delta_chi2, self.nparams), "significant": self.significant,
-                "threshold_delta_chi2": threshold(self.nparams), "free_parameters": self.nparams, "note": self.note}
+                "threshold_delta_chi2": threshold(self.nparams), "free_parameters": self.nparams, "note": self.note,
+                **({"shape": self.shape} if getattr(self, "shape", None) else {})}
 
 
 def fit_candidate(problem, model, candidate: Candidate, m2lnl_base: float, npix: int) -> Fit:
@@ -178,135 +179,73 @@ def _curvature_error(cost, x, h, lo, hi) -> float:
     return float(math.sqrt(2.0 / d2)) if d2 > 0 else float("nan")
 
 
-#: shape parameters of the Fermi law that a persistence fit may free: (name, bounds, typical size)
-PERSISTENCE_SHAPE = (("gamma", (0.3, 3.0), 0.05), ("x0", (1.0e4, 3.0e5), 2.0e3), ("dx", (5.0e3, 2.0e5), 2.0e3),
-                     ("alpha", (-0.5, 1.0), 0.01))
-
-
 def _free_persistence_shape(problem, best: Fit, npix: int, progress=None) -> Fit:
-    """Free gamma, x0, dx and alpha of a named persistence one at a time (A re-fitted with each), keeping
-    each only when the BIC supports it (its -2 ln L improves by more than ln n + MIN_DELTA_BIC)."""
-    from .candidates import Candidate, _get_persistence, _put_persistence
-    from .likelihood import with_effect
+    """Free gamma, x0, dx or alpha of a named persistence, one at a time, while the BIC supports it.
 
+    The law's A and the parameters freed so far are the nuisance: the
+    score test of the quadratic likelihood (:mod:`perscli.diagnose.joint`:
+    the improvement ``g' F^-1 g`` predicts with the parameter freed, less
+    that without) ranks the shape parameters; the best is fitted jointly
+    with A and the freed ones (Fisher scoring) only when the prediction
+    reaches :data:`SHAPE_SCREEN` of what the BIC asks, and kept when its
+    exact improvement of -2 ln L exceeds ln n + :data:`MIN_DELTA_BIC`, its
+    value is inside its range and x0 is below the full well.  Then the next.
+    """
+    from .candidates import by_name
+    from .joint import directions, joint_fit
+
+    need = math.log(max(npix, 2)) + MIN_DELTA_BIC
+    amp = by_name("persistence")
+    shapes = {name: _shape_candidate(name) for name, _, _ in PERSISTENCE_SHAPE}
     model, m2 = best.model, best.m2lnl
     start_m2 = m2
-    extra, errors = {}, {}
-    amp = Candidate("persistence", "A", "e-/s", (0.0, 2.0), 0.02, "history", "", _get_persistence,
-                    _put_persistence)
-    worth = _shape_screen(problem, model, m2)
-    if progress is not None:
-        progress("persistence: freeing the law's shape would gain about " + ", ".join(
-            f"{name} {worth[name]:.3g}" for name, _, _ in PERSISTENCE_SHAPE) + " in -2 ln L (screen)")
-    for name, bounds, scale in PERSISTENCE_SHAPE:
-        if worth.get(name, math.inf) < SHAPE_SCREEN * (math.log(max(npix, 2)) + MIN_DELTA_BIC):
-            # the local quadratic of -2 ln L (A profiled) says freeing it cannot pay: the profile fit, a
-            # one-dimensional search whose every point is itself a fit of A, is not run
-            continue
-        def get(m, exposures, name=name):
-            return float(getattr(m.persistence_model(), name))
+    freed = []
+    well = model.value("saturation", "full_well", off=None)
+    while len(freed) < len(shapes):
+        cands = [amp] + [shapes[n] for n in freed]
+        rest = [n for n in shapes if n not in freed]
+        dirs = directions(problem, model, cands + [shapes[n] for n in rest])
+        g, f = dirs.score, dirs.fisher
 
-        def put(m, value, name=name):
-            # the profile likelihood: A (strongly correlated with the shape) re-fitted at every value
-            return fit_candidate(problem, with_effect(m, "persistence", {name: float(value)}), amp, 0.0, npix).model
+        def explained(idx):
+            return float(g[idx] @ np.linalg.lstsq(f[np.ix_(idx, idx)], g[idx], rcond=1e-12)[0])
 
-        free = Candidate(f"persistence.{name}", name, "", bounds, scale, "history", "", get, put)
-        trial = fit_candidate(problem, model, free, m2, npix)
-        if min(trial.value - bounds[0], bounds[1] - trial.value) <= scale * 1e-3:
-            # at the edge of its range it measures nothing: the law's shape is held
-            continue
-        refit = fit_candidate(problem, trial.model, amp, m2, npix)
-        if m2 - refit.m2lnl > math.log(max(npix, 2)) + MIN_DELTA_BIC:
-            if progress is not None:
-                progress(f"persistence: {name} freed ({trial.value:.4g}), -2 ln L down by {m2 - refit.m2lnl:.1f}")
-            model, m2 = refit.model, refit.m2lnl
-            extra[name], errors[name] = trial.value, trial.error
-            best.value, best.error = refit.value, refit.error
-    if extra:
+        base_idx = list(range(len(cands)))
+        worth = {n: explained(base_idx + [len(cands) + k]) - explained(base_idx) for k, n in enumerate(rest)}
+        if progress is not None:
+            progress("persistence: freeing the law's shape would gain about "
+                     + ", ".join(f"{n} {worth[n]:.3g}" for n in rest) + " in -2 ln L (score test)")
+        name = max(rest, key=lambda n: worth[n])
+        if not worth[name] >= SHAPE_SCREEN * need:
+            break
+        trial, values, cov, m2_trial = joint_fit(problem, model, cands + [shapes[name]])
+        value = float(values[-1])
+        lo, hi = shapes[name].bounds
+        edge = shapes[name].scale * 1e-3
+        if (m2 - m2_trial <= need or min(value - lo, hi - value) <= edge
+                or (name == "x0" and well and value > well)):
+            break
+        if progress is not None:
+            progress(f"persistence: {name} freed ({value:.4g}), -2 ln L down by {m2 - m2_trial:.1f}")
+        freed.append(name)
+        model, m2 = trial, m2_trial
+        best.value, best.error = float(values[0]), float(math.sqrt(max(cov[0, 0], 0.0)))
+        best.extra = {n: float(values[1 + k]) for k, n in enumerate(freed)}
+        best.extra_errors = {n: float(math.sqrt(max(cov[1 + k, 1 + k], 0.0))) for k, n in enumerate(freed)}
+    if freed:
         best.model, best.m2lnl = model, m2
         best.delta_chi2 += start_m2 - m2
-        best.delta_bic += start_m2 - m2 - len(extra) * math.log(max(npix, 2))
-        best.extra, best.extra_errors = extra, errors
+        best.delta_bic += start_m2 - m2 - len(freed) * math.log(max(npix, 2))
+        best.nparams = 1 + len(freed)
     return best
 
 
-#: a shape parameter is fitted only when the quadratic screen predicts at least this share of the improvement
-#: the BIC asks of it (a generous margin: the screen is local, the fit is not)
+#: shape parameters of the Fermi law that a persistence fit may free: (name, bounds, typical size)
+PERSISTENCE_SHAPE = (("gamma", (0.3, 3.0), 0.05), ("x0", (1.0e4, 3.0e5), 2.0e3), ("dx", (5.0e3, 2.0e5), 2.0e3),
+                     ("alpha", (-0.5, 1.0), 0.01))
+#: a shape parameter is fitted only when the score test predicts at least this share of the improvement the
+#: BIC asks of it (a generous margin: the prediction is local, the fit is not)
 SHAPE_SCREEN = 0.25
-#: the screen's step, in units of each shape parameter's typical size: wide enough to see a curved likelihood
-SHAPE_STEP = 5.0
-
-
-def _shape_screen(problem, model, m2: float) -> dict:
-    """For each Fermi shape parameter, about how much freeing it would improve -2 ln L (A re-fitted).
-
-    The profile of -2 ln L (A at its best for each value) is taken at the
-    model's value and :data:`SHAPE_STEP` typical sizes either side: at each
-    side A's best comes from a parabola through three values of A (the
-    expectation is linear in A, so -2 ln L is close to quadratic in it).  A
-    parabola through the three profile values gives the predicted
-    improvement: its minimum when it is convex with its vertex within three
-    steps, else the better side's improvement.  Where the stencil leaves
-    the parameter's range the answer is infinite (the full fit decides).
-    Twenty-four evaluations instead of the profile fits' hundreds.
-    """
-    from .candidates import _put_persistence
-    from .likelihood import with_effect
-
-    def cost(m):
-        try:
-            return problem.evaluate(m).m2lnl()
-        except (ValueError, FloatingPointError, ZeroDivisionError):
-            return math.inf
-
-    pm = model.persistence_model()
-    a = float(pm.A)
-    ha = max(0.1 * a, 1e-3)
-
-    def profile(m):
-        """The minimum over A of -2 ln L, from a parabola through A - ha, A, A + ha (A kept >= 0)."""
-        lo = max(a - ha, 0.0)
-        xs = np.array([lo, lo + ha, lo + 2 * ha])
-        fs = np.array([cost(_put_persistence(m, float(x))) for x in xs])
-        if not np.all(np.isfinite(fs)):
-            return float(np.min(fs))
-        c2, c1, c0 = np.polyfit(xs - xs[1], fs, 2)
-        if c2 <= 0:
-            return float(fs.min())
-        x = min(max(-c1 / (2 * c2), xs[0] - xs[1] - 3 * ha), 3 * ha)
-        return float(min(fs.min(), c0 + c1 * x + c2 * x * x))
-
-    out = {}
-    for name, bounds, scale in PERSISTENCE_SHAPE:
-        t = float(getattr(pm, name))
-        h = SHAPE_STEP * scale
-        if not (bounds[0] <= t - h and t + h <= bounds[1]):
-            out[name] = math.inf
-            continue
-        fm, fp = profile(with_effect(model, "persistence", {name: t - h})), \
-            profile(with_effect(model, "persistence", {name: t + h}))
-        gain = m2 - min(fm, fp)
-        curvature = fp - 2 * m2 + fm
-        if curvature > 0:
-            u = (fm - fp) / (2 * curvature)          # the vertex, in steps
-            if abs(u) <= 3:
-                gain = max(gain, curvature * u * u / 2)
-        out[name] = float(gain) if math.isfinite(gain) else math.inf
-    return out
-
-
-@dataclass
-class Result:
-    """What the search found."""
-
-    found: list                  # dicts: effect, params, errors, delta_chi2, significance, degenerate_with, ...
-    candidates: list             # every candidate's fit in the first round (and later ones)
-    model: object                # the model with the found effects
-    rounds: list
-    checks: list = field(default_factory=list)        # the misspecification checks on the final model
-    unexplained: list = field(default_factory=list)   # those that fired
-    correlations: dict = field(default_factory=dict)  # between the found effects' parameters (joint fit)
-    withdrawn: list = field(default_factory=list)     # effects named, then withdrawn because a check fired
 
 
 def _unphysical(fit: Fit, problem, ramp: bool) -> str:
@@ -341,75 +280,6 @@ def _unphysical(fit: Fit, problem, ramp: bool) -> str:
             if abs(fit.value - g) > 3 * err + 0.05 * g:
                 return f"not the photon-transfer gain of the data ({g:.3g} +- {err:.2g})"
     return ""
-
-
-def joint_fit(problem, model, named: list, *, progress=None):
-    """Every named effect's parameter fitted together: (model, values, covariance).
-
-    ``named`` holds :class:`~perscli.diagnose.candidates.Candidate` objects;
-    each is put into the model at a value (its ``put``) and -2 ln L is
-    minimised over all of them at once (L-BFGS-B in units of each one's
-    scale, within its range).  The covariance is twice the inverse of the
-    Hessian of -2 ln L at the minimum (finite differences), so each error is
-    the marginal one, with the others free.
-    """
-    from scipy.optimize import minimize
-
-    if not named:
-        return model, np.zeros(0), np.zeros((0, 0))
-    exposures = problem.exposures
-    scale = np.array([c.scale for c in named])
-    lo = np.array([c.bounds[0] for c in named]) / scale
-    hi = np.array([c.bounds[1] for c in named]) / scale
-    x0 = np.clip(np.array([c.get(model, exposures) for c in named]) / scale, lo, hi)
-
-    def put(x):
-        m = model
-        for c, v in zip(named, x * scale):
-            m = c.put(m, float(v))
-        return m
-
-    cache = {}
-
-    def cost(x):
-        key = tuple(np.round(x, 12))
-        if key not in cache:
-            try:
-                cache[key] = problem.evaluate(put(np.asarray(x))).m2lnl()
-            except (ValueError, FloatingPointError, ZeroDivisionError):
-                cache[key] = math.inf
-        return cache[key]
-
-    if len(named) == 1:
-        best = x0
-    else:
-        res = minimize(cost, x0, method="L-BFGS-B", bounds=list(zip(lo, hi)),
-                       options={"eps": 1e-4, "ftol": 1e-12, "gtol": 1e-6, "maxiter": 200})
-        best = res.x if res.fun <= cost(x0) else x0
-    # the Hessian of -2 ln L by central differences, in units of the scales
-    n = len(named)
-    h = np.full(n, 1e-2)
-    f0 = cost(best)
-    hess = np.zeros((n, n))
-    for a in range(n):
-        for b in range(a, n):
-            def at(da, db):
-                x = best.copy()
-                x[a] += da * h[a]
-                x[b] += db * h[b]
-                return cost(np.clip(x, lo, hi))
-            if a == b:
-                hess[a, a] = (at(1, 0) - 2 * f0 + at(-1, 0)) / h[a] ** 2
-            else:
-                hess[a, b] = hess[b, a] = (at(1, 1) - at(1, -1) - at(-1, 1) + at(-1, -1)) / (4 * h[a] * h[b])
-    try:
-        cov = 2.0 * np.linalg.inv(hess) if np.all(np.isfinite(hess)) else np.full((n, n), np.nan)
-    except np.linalg.LinAlgError:
-        cov = np.full((n, n), np.nan)
-    cov = cov * np.outer(scale, scale)
-    if progress is not None:
-        progress("joint fit: " + ", ".join(f"{c.name} {v:.5g}" for c, v in zip(named, best * scale)))
-    return put(best), best * scale, cov
 
 
 #: candidates that act on the signal: named only when the expectation, not the noise alone, improves
@@ -507,147 +377,487 @@ def _mean_only_delta(problem, base, fitted_model, after=None) -> float:
     return total
 
 
-def _refit_named(problem, model, found: list, named: list, progress=None):
-    """``model`` with the effects of ``found`` put in at their values, those fitted by one parameter refitted
-    together; updates ``found``'s values and errors.  Returns the model."""
-    current = model
-    for entry, cand in zip(found, named):
-        if cand.fit is not None:
-            current = cand.fit(problem, current)[2]
-        else:
-            current = cand.put(current, entry["params"][cand.param])
-            extra = {k: v for k, v in entry["params"].items() if k != cand.param}
-            if extra:
-                from .likelihood import with_effect
+@dataclass
+class Result:
+    """What the search found."""
 
-                current = with_effect(current, cand.name, extra)
-    return _refit_jointly(problem, current, named, found, progress)
+    found: list                  # dicts: effect, params, errors, delta_chi2, significance, degenerate_with, ...
+    candidates: list             # every candidate's fit in the first round (and later ones)
+    model: object                # the model with the found effects
+    rounds: list
+    checks: list = field(default_factory=list)        # the misspecification checks on the final model
+    unexplained: list = field(default_factory=list)   # checks that fired, withdrawn fits: the evidence kept
+    correlations: dict = field(default_factory=dict)  # between the found effects' parameters (joint fit)
+    withdrawn: list = field(default_factory=list)     # effects named, then withdrawn because a check fired
+    eliminated: list = field(default_factory=list)    # effects named, then not significant beside the others
 
 
-def _refit_jointly(problem, current, named, found, progress=None):
-    """The named effects refitted together: each shares the disagreement as the data say; ``found``'s
-    values and marginal errors (scaled by each effect's noise-correlation dispersion) updated in place."""
-    joint = [c for c in named if c.fit is None]
-    if len(joint) > 1:
-        current, values, cov = joint_fit(problem, current, joint, progress=progress)
-        for k, (c, v) in enumerate(zip(joint, values)):
-            e = next(x for x in found if x["effect"] == c.name)
-            e["params"][c.param] = float(v)
-            e["errors"][c.param] = (float(math.sqrt(cov[k, k] * e.get("dispersion", 1.0))) if cov[k, k] > 0
-                                    else float("nan"))
-    return current
+#: a candidate whose Fisher information the named effects carry all but this share of is a combination of
+#: them (a correlation above 0.99): the data cannot tell it from them, and it is not tested on its own
+DEGENERATE = 0.02
+#: candidates tried, best first, for a round's name when the joint refit with the named effects takes the
+#: improvement of the ones before below the threshold
+CONFIRM_TRIES = 3
+#: backward elimination: an effect whose Wald statistic in the final set is below this multiple of the
+#: threshold is retested by refitting the others without it (above, the quadratic likelihood settles it)
+RETEST_MARGIN = 3.0
 
 
-def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: int = 8, ramp: bool = False) -> Result:
-    """Name significant effects one at a time, refitting all named ones together after each; then check.
+def _reset(model, original, name: str):
+    """``model`` with effect ``name`` as ``original`` has it (its parameters and switch): the effect un-named."""
+    from .likelihood import with_effect
 
-    A candidate is named when it improves -2 ln L by more than
-    :func:`threshold` of its free parameters, its value is physical
-    (:func:`_unphysical`), and an effect on the signal owes its improvement
-    to the expectation, not to the noise alone (else the improvement goes to
-    ``unexplained`` as ``variance_only``).  When no candidate is left, the
-    misspecification checks run on the final model: every check that fires
-    goes to ``unexplained``, and the named effects it would be mistaken for
-    (:attr:`~perscli.diagnose.checks.Check.blocks`) are withdrawn (their fits
-    may only be absorbing what it found; the report lists them under
-    ``withdrawn`` with the reason) and the rest refitted without them.
+    eff = original.get(name)
+    if eff is None:
+        return with_effect(model, name, enabled=False)
+    out = with_effect(model, name, enabled=eff.enabled)
+    out.get(name).params = dict(eff.params)
+    return out
+
+
+def _shape_candidate(name: str):
+    """One parameter of the persistence law's shape as a candidate of its own (for the joint fit of a named
+    persistence whose shape was freed): A is fitted beside it, not profiled."""
+    from .candidates import Candidate
+    from .likelihood import with_effect
+
+    bounds, scale = next((b, sc) for n, b, sc in PERSISTENCE_SHAPE if n == name)
+
+    def get(m, exposures):
+        return float(getattr(m.persistence_model(), name))
+
+    def put(m, value):
+        return with_effect(m, "persistence", {name: float(value)})
+
+    return Candidate("persistence", name, "", bounds, scale, "history", "", get, put)
+
+
+def _joint(problem, model, named, progress=None):
+    """The named effects fitted by one parameter refitted together (:func:`perscli.diagnose.joint.joint_fit`),
+    with the shape parameters a named persistence freed; each entry's values and marginal errors (scaled by
+    its noise-correlation dispersion) updated in place.  Returns (model, -2 ln L, covariance, the candidates
+    fitted: the named ones first, in order, then the shape parameters)."""
+    from .joint import joint_fit
+
+    cands = [c for _, c in named if c.fit is None]
+    owners = [next(e for e, cc in named if cc is c) for c in cands]
+    for entry, cand in named:
+        if cand.name == "persistence" and cand.fit is None:
+            for key in entry["params"]:
+                if key != cand.param:
+                    cands.append(_shape_candidate(key))
+                    owners.append(entry)
+    if not cands:
+        return model, problem.evaluate(model).m2lnl(), np.zeros((0, 0)), cands
+    model, values, cov, m2 = joint_fit(problem, model, cands, progress=progress)
+    for k, (c, entry) in enumerate(zip(cands, owners)):
+        entry["params"][c.param] = float(values[k])
+        var = cov[k, k] * entry.get("dispersion", 1.0)
+        entry["errors"][c.param] = float(math.sqrt(var)) if var > 0 else float("nan")
+    return model, m2, cov, cands
+
+
+def _retest(problem, model, original, named, entry, cand, m2, npix):
+    """The improvement of -2 ln L that ``cand`` (named) brings beside all the other named effects: the
+    others refitted without it (it reset to the original model's), divided by its dispersion."""
+    without = _reset(model, original, cand.name)
+    others = [(e, c) for e, c in named if c is not cand]
+    if cand.fit is not None:
+        # fitted its own way (its own likelihood): refitted on the model with the others as they are
+        value, error, fitted, nparams, *more = cand.fit(problem, without)
+        more = more[0] if more else {}
+        return float(more.get("delta_chi2", problem.evaluate(without).m2lnl() - problem.evaluate(fitted).m2lnl()))
+    saved = [(dict(e["params"]), dict(e["errors"])) for e, _ in others]
+    _, m2_without, _, _ = _joint(problem, without, others)
+    for (e, _), (p, er) in zip(others, saved):
+        e["params"], e["errors"] = p, er
+    return (m2_without - m2) / entry.get("dispersion", 1.0)
+
+
+def _confirm(problem, current, named, fit, base, progress=None):
+    """``fit``'s candidate refitted together with the named effects: (model, improvement over ``base``
+    divided by its dispersion, its value, -2 ln L)."""
+    from .joint import joint_fit
+
+    cands = [c for _, c in named if c.fit is None] + [fit.candidate]
+    model, values, cov, m2 = joint_fit(problem, fit.model, cands)
+    return model, (base - m2) / getattr(fit, "dispersion", 1.0), float(values[-1]), m2
+
+
+def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: int | None = None,
+           ramp: bool = False) -> Result:
+    """Name effects by likelihood, one set at a time: forward, backward, one joint refit; then check.
+
+    Forward: each round fits every candidate not yet named with the named
+    ones held (:func:`fit_candidate`), and divides its improvement by the
+    share of its information the named effects do not carry (``1 - rho^2``,
+    :func:`perscli.diagnose.joint.shared_information`): its improvement with
+    them refitted, so that a weak effect beside a strong one is tested at its
+    own significance.  The best candidate whose improvement passes
+    :func:`threshold`, whose value is physical (:func:`_unphysical`) and
+    which, if it acts on the signal, owes its improvement to the expectation
+    (else it goes to ``unexplained`` as ``variance_only``), is refitted
+    together with the named ones (:func:`perscli.diagnose.joint.joint_fit`);
+    it is named when the joint improvement still passes.  Candidates within
+    :data:`MIN_DELTA_BIC` of it are listed as its degenerate group, and stay
+    candidates: a later round tests them beside it.  The rounds go on until
+    no candidate passes.
+
+    Backward: every named effect is retested beside all the others (its Wald
+    statistic in the joint fit; a likelihood ratio with the others refitted
+    when that is within :data:`RETEST_MARGIN` of the threshold); the weakest
+    that no longer passes is eliminated, and again, until all pass.  One
+    joint refit of the final set gives the values, marginal errors and
+    correlations.
+
+    Then the misspecification checks run on the final model: every check
+    that fires goes to ``unexplained``, and the named effects it would be
+    mistaken for (:attr:`~perscli.diagnose.checks.Check.blocks`) are
+    withdrawn: listed under ``withdrawn`` and, with their significance and
+    the check's reason, in ``unexplained``; the rest are refitted and checked
+    again.  Evidence is never dropped: a check that fired before a withdrawal
+    stays in ``unexplained`` whether or not it fires after.
     """
     from .checks import run_checks
+    from .joint import directions, shared_information
 
+    say = progress or (lambda text: None)
     usable = [c for c in candidates if c.applies(problem.exposures) and problem.allows(c.name)]
-    found, rounds, named = [], [], []
+    named, rounds = [], []            # named: (entry, candidate)
     variance_only = {}
     current = model
-    remaining = list(usable)
+    max_rounds = max_rounds if max_rounds is not None else len(usable)
+    npix = 0
     for round_no in range(max_rounds):
         evaluation = problem.evaluate(current)
         base = evaluation.m2lnl()
         _, npix = evaluation.chi2()
         shared = noise_correlation(problem, current)
+        taken = {c.name for _, c in named}
+        remaining = [c for c in usable if c.name not in taken]
+        if not remaining:
+            break
+        held_named = [c for _, c in named if c.fit is None]
+        rho2 = {}
+        others = [c for c in remaining if c.fit is None]
+        # the directions of every candidate fitted by one parameter: the named effects' share of each one's
+        # information (what holding them costs it), and the pairs' scores
+        dirs = directions(problem, current, held_named + others, evaluation=evaluation)
+        for c in others:
+            rho2[c.name] = shared_information(dirs, c.name, [n.name for n in held_named])
         fits, after = [], {}
         for cand in remaining:
             f = fit_candidate(problem, current, cand, base, npix)
-            if cand.name in MEAN_EFFECTS and f.delta_chi2 > 0.3 * threshold(f.nparams) and f.model is not None:
+            f.dispersion = 1.0
+            if cand.name in MEAN_EFFECTS and f.delta_chi2 > 0.1 * threshold(f.nparams) and f.model is not None:
                 # neighbours share noise: the improvement along this candidate's direction is that much larger
                 after[cand.name] = problem.evaluate(f.model)
                 f.dispersion = dispersion(shared, evaluation, after[cand.name])
                 f.delta_chi2 /= f.dispersion
-                f.delta_bic = f.delta_chi2 - f.nparams * math.log(max(npix, 2))
                 f.error *= math.sqrt(f.dispersion)
+            f.held = f.delta_chi2
+            f.rho2 = rho2.get(cand.name, 0.0)
+            if f.rho2 > 1.0 - DEGENERATE:
+                most = max(held_named, key=lambda n: abs(dirs.fisher[dirs.index(n.name), dirs.index(cand.name)])
+                           / math.sqrt(max(dirs.fisher[dirs.index(n.name), dirs.index(n.name)]
+                                           * dirs.fisher[dirs.index(cand.name), dirs.index(cand.name)], 1e-300)))
+                f.note = f"the named {most.name} carries its information (correlation above 0.99): not told apart"
+                f.degenerate_with = most.name
+            else:
+                f.delta_chi2 = f.held / (1.0 - f.rho2)
+            f.delta_bic = f.delta_chi2 - f.nparams * math.log(max(npix, 2))
             fits.append(f)
-            if progress is not None:
-                progress(f"round {round_no + 1}: {cand.name} {cand.param}={f.value:.6g} delta chi2 {f.delta_chi2:.1f}")
+            say(f"round {round_no + 1}: {cand.name} {cand.param}={f.value:.6g} delta chi2 {f.delta_chi2:.1f}"
+                + (f" (held {f.held:.1f}, rho^2 {f.rho2:.2f})" if f.rho2 else ""))
         fits.sort(key=lambda f: -f.delta_chi2)
-        best = None
+        best, tries = None, 0
         for f in fits:
-            if not f.significant:
+            if not f.significant or f.note:
                 continue
             why = _unphysical(f, problem, ramp)
             if not why and f.candidate.name in MEAN_EFFECTS:
                 mean_delta = _mean_only_delta(problem, evaluation, f.model, after.get(f.candidate.name))
-                if mean_delta / getattr(f, "dispersion", 1.0) < MEAN_SHARE * f.delta_chi2:
+                if mean_delta / f.dispersion < MEAN_SHARE * f.held:
                     why = "improves the noise model only, not the expectation"
                     variance_only[f.candidate.name] = f.delta_chi2
+            if not why and held_named and f.candidate.fit is None:
+                if tries >= CONFIRM_TRIES:
+                    break
+                tries += 1
+                joint_model, exact, value, m2j = _confirm(problem, current, named, f, base)
+                say(f"round {round_no + 1}: {f.candidate.name} refitted with the named effects: delta chi2 "
+                    f"{exact:.1f}")
+                f.profile_estimate = f.delta_chi2
+                f.delta_chi2 = exact
+                f.delta_bic = exact - f.nparams * math.log(max(npix, 2))
+                if not f.significant:
+                    why = "not significant once the named effects are refitted with it"
+                else:
+                    f.model, f.value, f.m2lnl = joint_model, value, m2j
             f.note = why
             if not why:
                 best = f
                 break
+        # no single candidate passes: two may, whose signals cancel in part (each weak with the other held)
+        pair = None if best is not None else _best_pair(problem, current, named, fits, dirs, evaluation, shared,
+                                                        base, npix, ramp, say, round_no)
         rounds.append([f.as_dict() for f in fits])
+        if pair is not None:
+            (fa, fb), groups = pair
+            for f, other, group in ((fa, fb, groups[0]), (fb, fa, groups[1])):
+                entry = f.as_dict()
+                entry.update(degenerate_with=group, round=round_no + 1, dispersion=f.dispersion,
+                             forward_delta_chi2=f.delta_chi2,
+                             note=f"named together with {other.candidate.name}: the two improve -2 ln L by "
+                                  f"{f.delta_chi2:.1f} (2 parameters), more than any one alone beside the named "
+                                  "effects")
+                named.append((entry, f.candidate))
+            current, _, _, _ = _joint(problem, fa.model, named, progress)
+            continue
         if best is None:
             break
         group = [f for f in fits if f.significant and not f.note and f is not best
                  and best.delta_chi2 - f.delta_chi2 < MIN_DELTA_BIC]
         if best.candidate.name == "persistence":
             best = _free_persistence_shape(problem, best, npix, progress)
+        extra_note = ""
+        if best.candidate.name == "ipc":
+            best, extra_note = _ipc_shape(problem, best, progress)
         entry = best.as_dict()
         entry["degenerate_with"] = [f.candidate.name for f in group]
         entry["round"] = round_no + 1
-        entry["dispersion"] = getattr(best, "dispersion", 1.0)
-        found.append(entry)
-        named.append(best.candidate)
-        current = best.model
-        current = _refit_jointly(problem, current, named, found, progress)
-        taken = {best.candidate.name, *entry["degenerate_with"]}
-        remaining = [c for c in remaining if c.name not in taken]
-        if not remaining:
+        entry["dispersion"] = best.dispersion
+        entry["forward_delta_chi2"] = best.delta_chi2
+        if extra_note:
+            entry["note"] = extra_note
+        named.append((entry, best.candidate))
+        current, _, _, _ = _joint(problem, best.model, named, progress)
+    original = model
+    # backward: every named effect beside all the others; the weakest that no longer passes goes
+    eliminated = []
+    while len(named) > 1:
+        current, m2, cov, cands = _joint(problem, current, named)
+        stats = []
+        for entry, cand in named:
+            if cand.fit is None:
+                k = cands.index(cand)
+                value, start = entry["params"][cand.param], entry["model_value"]
+                wald = (value - start) ** 2 / cov[k, k] / entry.get("dispersion", 1.0) if cov[k, k] > 0 else 0.0
+                # an effect whose other parameters were freed (persistence's law) is never judged on one alone
+                if len(entry["params"]) > 1:
+                    wald = min(wald, threshold(entry["free_parameters"]) * RETEST_MARGIN)
+            else:
+                wald = 0.0
+            stats.append(wald)
+        order = np.argsort(stats)
+        weakest = None
+        for k in order:
+            entry, cand = named[k]
+            need = threshold(entry["free_parameters"])
+            if stats[k] >= RETEST_MARGIN * need:
+                break
+            delta = _retest(problem, current, original, named, entry, cand, m2, npix)
+            entry["retest_delta_chi2"] = delta
+            say(f"backward: {cand.name} beside the others: delta chi2 {delta:.1f}")
+            if delta < need:
+                weakest = k
+                break
+        if weakest is None:
             break
+        entry, cand = named.pop(weakest)
+        others = ", ".join(c.name for _, c in named)
+        eliminated.append({**entry, "eliminated_because": f"not significant beside {others} (delta chi2 "
+                                                         f"{entry['retest_delta_chi2']:.1f})"})
+        current = _reset(current, original, cand.name)
+    current, _, cov, cands = _joint(problem, current, named, progress)
     # the checks on the final model: what they find is unexplained, and what it would pass for is withdrawn
     checks = run_checks(problem, problem.evaluate(current), current, ramp=ramp, final=True)
-    fired = [c for c in checks if c.fired]
+    fired = {c.name: c for c in checks if c.fired}
     withdrawn = []
-    if fired and found:
+    if fired and named:
         keep = []
-        for entry, cand in zip(found, named):
-            why = [c.name for c in fired if cand.name in c.blocks]
+        for entry, cand in named:
+            why = [c for c in fired.values() if cand.name in c.blocks]
             if why:
-                withdrawn.append({**entry, "withdrawn_because": f"the {', '.join(why)} check fires: the fit may only "
-                                                               f"absorb what it finds"})
+                withdrawn.append({**entry, "withdrawn_because": "; ".join(c.reason for c in why),
+                                  "checks": [c.name for c in why]})
             else:
                 keep.append((entry, cand))
         if withdrawn:
-            found = [e for e, _ in keep]
-            named = [c for _, c in keep]
-            current = _refit_named(problem, model, found, named, progress=progress)
+            named = keep
+            current = original
+            for entry, cand in named:
+                current = _put_entry(current, entry, cand, problem)
+            current, _, cov, cands = _joint(problem, current, named, progress)
             checks = run_checks(problem, problem.evaluate(current), current, ramp=ramp, final=True)
-            # what the withdrawn fits absorbed shows again: every check that fires now is reported
-            fired = [c for c in checks if c.fired]
+            # what fired before stays as evidence; what fires now (the withdrawn fits' signal shows again) joins it
+            for c in checks:
+                if c.fired:
+                    fired[c.name] = c
+    found = [e for e, _ in named]
     correlations = {}
-    joint = [c for c in named if c.fit is None]
-    if len(joint) > 1:
-        _, _, cov = joint_fit(problem, current, joint)
-        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-        for a in range(len(joint)):
-            for b in range(a + 1, len(joint)):
-                if sd[a] > 0 and sd[b] > 0:
-                    correlations[f"{joint[a].name}.{joint[a].param}~{joint[b].name}.{joint[b].param}"] = \
-                        float(cov[a, b] / (sd[a] * sd[b]))
-    unexplained = [{"probe": c.name, "significance": c.sigma, "description": c.description} for c in fired]
+    if len(cands) > 1:
+        from .joint import correlations as corr
+
+        rho = corr(cov)
+        for a in range(len(cands)):
+            for b in range(a + 1, len(cands)):
+                correlations[f"{cands[a].name}.{cands[a].param}~{cands[b].name}.{cands[b].param}"] = \
+                    float(rho[a, b])
+    for entry, cand in named:
+        _final_significance(entry, cand)
+    unexplained = [{"probe": c.name, "significance": c.sigma, "description": c.description, "reason": c.reason}
+                   for c in fired.values()]
+    for w in withdrawn:
+        unexplained.append({"probe": "withdrawn", "effect": w["effect"], "significance": w["significance_sigma"],
+                            "reason": w["withdrawn_because"],
+                            "description": f"{w['effect']} fitted at {w['significance_sigma']:.1f} sigma and "
+                                           f"withdrawn: {w['withdrawn_because']}"})
     named_names = {e["effect"] for e in found}
     for name, delta in variance_only.items():
         if name not in named_names:
-            unexplained.append({"probe": "variance_only", "significance": _sigma(delta),
+            unexplained.append({"probe": "variance_only", "effect": name, "significance": _sigma(delta),
+                                "reason": "noise no candidate describes",
                                 "description": f"{name} would improve the fit only through the noise it adds, not "
                                                "the expected signal: noise no candidate describes"})
     return Result(found=found, candidates=rounds[0] if rounds else [], model=current, rounds=rounds,
                   checks=[c.as_dict() for c in checks], unexplained=unexplained, correlations=correlations,
-                  withdrawn=withdrawn)
+                  withdrawn=withdrawn, eliminated=eliminated)
+
+
+#: a pair of candidates is named together, when no single one passes, at this false-alarm probability (two
+#: parameters: 21.6 in -2 ln L, twice the single threshold): with nine candidates fitted by one parameter, 36
+#: pairs keep false pairs in data sets without a missing effect below 1e-3
+PAIR_P = 2e-5
+#: pairs refitted exactly, best score first
+PAIR_TRIES = 2
+
+
+def _best_pair(problem, current, named, fits, dirs, evaluation, shared, base, npix, ramp, say, round_no):
+    """Two candidates named together when no single one passes: effects whose signals partly cancel
+    (brighter-fatter and nonlinearity both lower a star's core; a gain and reciprocity failure both scale a
+    star) each look weak beside the other held, and strong together.
+
+    Every pair of candidates fitted by one parameter is scored with the
+    named effects free: the improvement of -2 ln L the quadratic likelihood
+    predicts (``g' F^-1 g`` over the named ones and the pair, less that over
+    the named ones), divided by the larger dispersion of the two.  The best
+    pairs whose score passes the threshold of two parameters at
+    :data:`PAIR_P` are refitted exactly with the named effects
+    (:func:`perscli.diagnose.joint.joint_fit`); the first whose exact
+    improvement still passes, with physical values, is returned as
+    ``((fit, fit), (group, group))``: each group the candidates that could
+    replace that member (pairs with the other member scored within
+    :data:`MIN_DELTA_BIC` of the best), or None.
+    """
+    from scipy.stats import chi2
+
+    from .joint import joint_fit
+
+    need = float(chi2.isf(PAIR_P, 2))
+    by_name = {f.candidate.name: f for f in fits}
+    names = [c.name for c in dirs.candidates]
+    s_idx = [names.index(c.name) for _, c in named if c.fit is None]
+    g, f = dirs.score, dirs.fisher
+
+    def explained(idx):
+        if not idx:
+            return 0.0
+        sub = f[np.ix_(idx, idx)]
+        return float(g[idx] @ np.linalg.lstsq(sub, g[idx], rcond=1e-12)[0])
+
+    base_s = explained(s_idx)
+    pool = [k for k, n in enumerate(names) if k not in s_idx and n in by_name and not by_name[n].note]
+    scored = []
+    for a in range(len(pool)):
+        for b in range(a + 1, len(pool)):
+            i, j = pool[a], pool[b]
+            disp = max(by_name[names[i]].dispersion, by_name[names[j]].dispersion)
+            scored.append(((explained(s_idx + [i, j]) - base_s) / disp, i, j))
+    scored.sort(reverse=True)
+    for score, i, j in scored[:PAIR_TRIES]:
+        if not score > need:
+            break
+        fa, fb = by_name[names[i]], by_name[names[j]]
+        cands = [c for _, c in named if c.fit is None] + [fa.candidate, fb.candidate]
+        model, values, cov, m2 = joint_fit(problem, current, cands)
+        disp = dispersion(shared, evaluation, problem.evaluate(model))
+        exact = (base - m2) / disp
+        say(f"round {round_no + 1}: {fa.candidate.name} and {fb.candidate.name} together: delta chi2 {exact:.1f} "
+            f"(score {score:.1f})")
+        if not exact > need:
+            continue
+        out = []
+        for k, fit in ((len(cands) - 2, fa), (len(cands) - 1, fb)):
+            trial = Fit(fit.candidate, float(values[k]), float(math.sqrt(max(cov[k, k], 0.0) * disp)), fit.start, m2,
+                        nparams=1)
+            trial.model, trial.dispersion, trial.delta_chi2 = model, disp, exact
+            trial.delta_bic = exact - 2 * math.log(max(npix, 2))
+            if _unphysical(trial, problem, ramp):
+                break
+            out.append(trial)
+        if len(out) != 2:
+            continue
+        groups = ([names[x] for sc, x, y in scored if y == j and x != i and score - sc < MIN_DELTA_BIC]
+                  + [names[y] for sc, x, y in scored if x == j and y != i and score - sc < MIN_DELTA_BIC],
+                  [names[x] for sc, x, y in scored if y == i and x != j and score - sc < MIN_DELTA_BIC]
+                  + [names[y] for sc, x, y in scored if x == i and y != j and score - sc < MIN_DELTA_BIC])
+        return tuple(out), groups
+    return None
+
+
+def _put_entry(model, entry, cand, problem):
+    """``model`` with a found effect put in at its reported values (all its parameters)."""
+    from .likelihood import with_effect
+
+    if cand.fit is not None:
+        return cand.fit(problem, model)[2]
+    if cand.name == "ipc" and "kernel" in entry.get("shape", {}):
+        # the freed kernel's shape, at the strength the joint fit gave it
+        model = with_effect(model, "ipc", {"kernel": entry["shape"]["kernel"], "alpha": None})
+    out = cand.put(model, entry["params"][cand.param])
+    extra = {k: v for k, v in entry["params"].items() if k != cand.param}
+    return with_effect(out, cand.name, extra) if extra else out
+
+
+def _final_significance(entry, cand):
+    """The entry's significance as it stands in the final set: its value against the model's, over its
+    marginal error (the Wald statistic of the joint fit), or its retest's likelihood ratio when one ran."""
+    if "retest_delta_chi2" in entry:
+        delta = entry["retest_delta_chi2"]
+    elif cand.fit is None and len(entry["params"]) == 1:
+        err = entry["errors"].get(cand.param)
+        delta = ((entry["params"][cand.param] - entry["model_value"]) / err) ** 2 if err and err > 0 else \
+            entry["delta_chi2"]
+    else:
+        delta = entry["delta_chi2"]
+    entry["delta_chi2"] = float(delta)
+    entry["significance_sigma"] = _sigma(delta, entry["free_parameters"])
+    entry["significant"] = delta > threshold(entry["free_parameters"])
+
+
+#: the free 8-coupling IPC kernel replaces the one-parameter template when its improvement passes the
+#: threshold for its 7 extra parameters
+def _ipc_shape(problem, best: Fit, progress=None):
+    """A named IPC: its kernel's 8 couplings freed when the data ask for another shape than the model's
+    (:func:`perscli.diagnose.candidates.ipc_free_shape`), and the free kernel physical; (fit, note)."""
+    from .candidates import ipc_free_shape
+
+    shape = ipc_free_shape(problem, best.model)
+    delta = shape["delta_chi2"] / best.dispersion
+    if delta <= threshold(7):
+        return best, ""
+    trial = Fit(best.candidate, shape["alpha"], shape["error"] * math.sqrt(best.dispersion), best.start,
+                best.m2lnl, nparams=8)
+    trial.model = shape["model"]
+    why = _unphysical(trial, problem, False)
+    if why:
+        return best, (f"another kernel shape improves -2 ln L by {delta:.1f} (7 parameters) but is {why}: the "
+                      "model's shape is kept")
+    if progress is not None:
+        progress(f"ipc: the 8 couplings freed (delta chi2 {delta:.1f} over the template)")
+    best.model, best.value, best.error = shape["model"], shape["alpha"], trial.error
+    best.delta_chi2 += delta
+    best.nparams = 8
+    best.shape = {"kernel": shape["kernel"], "delta_chi2": delta}
+    return best, f"kernel shape freed: its 8 couplings improve -2 ln L by {delta:.1f} over the model's shape"
