@@ -46,11 +46,18 @@ JUMP_SIGMA = 10.0
 RAMP_CANDIDATES = ("persistence", "nonlinearity", "read_noise", "gain")
 
 
-#: a photon-transfer gain is trusted only when its estimates in three ranges of signal agree (chi^2 p-value
-#: above this) and each is measured to :data:`PTC_PRECISION`: variance that grows faster than Poisson noise
-#: (light that changes between or during exposures, pointing jitter across a spectrum) makes them disagree
+#: a photon-transfer gain is trusted only when its estimates in the ranges of signal agree (chi^2 p-value
+#: above this) and it is measured to :data:`PTC_PRECISION`: variance that grows faster than Poisson noise
+#: (light that changes between or during exposures, pointing jitter across a spectrum, scenes that differ
+#: between two exposures) makes them disagree
 PTC_CONSISTENCY_P = 0.01
 PTC_PRECISION = 0.05
+#: a read this many sigma from its pixel's constant rate (its median interval) marks the pixel's light as
+#: changing during the ramp: its second differences hold the change, not only noise
+STEADY_SIGMA = 5.0
+#: a variance that grows as the square of the signal (a scene that differs between two ramps by a share of
+#: its light, light that changes) is found when the quadratic term of the curve exceeds this many errors
+QUADRATIC_SIGMA = 4.0
 
 
 def _clipped_variance(d: np.ndarray) -> float:
@@ -66,26 +73,87 @@ def _clipped_variance(d: np.ndarray) -> float:
     return float(d.var(ddof=1)) if d.size > 1 else float("nan")
 
 
-#: signal groups of a photon-transfer curve (quantiles of the pixels below the brightest tenth)
-PTC_GROUPS = 6
+#: signal groups of a photon-transfer curve (spaced evenly in the logarithm of the signal), and the fewest
+#: pixels (or pixel-intervals) a group needs
+PTC_GROUPS = 8
+PTC_MIN_GROUP = 200
 
 
-def _ptc_points(exposures):
-    """Points of a photon-transfer curve: (mean signal, noise variance, its error) in counts, and the method.
+def _equal_intervals(exp):
+    """The ramp's first differences over its equally spaced reads: (intervals, ny, nx), and their spacing."""
+    spacing = np.diff(np.concatenate([[0.0], exp.read_times]))
+    usual = np.isclose(spacing, np.median(spacing), rtol=1e-3)
+    d = np.diff(np.concatenate([np.zeros((1,) + exp.data.shape[1:]), exp.data]), axis=0)[usual]
+    return d, float(np.median(spacing))
+
+
+def _changing_light(exp, valid, gain):
+    """Pixels whose light is constant during ``exp`` (every equally spaced interval within
+    :data:`STEADY_SIGMA` of the pixel's median one, its noise from the faint pixels' second differences and
+    Poisson noise at ``gain``), and the share of the illuminated pixels (above the median) that are not."""
+    d, _ = _equal_intervals(exp)
+    if d.shape[0] < 3:
+        return valid, 0.0
+    med = np.median(d, axis=0)
+    dd = np.diff(d, axis=0)
+    usable = valid & np.all(np.isfinite(dd), axis=0)
+    faint = usable & (med <= np.nanquantile(np.where(usable, med, np.nan), 0.2))
+    read2 = (1.4826 * np.median(np.abs(dd[:, faint]))) ** 2 / 2.0 if faint.any() else 1.0
+    sigma = np.sqrt(read2 + np.clip(med, 0.0, None) / max(gain or 1.0, 1e-6))
+    worst = np.max(np.abs(d - med), axis=0) / sigma
+    steady = usable & (worst < STEADY_SIGMA)
+    # the illuminated pixels by their mean interval (light that arrives in one interval leaves the median at 0)
+    mean = d.mean(axis=0)
+    lit = usable & (mean > np.median(mean[usable]) + 10.0 * np.sqrt(read2)) if usable.any() else usable
+    share = float(1.0 - steady[lit].mean()) if lit.any() else 0.0
+    return steady, share
+
+
+#: two ramps hold one scene when fewer than this share of their pixels differ by more than
+#: :data:`SCENE_SIGMA` times the noise Poisson noise at the header gain and the read noise give (a gain
+#: off by a factor 2 would put 5e-4 of them there)
+SCENE_SHARE = 0.01
+SCENE_SIGMA = 5.0
+
+
+def _scene_difference(a, b, valid, gain) -> dict:
+    """Which share of the pixels differ between the last reads of two ramps by more than :data:`SCENE_SIGMA`
+    times their noise (Poisson noise at ``gain``; the read noise from the faintest fifth's difference)."""
+    both = valid & np.isfinite(a) & np.isfinite(b)
+    if both.sum() < 100 or not gain:
+        return {}
+    diff = a - b
+    mean = 0.5 * (a + b)
+    faint = both & (mean <= np.quantile(mean[both], 0.2))
+    if faint.sum() < 30:
+        return {}
+    spread = (1.4826 * np.median(np.abs(diff[faint] - np.median(diff[faint])))) ** 2
+    read2 = max(spread - 2.0 * float(np.median(mean[faint])) / gain, 0.0)
+    z = (diff - np.median(diff[both])) / np.sqrt(2.0 * np.clip(mean, 0.0, None) / gain + read2)
+    return {"scene_share": float(np.mean(np.abs(z[both]) > SCENE_SIGMA))}
+
+
+def _ptc_points(exposures, gain=None):
+    """Points of a photon-transfer curve: (mean signal, noise variance, its error) in counts, the method, the
+    weight of the read noise in the intercept, and what was found about the light.
 
     Two ramps with the same reads (a pair of exposures of one scene): the
     pixels' difference between the ramps' last reads, whose variance over 2
     is the Poisson variance (signal / gain) plus twice the read noise's
     (reads minus the first).  One ramp: the second differences of its
     equally spaced reads, whose variance over 2 is one interval's Poisson
-    variance plus three times the read noise's.  Pixels are grouped by
-    signal (:data:`PTC_GROUPS` quantiles, the brightest tenth left out:
-    there a scene's own changes dominate); each group's error comes from
-    the spread between eight random subsets of its pixels.
+    variance plus three times the read noise's, over the pixels whose light
+    is constant during the ramp (:func:`_changing_light`; where it changes,
+    the second differences hold the change).  Pixels are grouped by signal
+    (:data:`PTC_GROUPS` groups evenly spaced in its logarithm, from the sky
+    to the brightest percent, each with at least :data:`PTC_MIN_GROUP`);
+    each group's error comes from the spread between eight random subsets of
+    its pixels.
     """
     ramps = [e for e in exposures if e.is_ramp]
     pair = next(((a, b) for i, a in enumerate(ramps) for b in ramps[i + 1:]
                  if a.data.shape == b.data.shape and np.allclose(a.read_times, b.read_times, rtol=1e-4)), None)
+    info = {}
     if pair is not None:
         a, b = pair
         valid = np.ones(a.data.shape[-2:], dtype=bool)
@@ -94,73 +162,127 @@ def _ptc_points(exposures):
                 valid &= e.valid
         valid &= np.all(np.isfinite(a.data), axis=0) & np.all(np.isfinite(b.data), axis=0)
         signal = 0.5 * (a.data[-1] + b.data[-1])
+        # the sum and the difference of two equally noisy ramps are independent: grouping by the signal picks
+        # no noise
+        key = signal
         noise = (a.data[-1] - b.data[-1]) / np.sqrt(2.0)
         method, weight = "the difference of two ramps", 2.0
+        info.update(_scene_difference(a.data[-1], b.data[-1], valid, gain))
     elif ramps:
         exp = ramps[0]
-        spacing = np.diff(np.concatenate([[0.0], exp.read_times]))
-        usual = np.isclose(spacing, np.median(spacing), rtol=1e-3)
-        d = np.diff(np.concatenate([np.zeros((1,) + exp.data.shape[1:]), exp.data]), axis=0)[usual]
+        d, _ = _equal_intervals(exp)
         if d.shape[0] < 4:
-            return [], "second differences", 3.0
+            return [], "second differences", 3.0, info
         dd = np.diff(d, axis=0)
         valid = (exp.valid if exp.valid is not None else np.ones(exp.data.shape[-2:], dtype=bool)) \
             & np.all(np.isfinite(dd), axis=0)
-        signal = np.broadcast_to(d.mean(axis=0), dd.shape)
+        steady, share = _changing_light(exp, valid, gain)
+        info["changing_share"] = share
+        info["steady_pixels"] = int(steady.sum())
+        valid = steady
+        own = d.mean(axis=0)
+        signal = np.broadcast_to(own, dd.shape)
+        # pixels are grouped by their neighbours' signal, not their own: a pixel's own mean interval shares its
+        # first and last reads with its second differences, and grouping by it would pick pixels whose reads
+        # are extreme (the faintest group's variance too high, the line too flat); the group's signal is still
+        # the mean of its pixels' own, and the curve, a line, is unchanged by mixing rates in a group
+        from scipy import ndimage
+
+        around = (ndimage.uniform_filter(np.where(valid, own, 0.0), 3, mode="constant") * 9.0 - np.where(valid, own, 0.0))
+        count = ndimage.uniform_filter(valid.astype(float), 3, mode="constant") * 9.0 - valid
+        key = np.broadcast_to(np.where(count > 0, around / np.maximum(count, 1), own), dd.shape)
         noise = dd / np.sqrt(2.0)
         valid = np.broadcast_to(valid, dd.shape)
         method, weight = "second differences of one ramp", 3.0
     else:
-        return [], "none", 1.0
-    sig, noi = signal[valid], noise[valid]
-    if sig.size < 300 * PTC_GROUPS:
-        return [], method, weight
-    cuts = np.quantile(sig, np.linspace(0.0, 0.9, PTC_GROUPS + 1))
+        return [], "none", 1.0, info
+    sig, noi, keys = signal[valid], noise[valid], key[valid]
+    if sig.size < PTC_MIN_GROUP * 3:
+        return [], method, weight, info
+    # groups spaced evenly in the logarithm of the signal, from the sky to the brightest percent (left out: the
+    # well's nonlinearity): most pixels of a field see the sky alone, and the range the gain needs is in the few
+    # that see sources
+    lo = max(float(np.quantile(keys, 0.02)), 1.0)
+    hi = float(np.quantile(keys, 0.99))
+    cuts = np.geomspace(lo, hi, PTC_GROUPS + 1) if hi > 2.0 * lo else np.array([lo, hi])
+    cuts[0] = float(keys.min())
     rng = np.random.default_rng(0)
     points = []
-    for g in range(PTC_GROUPS):
-        sel = (sig >= cuts[g]) & (sig <= cuts[g + 1])
+    for g in range(len(cuts) - 1):
+        sel = (keys >= cuts[g]) & (keys <= cuts[g + 1])
+        if sel.sum() < PTC_MIN_GROUP:
+            continue
         x, y = sig[sel], noi[sel]
         y = y - np.median(y)
         var = _clipped_variance(y)
         parts = np.array_split(rng.permutation(y.size), 8)
         spread = np.std([_clipped_variance(y[k]) for k in parts], ddof=1) / np.sqrt(8.0)
         points.append((float(x.mean()), var, float(spread)))
-    return points, method, weight
+    return points, method, weight, info
 
 
 def photon_transfer(exposures, header_gain=None) -> dict:
-    """The gain and read noise the measured ramps themselves give, and whether they hold a photon-transfer case.
+    """The gain and read noise the measured ramps themselves give, or why they cannot give them.
 
     The noise variance against the signal (:func:`_ptc_points`) is a line of
     slope 1 / gain and intercept w x read noise^2 (w = 2 or 3, by method).
-    The gain is *trusted* only when the line describes every group (chi^2
-    p-value above :data:`PTC_CONSISTENCY_P`) and is measured to
-    :data:`PTC_PRECISION`; otherwise the data hold variance that is not the
-    Poisson noise of a gain (light that changes, pointing jitter, scene
-    differences between exposures), and the header's gain is kept.
+    The gain is *trusted* only when the data hold a photon-transfer case:
+
+    - one ramp: pixels whose light is constant during the ramp span a range
+      of signal (where the light changes, as in a spatial scan or a grism
+      time series, the reads hold the change, not only noise);
+    - the variance does not grow as the square of the signal (a term
+      :data:`QUADRATIC_SIGMA` errors from zero: two ramps whose scenes differ
+      by a share of their light, light that changes);
+    - the line describes every group (chi^2 p-value above
+      :data:`PTC_CONSISTENCY_P`) and measures the gain to :data:`PTC_PRECISION`.
+
+    Otherwise the verdict says which of these fails, and the header's gain
+    is kept; no gain is given (a line through points it does not describe
+    is no measurement: on the WFC3-IR grism ramps it said 0.3 e-/DN for one
+    ramp and 2.07 for the pair, against 2.46).
 
     Returns
     -------
     dict
-        ``gain``, ``gain_error`` (e-/count), ``read_noise`` (counts per read),
-        ``trusted`` (bool), ``method``, ``points`` and a one-line ``verdict``.
+        ``gain``, ``gain_error`` (e-/count; None unless trusted),
+        ``read_noise`` (counts per read), ``trusted`` (bool), ``method``,
+        ``points``, ``reason`` (why not, empty when trusted) and a
+        one-line ``verdict``.
     """
     from scipy.stats import chi2
 
-    points, method, weight = _ptc_points(exposures)
+    points, method, weight, info = _ptc_points(exposures, header_gain)
     out = {"method": method, "trusted": False, "gain": None, "gain_error": None, "read_noise": None,
-           "points": [list(p) for p in points]}
-    if len(points) < 3:
-        out["verdict"] = "no photon-transfer case (too few reads or pixels): the header gain is kept"
+           "points": [list(p) for p in points], **info}
+    kept = f"the header gain ({header_gain:.3g}) is kept" if header_gain else "no gain is measured"
+
+    def refuse(reason):
+        out["reason"] = reason
+        out["verdict"] = f"no photon-transfer case: {reason}; {kept}"
         return out
+
+    changing = info.get("changing_share", 0.0)
+    if changing > 0.05:
+        # the first thing to say: the brighter pixels' reads hold the change of their light
+        light = (f"the light of {100 * changing:.0f}% of the illuminated pixels changes during the ramp (a "
+                 "spatial scan, a grism time series, a source that varies), and the pixels whose light is "
+                 "constant ")
+    else:
+        light = "the pixels "
+    scene = info.get("scene_share")
+    if scene is not None and scene > SCENE_SHARE:
+        return refuse(f"the two ramps' scenes differ: {100 * scene:.2g}% of the pixels differ by more than "
+                      f"{SCENE_SIGMA:g} times the noise Poisson noise at the header gain and the read noise give "
+                      "(light that moved or changed between them), so their difference is not noise")
+    if len(points) < 3:
+        return refuse(light + "are too few")
     m = np.array([p[0] for p in points])
     v = np.array([p[1] for p in points])
     e = np.array([p[2] for p in points])
     ok = np.isfinite(v) & (e > 0)
     if ok.sum() < 3 or np.ptp(m[ok]) <= 0:
-        out["verdict"] = "no photon-transfer case (no range of signal): the header gain is kept"
-        return out
+        return refuse(light + "span no range of signal")
     a = np.stack([m[ok], np.ones(ok.sum())], axis=1) / e[ok, None]
     coef, *_ = np.linalg.lstsq(a, v[ok] / e[ok], rcond=None)
     cov = np.linalg.inv(a.T @ a)
@@ -175,18 +297,27 @@ def photon_transfer(exposures, header_gain=None) -> dict:
         return float(np.sqrt(max(v[0] - m[0] / g, 0.0) / weight)) if g else float(np.sqrt(max(v[0], 0.0) / weight))
 
     out["read_noise"] = read_noise(header_gain)
+    if ok.sum() >= 4:
+        q = np.stack([m[ok] ** 2, m[ok], np.ones(ok.sum())], axis=1) / e[ok, None]
+        qc, *_ = np.linalg.lstsq(q, v[ok] / e[ok], rcond=None)
+        qerr = float(np.sqrt(np.linalg.inv(q.T @ q)[0, 0]))
+        out["quadratic"] = [float(qc[0]), qerr]
+        if qc[0] > QUADRATIC_SIGMA * qerr:
+            what = ("the two ramps' scenes differ by a share of their light" if method.startswith("the difference")
+                    else "their light changes between reads")
+            return refuse(f"{light}hold noise that grows as the square of the signal ({qc[0] / qerr:.0f} sigma "
+                          f"from none): {what}, not only Poisson noise")
     if not slope > 0:
-        out["verdict"] = "no photon-transfer case (the noise does not grow with the signal): the header gain is kept"
-        return out
+        return refuse(light + "hold noise that does not grow with the signal")
     gain = 1.0 / slope
     err = float(np.sqrt(cov[0, 0])) / slope ** 2
-    out.update(gain=gain, gain_error=err)
-    if consistency < PTC_CONSISTENCY_P or err > PTC_PRECISION * gain:
-        why = (f"the noise does not grow as Poisson noise of one gain (chi^2 p = {consistency:.2g})"
-               if consistency < PTC_CONSISTENCY_P else f"the gain is measured to {100 * err / gain:.0f}% only")
-        out["verdict"] = f"no photon-transfer case ({why}; {gain:.3g} +- {err:.2g}): the header gain is kept"
-        return out
-    out["trusted"] = True
+    if consistency < PTC_CONSISTENCY_P:
+        return refuse(f"{light}hold noise that does not grow as Poisson noise of one gain (chi^2 p = "
+                      f"{consistency:.2g} over {int(ok.sum())} ranges of signal)")
+    if err > PTC_PRECISION * gain:
+        return refuse(f"{light}span {m[ok].min():.3g}-{m[ok].max():.3g} counts: they measure the gain to "
+                      f"{100 * err / gain:.0f}% only")
+    out.update(trusted=True, gain=gain, gain_error=err, reason="")
     out["read_noise"] = read_noise(gain)
     if header_gain:
         agree = abs(gain - header_gain) <= 3.0 * err + 0.05 * header_gain
