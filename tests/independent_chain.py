@@ -8,7 +8,7 @@ of the earlier measured exposures (the Fermi law with its linear branch, integra
 the exposure), the full well, classical nonlinearity, interpixel capacitance, read noise, an
 offset, the gain and rounding to DN; and effects that perscli's models do not describe:
 row and column read noise, 1/f noise along the readout, hot pixels, a flat-field error, a shift of the PSF, cosmic
-rays, and persistence that decays exponentially in time.
+rays, persistence that decays exponentially in time, and persistence from saturated pixels only.
 
 Each measured frame copies the headers of its simulated frame (timing, WCS, GAIN 1, BUNIT DN),
 so diagnose pairs them; only the pixels differ.
@@ -92,7 +92,8 @@ def make_measured(sims, outdir, *, seed: int, **hidden):
         models: row_noise, col_noise (e- rms per row / column of each read), hot_fraction and
         hot_dark (e-/s), flat_rms (a smooth flat-field error, relative), shift (pixels, of the
         sources' light), cosmic_rays (hits per frame), persistence_tau (s: exponential decay),
-        one_over_f (e- rms of 1/f noise along the readout order).
+        persistence_saturated_only (only pixels at the full well persist), one_over_f (e- rms of 1/f
+        noise along the readout order).
 
     Returns
     -------
@@ -104,7 +105,8 @@ def make_measured(sims, outdir, *, seed: int, **hidden):
     p = dict(ROMAN)
     p["ipc"] = roman_ipc()
     extra = {k: hidden.pop(k) for k in ("row_noise", "col_noise", "hot_fraction", "hot_dark", "flat_rms", "shift",
-                                        "cosmic_rays", "persistence_tau", "ipc_alpha", "one_over_f") if k in hidden}
+                                        "cosmic_rays", "persistence_tau", "ipc_alpha", "one_over_f",
+                                        "persistence_saturated_only") if k in hidden}
     unknown = set(hidden) - set(p)
     if unknown:
         raise ValueError(f"unknown hidden effects {unknown}")
@@ -145,6 +147,9 @@ def make_measured(sims, outdir, *, seed: int, **hidden):
         law = extra.get("persistence_tau", "power")
         for fluence, end_prev in history[::-1][:10]:
             t0 = (start - end_prev) * 86400.0
+            if extra.get("persistence_saturated_only"):
+                # only the pixels that reached the full well persist (traps filled only beyond it)
+                fluence = np.where(fluence >= p["full_well"], fluence, 0.0)
             q += _fermi(fluence, p) * _time_integral(t0, t0 + t, p, law)
         if p["bf"]:
             # brighter-fatter: a pixel's charge pushed to its neighbours in proportion to its square

@@ -2,17 +2,25 @@
 
 The simulations are perscli renders of one small scene (4 exposures of a 160 x 160 cutout with 40
 stars from J = 14 to 22 and 20 galaxies); the "measured" frames are made from their IDEAL by an
-independent numpy detector chain with a hidden effect, a new noise seed each time.  The rates
-asked of a tool a detector team can trust, over enough seeds to support them:
+independent numpy detector chain with hidden effects, a new noise seed each time.  Every strength is
+set in units of the error diagnose itself reports for the effect: one calibration seed at a strong
+trial strength gives the error (marginal, beside the other hidden effects of the case), and the case
+is made at the number of those errors it asks for.  The rates asked of a tool a detector team can
+trust, over enough seeds to support them:
 
 - null cases (the chain at Roman's values) name nothing in at least 99% of seeds, and each
   candidate's improvement of -2 ln L follows the chi^2 it is tested against;
-- each candidate at 5 sigma or more (6 here: its strength six times the error diagnose reports for it) is named
-  in at least 95% of seeds, alone;
-- effects outside the candidates end in "unexplained", never in a named effect with a parameter;
+- each candidate at 6 sigma is named in at least 95% of seeds, alone; at 2 sigma nothing false is named;
+- interpixel capacitance at 5.5 and 10 sigma is named as IPC (not brighter-fatter) in at least 90%;
+- sets of effects (gain + reciprocity + IPC, brighter-fatter + IPC + nonlinearity) are recovered whole,
+  every value within 3 marginal sigma and nothing else named, in at least 4 of 5 seeds; a 4-sigma
+  effect beside a 50-sigma one is found in at least 4 of 5;
+- effects outside the candidates end in "unexplained", never in a named effect with a parameter; a
+  persistence that decays exponentially, or comes from saturated pixels only, is said to be one, with
+  the reason, and nothing else named;
 - correlated pairs are recovered within 3 marginal sigma, nothing else named.
 
-These run a few hundred diagnoses (about 20 minutes on 2 cores): they are marked slow.
+These run about four hundred diagnoses (about 25 minutes on 2 cores): they are marked slow.
 """
 
 from __future__ import annotations
@@ -28,6 +36,12 @@ pytestmark = pytest.mark.slow
 BOUNDS = (1001, 1160, 2001, 2160)
 NULL_SEEDS = 100
 DETECT_SEEDS = 20
+TWO_SIGMA_SEEDS = 5
+IPC_SEEDS = 10
+SET_SEEDS = 5
+#: of SET_SEEDS, how many must recover the set
+SET_PASS = 4
+LAW_SEEDS = 5
 OUTSIDE_SEEDS = 4
 PAIR_SEEDS = 5
 
@@ -79,33 +93,75 @@ def test_null_cases_name_nothing_and_the_statistics_follow_chi2(sims):
         assert values.mean() < dof + 3 * np.sqrt(2 * dof / len(values)), (effect, values.mean())
 
 
-#: (generator setting, its Roman value, the effect, its parameter, the hidden value): strengths about 6 sigma
-#: of the error diagnose reports (measured on one seed at 20-40 sigma and scaled).  The decision's threshold is
-#: 3.29 sigma, so an effect at exactly 5 sigma is named in 95.6% of seeds: 20 seeds could not tell that from
-#: 90%.  At 6 sigma the rate is 99.7%, and 19 of 20 is then a test that fails only when the rate is wrong.
-FIVE_SIGMA = [
-    ("dark", {"dark": 0.01728}, "dark", "current", 0.01728),
-    ("read_noise", {"read_noise": 8.90}, "read_noise", "sigma", 8.90),
-    ("gain", {"gain": 1.0006}, "gain", "gain", 1.0006),
-    ("nonlinearity", {"beta": -6.144e-7}, "nonlinearity", "beta", -6.144e-7),
-    # reciprocity, nonlinearity and gain are near-degenerate in a field of 40 faint stars: at 6 sigma the wrong
-    # one of them leads by more than the degeneracy window in ~1 seed of 20; at 7.5 the right one is named
-    # or listed with it every time
-    ("reciprocity", {"reciprocity": 0.00695}, "reciprocity", "alpha", 0.00695),
-    ("ipc", {"ipc_alpha": 0.014686}, "ipc", "alpha", 0.014686),
-    ("offset", {"offset": 0.324}, "offset", "level", 0.324),
-    ("brighter_fatter", {"bf": 6.8e-10}, "brighter_fatter", "coefficient", 6.8e-10),
-    # its significance grows as the variance, the square of the rms
-    ("correlated_read_noise", {"row_noise": 1.55, "col_noise": 1.55}, "correlated_read_noise", "row", 1.55),
-    ("persistence", {"persistence_A": 0.0266}, "persistence", "A", 0.0266),
-]
+#: Roman's nearest-neighbour IPC coupling (the mean of galsim.roman's 4): what the model of the simulations has
+ROMAN_IPC = 0.014291
+
+#: effect -> (its parameter in diagnose, the generator's setting, the value the model has, a trial change): the
+#: trial is a strong change (20-40 errors) whose fit gives diagnose's error for the effect on this scene
+STRENGTH = {
+    "dark": ("current", "dark", 0.015, 0.008),
+    "read_noise": ("sigma", "read_noise", 8.5, 1.2),
+    "gain": ("gain", "gain", 1.0, 0.003),
+    "nonlinearity": ("beta", "beta", -6e-7, -7e-8),
+    "reciprocity": ("alpha", "reciprocity", 0.0065, 0.002),
+    "ipc": ("alpha", "ipc_alpha", ROMAN_IPC, 0.001),
+    "offset": ("level", "offset", 0.0, 1.5),
+    "brighter_fatter": ("coefficient", "bf", 0.0, 3e-9),
+    "persistence": ("A", "persistence_A", 0.017, 0.05),
+}
+
+_ERRORS: dict = {}
 
 
-@pytest.mark.parametrize("case, hidden, effect, param, truth", FIVE_SIGMA, ids=[c[0] for c in FIVE_SIGMA])
-def test_each_candidate_at_five_sigma_is_named_in_95_percent_of_seeds(sims, case, hidden, effect, param, truth):
+def errors(sims, effects, **fixed):
+    """diagnose's own errors for ``effects`` (names in :data:`STRENGTH`) made together at their trial changes
+    (and ``fixed`` generator settings), from one calibration seed: {effect: error}.  Cached per set."""
+    key = (tuple(effects), tuple(sorted(fixed.items())))
+    if key not in _ERRORS:
+        hidden = dict(fixed)
+        for name in effects:
+            _, setting, model, trial = STRENGTH[name]
+            hidden[setting] = model + trial
+        report = diagnose_case(sims, "calibration", 90_000 + len(_ERRORS), **hidden)
+        found = {e["effect"]: e for e in report["found"]}
+        assert set(effects) <= set(found), ("calibration", effects, report["verdict"])
+        _ERRORS[key] = {name: found[name]["errors"][STRENGTH[name][0]] for name in effects}
+    return _ERRORS[key]
+
+
+def hidden_at(sims, sigmas: dict, **fixed) -> dict:
+    """The generator's settings that put each effect of ``sigmas`` ({effect: how many of its errors}) that many
+    of diagnose's own errors from the model's value (the errors of the set, each effect beside the others)."""
+    errs = errors(sims, list(sigmas), **fixed)
+    out = dict(fixed)
+    for name, k in sigmas.items():
+        _, setting, model, trial = STRENGTH[name]
+        out[setting] = model + np.sign(trial) * k * errs[name]
+    return out
+
+
+def truth(name, hidden):
+    return hidden[STRENGTH[name][1]]
+
+
+#: the decision's threshold is 3.29 sigma, so an effect at exactly 5 sigma is named in 95.6% of seeds: 20 seeds
+#: could not tell that from 90%.  At 6 sigma the rate is 99.7%, and 19 of 20 is then a test that fails only when
+#: the rate is wrong.  (Correlated read noise is a variance: its significance grows as the square of its rms,
+#: and 1.55 e- row and column noise is about 6 sigma here.)
+FIVE_SIGMA = ["dark", "read_noise", "gain", "nonlinearity", "reciprocity", "ipc", "offset", "brighter_fatter",
+              "correlated_read_noise", "persistence"]
+
+
+@pytest.mark.parametrize("effect", FIVE_SIGMA)
+def test_each_candidate_at_six_sigma_is_named_in_95_percent_of_seeds(sims, effect):
+    if effect == "correlated_read_noise":
+        hidden, param, value = {"row_noise": 1.55, "col_noise": 1.55}, "row", 1.55
+    else:
+        hidden = hidden_at(sims, {effect: 6.0})
+        param, value = STRENGTH[effect][0], truth(effect, hidden)
     hits, wrong, sigmas = 0, [], []
     for s in range(DETECT_SEEDS):
-        report = diagnose_case(sims, case, 20_000 + s, **hidden)
+        report = diagnose_case(sims, effect, 20_000 + s, **hidden)
         # named: as the effect, or in the group of effects the report says the data cannot tell apart
         # from the one it names (a dark current and an offset with one exposure time; gain and reciprocity
         # near 5 sigma in a field of faint stars): "reciprocity (or gain: the data cannot tell them apart)"
@@ -115,14 +171,128 @@ def test_each_candidate_at_five_sigma_is_named_in_95_percent_of_seeds(sims, case
             sigmas.append(entry["significance_sigma"])
             if entry["effect"] == effect:
                 # within 4 sigma of the truth (the Roman value is what the model had)
-                assert abs(entry["params"][param] - truth) <= 4 * entry["errors"][param], \
+                assert abs(entry["params"][param] - value) <= 4 * entry["errors"][param], \
                     (entry["params"], entry["errors"])
         # anything else named is a wrong effect stated with confidence
         wrong += [e["effect"] for e in report["found"] if e is not entry]
-    assert hits >= 0.95 * DETECT_SEEDS, (case, hits, sigmas)
+    assert hits >= 0.95 * DETECT_SEEDS, (effect, hits, sigmas)
     # the strengths are about 6 sigma, not far above: the test would not show the rate otherwise
     assert 4.5 < np.median(sigmas) < 9.0, sigmas
     assert not wrong, wrong
+
+
+@pytest.mark.parametrize("effect", ["ipc", "dark", "nonlinearity", "brighter_fatter", "persistence"])
+def test_at_two_sigma_nothing_false_is_named(sims, effect):
+    """An effect at 2 sigma is at the edge of what the data say: it may be named (about one seed in ten, at a
+    threshold of 3.29 sigma), never anything else, and nothing is unexplained."""
+    hidden = hidden_at(sims, {effect: 2.0})
+    for s in range(TWO_SIGMA_SEEDS):
+        report = diagnose_case(sims, f"two_{effect}", 25_000 + s, **hidden)
+        assert {e["effect"] for e in report["found"]} <= {effect}, report["verdict"]
+        assert not report["unexplained"], report["verdict"]
+
+
+@pytest.mark.parametrize("k", [5.5, 10.0])
+def test_ipc_is_named_ipc_not_brighter_fatter(sims, k):
+    """Interpixel capacitance is tested by its one-parameter template (the model's kernel scaled): at 5.5 and
+    10 sigma it is named, as IPC, in at least 90% of seeds; brighter-fatter, whose flow also goes to the nearest
+    neighbours, never takes its place."""
+    hidden = hidden_at(sims, {"ipc": k})
+    named, other = 0, []
+    for s in range(IPC_SEEDS):
+        report = diagnose_case(sims, f"ipc_{k}", 60_000 + s, **hidden)
+        names = [e["effect"] for e in report["found"]]
+        named += names == ["ipc"]
+        other += [n for n in names if n != "ipc"]
+    assert named >= 0.9 * IPC_SEEDS, (k, named, other)
+    assert "brighter_fatter" not in other, other
+
+
+SETS = [
+    ("gain_reciprocity_ipc", {"gain": 10.0, "reciprocity": 10.0, "ipc": 10.0}),
+    ("bf_ipc_nonlinearity", {"brighter_fatter": 10.0, "ipc": 10.0, "nonlinearity": 10.0}),
+    # a weak effect beside a strong one: found at its own significance once the strong one is in
+    ("weak_ipc_beside_nonlinearity", {"ipc": 4.0, "nonlinearity": 50.0}),
+    ("weak_persistence_beside_reciprocity", {"persistence": 4.0, "reciprocity": 50.0}),
+]
+
+
+@pytest.mark.parametrize("case, sigmas", SETS, ids=[c[0] for c in SETS])
+def test_sets_of_effects_are_recovered_together(sims, case, sigmas):
+    """Each effect of the set at the given number of its own errors (marginal, beside the others): in at least
+    4 of 5 seeds every one is named (the weak one beside a strong one: named, or listed with one it cannot be
+    told from, or reported below the threshold), its value within 3 marginal sigma of the truth, and nothing
+    else is named."""
+    hidden = hidden_at(sims, sigmas)
+    good, verdicts = 0, []
+    weak = [n for n, k in sigmas.items() if k < 5.0]
+    for s in range(SET_SEEDS):
+        report = diagnose_case(sims, case, 70_000 + s, **hidden)
+        found = {e["effect"]: e for e in report["found"]}
+        # found without being named: listed with a named effect as one the data cannot tell from it, or reported
+        # below the naming threshold (above p = 0.01 beside the named effects: a 4-sigma effect passes 3.29 sigma
+        # in 76% of data sets, 2.58 sigma in 92%)
+        listed = ({d for e in report["found"] for d in e["degenerate_with"]}
+                  | {h["effect"] for h in report["below_threshold"]})
+        verdicts.append(report["verdict"])
+        if weak:
+            # the weak effect found, the strong one named, and nothing named that is neither one of them nor a
+            # stand-in for the weak one
+            ok = (all(n in found or n in listed for n in weak) and all(n in found for n in sigmas if n not in weak)
+                  and all(n in sigmas or set(e["degenerate_with"]) & set(weak) for n, e in found.items()))
+        else:
+            ok = set(found) == set(sigmas)
+        for name in sigmas:
+            if ok and name in found:
+                e, param = found[name], STRENGTH[name][0]
+                ok = abs(e["params"][param] - truth(name, hidden)) <= 3 * e["errors"][param]
+        good += bool(ok)
+    assert good >= SET_PASS, (case, good, verdicts)
+
+
+def exponential_amplitude(sims, tau: float, k: float) -> float:
+    """The generator's A that gives an exponentially decaying persistence the charge, in the exposure after,
+    of the law's persistence ``k`` of diagnose's errors above the model's A."""
+    from independent_chain import ROMAN, _time_integral
+
+    err = errors(sims, ["persistence"])["persistence"]
+    gap = 30.0              # the scene's exposures are 139.8 s long, 30 s apart
+    ratio = _time_integral(gap, gap + 139.8, ROMAN, tau) / _time_integral(gap, gap + 139.8, ROMAN, "power")
+    return (0.017 + k * err) / ratio
+
+
+#: (tau, strength): persistence that decays exponentially, as strong in the exposure after as the law's at that
+#: many of diagnose's errors.  tau 1000 s decays far slower than the law's 1/t, which no power law follows; tau
+#: 120 s decays faster, as t^-1.3 does over the first two exposures after: across the three lags of four
+#: exposures the data tell the two apart at about 6 sigma when the persistence is at 100 sigma, not at 40 (there
+#: "gamma 1.30 +- 0.05" is what the data support)
+EXPONENTIAL = [(1000.0, 40.0), (120.0, 150.0)]
+
+
+@pytest.mark.parametrize("tau, k", EXPONENTIAL, ids=[f"tau{t:g}" for t, _ in EXPONENTIAL])
+def test_exponential_persistence_is_unexplained_with_the_reason(sims, tau, k):
+    """Persistence that decays exponentially: never named (not absorbed into gamma either), reported as
+    unexplained with the reason, the withdrawn fit's significance kept, nothing else named."""
+    hidden = {"persistence_A": exponential_amplitude(sims, tau, k), "persistence_tau": tau}
+    for s in range(LAW_SEEDS):
+        report = diagnose_case(sims, f"tau_{tau:g}", 80_000 + s, **hidden)
+        assert report["found"] == [], report["verdict"]
+        reasons = [u for u in report["unexplained"] if "decay is not the model's law" in u.get("reason", "")]
+        assert reasons, report["verdict"]
+        assert "decay is not the model's law" in report["verdict"]
+        assert report["verdict"] != "no missing effect"
+
+
+def test_persistence_from_saturated_pixels_only_is_said_to_be_so(sims):
+    """Only the pixels that reached the full well persist (the law has every fluence persist): reported as
+    'persistence from saturated pixels only', not as outliers, and nothing else named."""
+    err = errors(sims, ["persistence"])["persistence"]
+    hidden = {"persistence_A": 0.017 + 40.0 * err, "persistence_saturated_only": True}
+    for s in range(LAW_SEEDS):
+        report = diagnose_case(sims, "saturated_only", 85_000 + s, **hidden)
+        assert report["found"] == [], report["verdict"]
+        assert "persistence from saturated pixels only" in report["verdict"], report["verdict"]
+        assert not any(u["probe"] == "outliers" for u in report["unexplained"]), report["verdict"]
 
 
 OUTSIDE = [

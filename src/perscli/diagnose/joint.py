@@ -84,13 +84,16 @@ def directions(problem, model, cands, *, evaluation=None) -> Directions:
     n = len(cands)
     fisher = np.zeros((n, n))
     score = np.zeros(n)
-    excess = ((rr * rr - 1.0) / math.sqrt(2.0)).astype(np.float32)
-    r32 = rr.astype(np.float32)
-    for i in range(n):
-        score[i] = float(np.dot(a_cols[i], r32, out=None)) + float(np.dot(b_cols[i], excess))
-        for j in range(i, n):
-            fisher[i, j] = fisher[j, i] = (float(np.dot(a_cols[i].astype(np.float64), a_cols[j]))
-                                           + float(np.dot(b_cols[i].astype(np.float64), b_cols[j])))
+    excess = (rr * rr - 1.0) / math.sqrt(2.0)
+    # the columns are kept in float32; their products are summed in float64, a chunk of pixels at a time
+    chunk = 1 << 20
+    for cols, target in ((a_cols, rr), (b_cols, excess)):
+        if not n:
+            break
+        for k in range(0, target.size, chunk):
+            block = np.stack([c[k:k + chunk] for c in cols]).astype(np.float64)
+            fisher += block @ block.T
+            score += block @ target[k:k + chunk]
     return Directions(list(cands), values, a_cols, b_cols, score, fisher, ev.m2lnl())
 
 

@@ -126,6 +126,12 @@ class Problem:
             pos += r.stop - (r.start or 0)
         self._charges = {}
         self._charge_sets = {}
+        #: (persistence law, electrons): the fits leave out the pixels where that law leaves more (see
+        #: :meth:`set_aside`); None: every pixel
+        self.aside = None
+        #: exposures whose fit pixels get a level of their own, profiled out in every evaluation (see
+        #: :meth:`set_aside`)
+        self.free_levels = frozenset()
         #: persisted charge persists again: the histories follow the law being fitted (:meth:`history`) when
         #: the simulated frames say how much of their FLUENCE their own law put in
         self._feedback = any(e.persist is not None for e in exposures[1:-1])
@@ -211,6 +217,22 @@ class Problem:
         if well:
             now = np.where(base >= np.float32(well * (1.0 - 1e-6)), base, np.minimum(now, np.float32(well)))
         return np.maximum(now, 0.0).astype(np.float32)
+
+    def set_aside(self, law, limit: float, well=None) -> int:
+        """Leave out of every later fit (not of the gaps) the pixels where the persistence law ``law`` leaves more
+        than ``limit`` electrons: where a persistence the model cannot describe lies, so that the other effects
+        are measured on the pixels it leaves alone.  What it leaves on the rest, its pedestal from the sky's
+        fluence (a fraction of an electron, the same over an exposure), is given a level of each later exposure's
+        own, profiled out of every fit: a dark current or an offset is then measured by the first exposure,
+        which no persistence reaches, and by none of the pedestals.  Returns how many pixels of the fit rows
+        that sets aside."""
+        self.aside = (law, float(limit))
+        self.free_levels = frozenset(range(1, len(self.exposures)))
+        count = 0
+        for i in range(1, len(self.exposures)):
+            unit = self.charge(i, law, "fit", well)
+            count += int(np.count_nonzero(unit[0] * unit[1] > limit))
+        return count
 
     def persistence_parts(self, model: DetectorModel, split) -> dict:
         """The persistence of the law in ``model`` at A = 1 split into parts: {part: {exposure index: electrons
@@ -324,6 +346,13 @@ class Problem:
                 mask &= ~near
             if exp.valid is not None:
                 mask &= exp.valid[rows][sl]
+            if region == "fit" and self.aside is not None and i > 0:
+                # pixels where persistence no law describes lies are left out of the fits (never of the gaps)
+                law, limit = self.aside
+                at = self._stripe_start[(rows.start, rows.stop)]
+                unit = self.charge(i, law, "fit", well)
+                lying = unit[0][at:at + (rows.stop - (rows.start or 0))] * unit[1]
+                mask &= ~(lying[sl] > limit)
             start = (rows.start or 0) + keep0
             yield slice(start, start + (keep1 - keep0)), mean, np.where(mask, var, 1.0), data, mask
 
@@ -347,6 +376,12 @@ class Problem:
         per_exposure = thread_map(lambda i: list(self._pieces(i, model, pieces, region, prepared, extra.get(i))),
                                   range(len(self.exposures)), workers=self.workers)
         for i, done in enumerate(per_exposure):
+            if region == "fit" and i in self.free_levels and done:
+                # a level of this exposure's own, profiled out: the weighted mean residual of its fit pixels
+                num = sum(float(np.sum(((d - m) / v)[k])) for _, m, v, d, k in done)
+                den = sum(float(np.sum((1.0 / v)[k])) for _, m, v, d, k in done)
+                level = num / den if den > 0 else 0.0
+                done = [(rows, mean + level, var, data, mask) for rows, mean, var, data, mask in done]
             for rows, mean, var, data, mask in done:
                 out.mean.append(mean)
                 out.variance.append(var)
