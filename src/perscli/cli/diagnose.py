@@ -47,16 +47,19 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
     candidate (persistence A, ipc alpha, brighter_fatter coefficient,
     nonlinearity beta, reciprocity alpha, dark current, offset level,
     read_noise sigma, correlated_read_noise row and column, gain) is fitted
-    by likelihood; the best is named when its likelihood-ratio improvement
-    passes a test with a false-alarm probability of 1e-3 and its value is
-    physical, every named effect is refitted together (marginal errors and
-    correlations), and the search repeats.  Candidates the data cannot tell
-    apart are reported as one degenerate group.  Misspecification checks
-    (row and column noise, 1/f noise, outliers and hot pixels, noise that
-    grows with the signal, a flat field, displaced or reshaped sources,
-    persistence with another time law) then run on the final model: what
-    they find is reported as "unexplained" and the effects it could be
-    mistaken for are withdrawn.
+    by likelihood beside the effects already named; the best is named when
+    its likelihood-ratio improvement passes a test with a false-alarm
+    probability of 1e-3 and its value is physical, and the search repeats;
+    then every named effect is retested beside the others, the set is
+    compared with every other set of candidates, and one joint fit gives
+    marginal errors and correlations.  Sets the data cannot tell apart are
+    listed as such.  Misspecification checks (row and column noise, 1/f
+    noise, outliers and hot pixels, noise that grows with the signal, a
+    flat field, displaced or reshaped sources, a persistence whose decay or
+    dependence on fluence is not the law's) then run on the final model:
+    what they find is reported as "unexplained", and the effects it could be
+    mistaken for are withdrawn, their significance and the reason kept.  The
+    gap (chi^2 per pixel) is given with its noise sqrt(2/N).
 
     OUTDIR gets model.yaml (the simulation's model with the effects found at
     their fitted values: perscli render --model OUTDIR/model.yaml), report.json,
@@ -114,4 +117,4 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
     report = outcome["report"]
     if not quiet:
         click.echo(f"{report['verdict']}; gap {report['gap_before']:.4g} -> {report['gap_after']:.4g} "
-                   f"(report in {outdir}/report.md)", err=True)
+                   f"+- {report['gap_noise']:.2g} (report in {outdir}/report.md)", err=True)

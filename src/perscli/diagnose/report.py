@@ -128,6 +128,10 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
                                if not any(k.startswith(e["effect"] + ".") or ("~" + e["effect"] + ".") in k
                                           for e in worse)}
         chi2_after, n_after = problem.chi2_full(result.model)
+    # the probes after compare every fit pixel, as the probes before do: pixels a persistence no law describes
+    # had set aside, and the levels freed for it, were for the search's fits only
+    if hasattr(problem, "aside"):
+        problem.aside, problem.free_levels = None, frozenset()
     after_eval = problem.evaluate(result.model)
     nfit = sum(f.get("free_parameters", len(f["params"])) for f in result.found)
     gap_after = chi2_after / max(n_after - nfit, 1)
@@ -325,12 +329,22 @@ def _figures(outcome, folder) -> list:
     ax.bar(xs - 0.2, gb, 0.4, color="C3", label="before")
     ax.bar(xs + 0.2, ga, 0.4, color="C0", label="after")
     ax.axhline(1.0, color="k", lw=0.8, ls="--")
+    noise = report.get("gap_noise")
+    if noise:
+        # where the gap over every pixel lies for pure noise: chi^2 / N scatters by sqrt(2 / N)
+        ax.axhspan(1.0 - 3.0 * noise, 1.0 + 3.0 * noise, color="0.85", zorder=0,
+                   label=f"pure noise, all pixels (1 +- 3 x {noise:.2g})")
     ax.set_xticks(xs)
     ax.set_xticklabels(["all"] + keys, rotation=30, ha="right", fontsize=8)
     ax.set_yscale("log")
+    from matplotlib.ticker import FormatStrFormatter
+
+    # plain numbers on the log axis (gaps are near 1: 1.05, not 1.05 x 10^0)
+    ax.yaxis.set_major_formatter(FormatStrFormatter("%.4g"))
+    ax.yaxis.set_minor_formatter(FormatStrFormatter("%.4g"))
     ax.set_ylabel("chi2 per pixel (1: pure noise)")
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7, loc="best", framealpha=0.8)
     fig.tight_layout()
     fig.savefig(os.path.join(folder, "gap.png"))
     plt.close(fig)
@@ -368,11 +382,15 @@ def _markdown(report) -> str:
               f"An effect is named when it improves -2 ln L by more than {_fmt(thr.get('delta_chi2_one_parameter'))} "
               "for one free parameter (a false-alarm probability of 1e-3; the same for more) with the effects "
               "already named refitted beside it, its value is physical, no misspecification check it would only "
-              "absorb fires, it still passes beside all the others (backward elimination), and adding it does not "
-              "move the gap away from 1 by more than the gap's noise.  Values, errors (marginal) and "
+              "absorb fires, it still passes beside all the others (backward elimination), the set it belongs to "
+              "describes the data better than any other set of candidates, and adding it does not move the gap "
+              "away from 1 by more than the gap's noise to beyond 3 times it.  Values, errors (marginal) and "
               "significances are those of one joint fit of the final set.", ""]
     if not report["found"]:
-        lines += ["No candidate improves the likelihood significantly: no missing effect.", ""]
+        lines += ["Nothing is named" + (": what the data hold that the model lacks is no candidate's (see "
+                                        "Unexplained)." if report.get("unexplained") else
+                                        ": no candidate improves the likelihood significantly, and every check "
+                                        "passes (no missing effect)."), ""]
     else:
         lines += ["| effect | parameter | fitted | error | model had | delta chi2 | significance (sigma) | "
                   "gap without it -> with it | share of gap closed | probe gap before -> after | probe explained | "

@@ -677,7 +677,7 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
                     entry.update(withdrawn_because="; ".join(c.reason for c in law), checks=[c.name for c in law],
                                  degenerate_with=[], round=round_no + 1)
                     return _without_persistence(problem, model, candidates, law, [entry], best.model, progress,
-                                                ramp)
+                                                ramp, rounds)
         extra_note = ""
         if best.candidate.name == "ipc":
             best, extra_note = _ipc_shape(problem, best, progress)
@@ -758,7 +758,7 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
                     fired[c.name] = c
     law = [c for c in fired.values() if c.name in LAW_CHECKS]
     if law and hasattr(problem, "set_aside") and problem.aside is None:
-        return _without_persistence(problem, model, candidates, law, withdrawn, current, progress, ramp)
+        return _without_persistence(problem, model, candidates, law, withdrawn, current, progress, ramp, rounds)
     found = [e for e, _ in named]
     correlations = {}
     if len(cands) > 1:
@@ -1039,7 +1039,7 @@ LAW_CHECKS = ("persistence_decay", "persistence_fluence")
 ASIDE_READ_NOISE = 0.3
 
 
-def _without_persistence(problem, model, candidates, law, withdrawn, current, progress, ramp) -> Result:
+def _without_persistence(problem, model, candidates, law, withdrawn, current, progress, ramp, rounds=()) -> Result:
     """The search again without persistence and without the pixels where the persistence the law does not
     describe lies: what the first search named beside it may have absorbed it (a gain a little low makes a
     ghost's residual a little smaller), so everything is measured again on the pixels it leaves alone.
@@ -1076,6 +1076,10 @@ def _without_persistence(problem, model, candidates, law, withdrawn, current, pr
     seen = {u["probe"] for u in evidence}
     inner.unexplained = evidence + [u for u in inner.unexplained if u["probe"] not in seen or u["probe"] == "withdrawn"]
     inner.set_aside = {"pixels": count, "law_A": float(amplitude), "electrons": ASIDE_READ_NOISE * sigma}
+    if rounds:
+        # the rounds of the first search (with persistence) first: where the evidence came from
+        inner.rounds = list(rounds) + inner.rounds
+        inner.candidates = rounds[0]
     return inner
 
 
