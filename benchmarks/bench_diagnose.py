@@ -211,7 +211,12 @@ L.Problem.evaluate = wrap("evaluate", L.Problem.evaluate, evals)
 R.run_probes = wrap("probes (covariates, binning)", R.run_probes)
 S.fit_candidate = wrap(lambda problem, model, cand, *a, **k: "fit " + cand.name, S.fit_candidate)
 S._free_persistence_shape = wrap("persistence: free its shape", S._free_persistence_shape)
-S.joint_fit = wrap("joint fits of the named effects", S.joint_fit)
+import perscli.diagnose.joint as J
+J.joint_fit = wrap("joint fits (Fisher scoring)", J.joint_fit)
+J.directions = wrap("directions (Fisher matrices)", J.directions)
+S._best_set = wrap("search over sets", S._best_set)
+import perscli.diagnose.checks as C0
+C0.persistence_law = wrap("persistence law's checks", C0.persistence_law)
 import perscli.diagnose.checks as C
 C.run_checks = wrap("misspecification checks (final model)", C.run_checks)
 import scipy.optimize

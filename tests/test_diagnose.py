@@ -328,3 +328,100 @@ def test_threads_give_the_same_report(scene, simulated):
     # the law's shape is the model's: the screen leaves it held (the gamma case above frees it)
     assert set(one["found"][0]["params"]) == {"A"}
     assert (d1 / "report.json").read_bytes() == (d2 / "report.json").read_bytes()
+
+
+# -- the pieces of the decision, on their own (cheap) -------------------------------------------------------------
+
+def _linear_problem(seed=1, n=20000):
+    """A likelihood with known answers: pixels y = a + b x + noise of variance v0 (1 + c), three candidates
+    (a level, a slope, a variance share) whose model is a dict."""
+    from types import SimpleNamespace
+
+    from perscli.diagnose.candidates import Candidate
+    from perscli.diagnose.likelihood import Evaluation
+
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0.0, 3.0, n)
+    v0 = np.full(n, 4.0)
+    truth = {"a": 0.3, "b": -0.2, "c": 0.1}
+    data = truth["a"] + truth["b"] * x + rng.normal(0.0, np.sqrt(v0 * (1 + truth["c"])))
+
+    def evaluate(model):
+        mean = model["a"] + model["b"] * x
+        return Evaluation([mean], [v0 * (1 + model["c"])], [data], [np.ones(n, dtype=bool)])
+
+    def cand(name, scale):
+        return Candidate(name, name, "", (-5.0, 5.0), scale, "signal", "", lambda m, e: m[name],
+                         lambda m, v: {**m, name: float(v)})
+
+    problem = SimpleNamespace(evaluate=evaluate, exposures=[])
+    return problem, [cand("a", 0.1), cand("b", 0.1), cand("c", 0.05)], truth, x, v0, data
+
+
+def test_joint_fit_by_fisher_scoring_gives_the_least_squares_answer_and_its_covariance():
+    """The level and slope of a straight line and the noise's variance share, fitted together from zero: the
+    values and covariance of weighted least squares (and the variance's maximum-likelihood value)."""
+    from perscli.diagnose.joint import correlations, joint_fit
+
+    problem, cands, truth, x, v0, data = _linear_problem()
+    model, values, cov, m2 = joint_fit(problem, {"a": 0.0, "b": 0.0, "c": 0.0}, cands)
+    c = values[2]
+    design = np.stack([np.ones_like(x), x], axis=1)
+    w = 1.0 / (v0 * (1 + c))
+    ls_cov = np.linalg.inv(design.T @ (design * w[:, None]))
+    ls = ls_cov @ design.T @ (w * data)
+    assert np.allclose(values[:2], ls, rtol=1e-6, atol=1e-9), (values, ls)
+    assert np.allclose(cov[:2, :2], ls_cov, rtol=1e-3)
+    resid = data - design @ ls
+    assert c == pytest.approx(np.mean(resid ** 2 / v0) - 1.0, abs=2e-3)
+    assert all(abs(v - truth[k]) < 4 * np.sqrt(cov[i, i]) for i, (k, v) in enumerate(zip("abc", values)))
+    # level and slope share their information: strongly anticorrelated on x in [0, 3]
+    assert correlations(cov)[0, 1] < -0.8
+
+
+def test_a_candidates_improvement_beside_a_named_one_is_its_held_one_over_one_minus_rho2():
+    """The slope fitted with the level held at its best (without the slope) recovers only 1 - rho^2 of what the
+    two fitted together gain: the profile improvement is the held one divided by it."""
+    from perscli.diagnose.joint import directions, joint_fit, shared_information
+
+    problem, cands, truth, x, v0, data = _linear_problem(seed=2)
+    level, slope = cands[0], cands[1]
+    start = {"a": 0.0, "b": 0.0, "c": truth["c"]}
+    with_level, _, _, m2_level = joint_fit(problem, start, [level])
+    dirs = directions(problem, with_level, [level, slope])
+    rho2 = shared_information(dirs, "b", ["a"])
+    held = dirs.score[1] ** 2 / dirs.fisher[1, 1]
+    _, _, _, m2_both = joint_fit(problem, with_level, [level, slope])
+    assert 0.5 < rho2 < 0.9
+    assert held / (1 - rho2) == pytest.approx(m2_level - m2_both, rel=1e-3)
+
+
+def test_the_verdict_keeps_withdrawn_evidence_and_never_says_no_missing_effect_beside_it():
+    from perscli.diagnose.report import _verdict
+
+    withdrawn = {"probe": "withdrawn", "effect": "persistence", "significance": 90.2,
+                 "reason": "persistence-like signal whose decay is not the model's law (t^-1)"}
+    verdict = _verdict([], [withdrawn])
+    assert verdict.startswith("unexplained") and "persistence withdrawn (90 sigma" in verdict
+    assert "decay is not the model's law" in verdict
+    assert _verdict([], []) == "no missing effect"
+
+
+def test_the_gap_is_closed_only_beyond_its_noise_and_shares_are_never_negative():
+    from types import SimpleNamespace
+
+    from perscli.diagnose.report import _closed, _effect_gaps
+
+    noise = 0.0014
+    assert _closed(1.0300, 1.0010, noise) == "closed"
+    assert _closed(1.0012, 1.0020, noise) == "within noise"
+    assert _closed(1.0012, 1.0100, noise) == "worse"
+    # a gap within its noise of 1 before has no share to close: the -136% of a gap going from 1.0012 to 1.0028
+    entry = {"effect": "read_noise"}
+    result = SimpleNamespace(found=[entry], withdrawn=[], model=None)
+    _effect_gaps(None, None, result, 1.0028, 1.0012, noise)
+    assert entry["gap_closed"] == "worse" and entry["share_of_gap_closed"] is None
+    entry = {"effect": "dark"}
+    result = SimpleNamespace(found=[entry], withdrawn=[], model=None)
+    _effect_gaps(None, None, result, 1.0009, 1.2000, noise)
+    assert entry["gap_closed"] == "closed" and 0.99 < entry["share_of_gap_closed"] <= 1.0

@@ -1,24 +1,32 @@
-"""Fit every candidate by likelihood, name the significant ones in turn, refit them together.
+"""Name the effects the data ask for, as a set: forward rounds, backward elimination, a search over sets, checks.
 
-Each round fits every candidate's parameter (a bounded one-dimensional
-minimisation of -2 ln L, the Gaussian likelihood with the model's own
-variance, so that effects on the noise such as read noise count as much as
-effects on the mean) with the effects found so far in the model.  The best
-candidate is named when it improves -2 ln L by more than
+Each round fits every candidate's parameter (one-dimensional: a Newton step
+when the Gaussian likelihood, with the model's own variance so that effects
+on the noise such as read noise count as much as effects on the mean, is
+quadratic over it; a scan and Brent's method when it is not) with the effects
+named so far held, and divides its improvement of -2 ln L by the share of its
+Fisher information those do not carry (:mod:`perscli.diagnose.joint`): its
+improvement with them refitted.  The best candidate is named when that passes
 :func:`threshold` (a likelihood-ratio test at a false-alarm probability of
-1e-3 per candidate; the rates of false and missed names are measured by
-tests/test_diagnose_calibrated.py), its value is physical and inside its
-range, an effect on the signal owes its improvement to the expectation and
-not to the noise alone, and no misspecification check
-(:mod:`perscli.diagnose.checks`) that fires says the candidate would only be
-absorbing something else.  Every
-effect named so far is then refitted together (:func:`joint_fit`), so that
-correlated effects (a dark current and an offset, a gain and a
-nonlinearity) share the disagreement as the data say; the report gives each
-one's marginal error from the joint covariance and their correlations.
-Candidates whose improvement is within :data:`MIN_DELTA_BIC` of the best
-one's are what the data cannot tell apart: they are reported with it as one
-degenerate group.
+1e-3 per candidate), its value is physical and inside its range, an effect on
+the signal owes its improvement to the expectation and not to the noise
+alone, and refitted together with the named ones (:func:`_confirm`) it still
+passes; when no single candidate does, two together may (:func:`_best_pair`).
+A named persistence frees its law's shape when the BIC asks for it and is
+checked at once against the law's decay and fluence dependence
+(:func:`perscli.diagnose.checks.persistence_law`).
+
+Then every named effect is retested beside all the others (backward
+elimination), the named set is compared with every other set of one-parameter
+candidates (:func:`_best_set`: a set the rounds did not build may describe the
+data better), and one joint fit gives the values, marginal errors and
+correlations.  Sets within :data:`MIN_DELTA_BIC` of the best are what the data
+cannot tell apart: their members are listed as degenerate.  The
+misspecification checks (:mod:`perscli.diagnose.checks`) run on the final
+model: what fires is unexplained, the effects it could be mistaken for are
+withdrawn, and the evidence (the checks, the withdrawn fits' significance and
+reason) is kept.  The rates of false and missed names are measured by
+tests/test_diagnose_calibrated.py.
 """
 
 from __future__ import annotations
