@@ -533,11 +533,11 @@ def persistence_law(problem, evaluation, model) -> list:
     masks = evaluation.mask
     for key in keys:
         moved = problem.evaluate(model, extra={i: eps * c for i, c in parts[key].items()})
-        cols.append([(m1 - m0) / eps for m1, m0 in zip(moved.mean, evaluation.mean)])
+        cols.append([((m1 - m0) / eps).astype(np.float32) for m1, m0 in zip(moved.mean, evaluation.mean)])
     k = len(keys)
     ata, atb = np.zeros((k, k)), np.zeros(k)
     for piece, (e, v, d, m) in enumerate(zip(evaluation.mean, evaluation.variance, evaluation.data, masks)):
-        x = np.stack([c[piece][m] for c in cols])
+        x = np.stack([c[piece][m] for c in cols]).astype(np.float64)
         if not np.any(x):
             continue
         w = 1.0 / v[m]

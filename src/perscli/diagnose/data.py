@@ -54,7 +54,8 @@ class Exposure:
         any read (they are left out of every fit, gap and estimate).
     persist : ndarray, optional
         The persistence the simulation's own law added (its PERSIST), in
-        electrons: the part of FLUENCE a fitted law replaces by its own.
+        electrons (float16): the part of FLUENCE a fitted law replaces by its
+        own.
     """
 
     label: str
@@ -236,7 +237,9 @@ def attach_simulations(exposures, sims) -> list:
                 exp.fluence = np.asarray(flu[0].read(), dtype=np.float32)
                 pers = [h for h in frame.hdus if h.name == "PERSIST"]
                 if pers and tuple(pers[0].shape[-2:]) == exp.fluence.shape:
-                    exp.persist = np.asarray(pers[0].read(), dtype=np.float32)
+                    # half precision (a thousandth of itself): it corrects the histories by a persistence's
+                    # persistence, and a full SCA's PERSIST is 33 MB so, not 67
+                    exp.persist = np.asarray(np.nan_to_num(pers[0].read()), dtype=np.float16)
             exp.extra["sky_rate"] = frame.keyword("SKYRATE")
             models.append(model_of_frame(frame))
         return models

@@ -172,7 +172,8 @@ class Problem:
             earlier = self.exposures[:index]
             ends = [(e.end - cur.start) * SECONDS_PER_DAY for e in earlier]
             window = (cur.end - cur.start) * SECONDS_PER_DAY
-            fluences = [self.history(j, pmodel, region, well) for j in range(index)]
+            # each history made when its exposure is used and dropped after (a frame at a time, not ten)
+            fluences = [(lambda j=j: self.history(j, pmodel, region, well)) for j in range(index)]
             have = persistence_charge(fluences, ends, 0.0, window, unit)[0].astype(np.float32)
             with self._lock:
                 # a few sets of the law's parameters for the fit rows (a fit that moves A or gamma goes back and
@@ -210,13 +211,29 @@ class Problem:
         base = exp.fluence if exp.fluence is not None else measured_fluence(exp)
         rows = self.fit_rows if region == "fit" else slice(None)
         base = base[rows]
-        if not self._feedback or index == 0 or exp.persist is None or exp.fluence is None:
+        if not self._feedback or index == 0 or exp.persist is None or exp.fluence is None or pmodel.kind != "fermi":
             return base
+        params = (pmodel.kind, pmodel.x0, pmodel.dx, pmodel.alpha, pmodel.gamma, pmodel.half_well,
+                  pmodel.coefficients, pmodel.time_model, pmodel.combine, pmodel.max_previous, (pmodel.A, well))
+        # kept with the charges of the same law on the fit rows (each later exposure's charge needs every
+        # earlier history)
+        key = (region, ("history", index)) + params
+        with self._lock:
+            have = self._charges.get(key)
+        if have is not None:
+            return have
         own = self.charge(index, pmodel, region, well)
-        now = base - np.nan_to_num(exp.persist[rows]) + own[0] * np.float32(own[1])
+        now = base - exp.persist[rows].astype(np.float32) + own[0] * np.float32(own[1])
         if well:
             now = np.where(base >= np.float32(well * (1.0 - 1e-6)), base, np.minimum(now, np.float32(well)))
-        return np.maximum(now, 0.0).astype(np.float32)
+        have = np.maximum(now, 0.0).astype(np.float32)
+        if region == "fit":
+            # every pixel's histories would be frames more to hold: those are made again when asked (a few
+            # elementwise passes each)
+            with self._lock:
+                if params in self._charge_sets.get(region, []):
+                    self._charges[key] = have
+        return have
 
     def set_aside(self, law, limit: float, well=None) -> int:
         """Leave out of every later fit (not of the gaps) the pixels where the persistence law ``law`` leaves more

@@ -884,6 +884,11 @@ def _best_pair(problem, current, named, fits, dirs, evaluation, shared, base, np
 SET_SIZE = 9
 #: and tries at most this many exact refits of a better set
 SET_TRIES = 3
+#: another set replaces the named one only when its score is lower by more than this: the rounds and the
+#: backward elimination have settled each single addition and removal at the threshold already, and a set that
+#: ties with the named one at the threshold's edge (an effect at 3.29 sigma, the dispersion counted a little
+#: otherwise) is no better description
+SET_MARGIN = 2.0
 
 
 def _set_values(dirs, offsets, disp, pen):
@@ -948,7 +953,7 @@ def _best_set(problem, current, original, named, usable, variance_only, disp_of,
         alternatives = sorted(((sorted(pool[k].name for k in t), v - scores[best]) for t, v in scores.items()
                                if t != best and v - scores[best] < MIN_DELTA_BIC and len(t) == len(best)),
                               key=lambda a: a[1])
-        if best == mine or not scores[mine] - scores[best] > 1e-6:
+        if best == mine or not scores[mine] - scores[best] > SET_MARGIN:
             break
         # the better set, fitted exactly from the original model's values of what it leaves out
         trial = current
@@ -963,7 +968,7 @@ def _best_set(problem, current, original, named, usable, variance_only, disp_of,
         names = [c.name for c in cands]
         say(f"sets: {', '.join(names) or 'none'} instead of {', '.join(sorted(held)) or 'none'}: score "
             f"{exact:+.1f} (quadratic {scores[best] - scores[mine]:+.1f})")
-        if not exact < 0:
+        if not exact < -SET_MARGIN:
             break
         entries = []
         physical = True
