@@ -41,7 +41,14 @@ STEP = 0.1
 class Directions:
     """The directions of some candidates at one model: whitened derivatives of the pixels' expectation
     (``a``: dmu / sqrt(v)) and variance (``b``: dv / (sqrt(2) v)), each over the usable pixels of the
-    base evaluation, and the score and Fisher matrix they give."""
+    base evaluation, and the score and Fisher matrix they give.
+
+    Derivatives, score and Fisher matrix are per each candidate's typical
+    size (``scales``, its ``scale``): a nonlinearity's beta (1e-9) and a
+    persistence's A (1e-2) differ by seven orders of magnitude in their own
+    units, and a least-squares solve would take the small one's information
+    for round-off.  ``values`` are in the candidates' own units.
+    """
 
     candidates: list
     values: np.ndarray
@@ -50,6 +57,7 @@ class Directions:
     score: np.ndarray
     fisher: np.ndarray
     m2lnl: float
+    scales: np.ndarray = None
 
     def index(self, name: str) -> int:
         return next(k for k, c in enumerate(self.candidates) if c.name == name)
@@ -72,11 +80,14 @@ def directions(problem, model, cands, *, evaluation=None) -> Directions:
     inv = [1.0 / s for s in sv]
     values = np.array([c.get(model, problem.exposures) for c in cands], dtype=float)
     a_cols, b_cols = [], []
-    for cand, value in zip(cands, values):
+    scales = np.array([c.scale for c in cands], dtype=float)
+    for cand, value, scale in zip(cands, values, scales):
         h = _step(cand, value)
         moved = problem.evaluate(cand.put(model, value + h))
-        a = np.concatenate([((e1[m] - e0[m]) / h) * w for e1, e0, m, w in zip(moved.mean, ev.mean, masks, inv)])
-        b = np.concatenate([((v1[m] - v0[m]) / h) * (w * w / math.sqrt(2.0))
+        # per typical size of the parameter
+        per = scale / h
+        a = np.concatenate([((e1[m] - e0[m]) * per) * w for e1, e0, m, w in zip(moved.mean, ev.mean, masks, inv)])
+        b = np.concatenate([((v1[m] - v0[m]) * per) * (w * w / math.sqrt(2.0))
                             for v1, v0, m, w in zip(moved.variance, ev.variance, masks, inv)])
         # pixels the step makes unusable (a NaN expectation) carry nothing along it
         a_cols.append(np.nan_to_num(a).astype(np.float32))
@@ -94,7 +105,7 @@ def directions(problem, model, cands, *, evaluation=None) -> Directions:
             block = np.stack([c[k:k + chunk] for c in cols]).astype(np.float64)
             fisher += block @ block.T
             score += block @ target[k:k + chunk]
-    return Directions(list(cands), values, a_cols, b_cols, score, fisher, ev.m2lnl())
+    return Directions(list(cands), values, a_cols, b_cols, score, fisher, ev.m2lnl(), scales)
 
 
 def shared_information(dirs: Directions, name: str, named: list) -> float:
@@ -164,6 +175,7 @@ def joint_fit(problem, model, cands, *, max_iter: int = 8, progress=None):
             idx = np.nonzero(free)[0]
             step[idx] = np.linalg.lstsq(f[np.ix_(idx, idx)], g[idx], rcond=1e-12)[0]
         predicted = float(step @ g)
+        step = step * dirs.scales           # from typical sizes to the candidates' own units
         if not predicted > 1e-3:
             break
         accepted = False
@@ -189,6 +201,7 @@ def joint_fit(problem, model, cands, *, max_iter: int = 8, progress=None):
             cov[np.ix_(idx, idx)] = np.linalg.inv(f[np.ix_(idx, idx)])
         except np.linalg.LinAlgError:
             cov[np.ix_(idx, idx)] = np.linalg.pinv(f[np.ix_(idx, idx)])
+    cov = cov * np.outer(dirs.scales, dirs.scales)
     if progress is not None:
         progress("joint fit: " + ", ".join(f"{c.name} {v:.5g}" for c, v in zip(cands, values)))
     return current, values, cov, m2

@@ -599,8 +599,8 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
         fits, after = [], {}
         for cand in remaining:
             k = dirs.index(cand.name) if cand.fit is None else None
-            f = fit_candidate(problem, current, cand, base, npix,
-                              None if k is None else (dirs.score[k], dirs.fisher[k, k]))
+            f = fit_candidate(problem, current, cand, base, npix, None if k is None else
+                              (dirs.score[k] / dirs.scales[k], dirs.fisher[k, k] / dirs.scales[k] ** 2))
             f.dispersion = 1.0
             if cand.name in MEAN_EFFECTS and f.delta_chi2 > 0.1 * threshold(f.nparams) and f.model is not None:
                 # neighbours share noise: the improvement along this candidate's direction is that much larger
@@ -945,7 +945,9 @@ def _best_set(problem, current, original, named, usable, variance_only, disp_of,
     for _ in range(SET_TRIES):
         held = {c.name for _, c in named if c.fit is None}
         dirs = directions(problem, current, pool)
-        offsets = np.array([c.get(current, problem.exposures) - c.get(original, problem.exposures) for c in pool])
+        # in units of each candidate's typical size, as the directions are
+        offsets = np.array([c.get(current, problem.exposures) - c.get(original, problem.exposures) for c in pool]) \
+            / dirs.scales
         disp = [disp_of.get(c.name, 1.0) for c in pool]
         scores = _set_values(dirs, offsets, disp, pen)
         mine = frozenset(k for k, c in enumerate(pool) if c.name in held)
@@ -1041,7 +1043,7 @@ def _hints(dirs, named, disp_of) -> list:
         delta = (explained(held + [k]) - base) / disp_of.get(c.name, 1.0)
         if low < delta <= high:
             step = np.linalg.lstsq(f[np.ix_(held + [k], held + [k])], g[held + [k]], rcond=1e-12)[0][-1]
-            out.append({"effect": c.name, "param": c.param, "value": float(dirs.values[k] + step),
+            out.append({"effect": c.name, "param": c.param, "value": float(dirs.values[k] + step * dirs.scales[k]),
                         "delta_chi2": float(delta), "significance_sigma": _sigma(delta)})
     return sorted(out, key=lambda h: -h["delta_chi2"])
 
