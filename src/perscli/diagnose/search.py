@@ -102,10 +102,12 @@ class Fit:
     model: object = field(default=None, repr=False)
     note: str = ""
     nparams: int = 1
+    #: added to the threshold: the forward model's fidelity beside the strong effects named (see FIDELITY)
+    floor: float = 0.0
 
     @property
     def significant(self) -> bool:
-        return self.delta_chi2 > threshold(self.nparams)
+        return self.delta_chi2 > threshold(self.nparams) + self.floor
 
     def as_dict(self) -> dict:
         params = {self.candidate.param: self.value, **getattr(self, "extra", {})}
@@ -328,6 +330,15 @@ def _unphysical(fit: Fit, problem, ramp: bool) -> str:
                 return f"not the photon-transfer gain of the data ({g:.3g} +- {err:.2g})"
     return ""
 
+
+#: the forward model's fidelity, as a share of the improvement of -2 ln L the named effects bring: what it
+#: propagates to first order (the variance through nonlinearity and IPC, the Poisson noise of a dark current
+#: before nonlinearity) leaves about this much of a strong effect's improvement for other candidates to take
+#: (measured: a dark current of 0.4 e-/s improving -2 ln L by 1.05e6 on perscli's own renders leaves 50 that
+#: an offset and read noise describe better; nonlinearity at 186 sigma on a full SCA left a read noise at
+#: 3.4 sigma).  It is added to the threshold: beside an effect at 1000 sigma a candidate needs 100 more,
+#: beside one at 50 sigma 0.25 more.
+FIDELITY = 1e-4
 
 #: candidates that act on the signal: named only when the expectation, not the noise alone, improves
 MEAN_EFFECTS = ("persistence", "ipc", "nonlinearity", "reciprocity", "dark", "offset", "gain", "brighter_fatter")
@@ -597,6 +608,7 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
         for c in others:
             rho2[c.name] = shared_information(dirs, c.name, [n.name for n in held_named])
         fits, after = [], {}
+        floor = FIDELITY * sum(max(e.get("forward_delta_chi2", 0.0), 0.0) for e, _ in named)
         for cand in remaining:
             k = dirs.index(cand.name) if cand.fit is None else None
             f = fit_candidate(problem, current, cand, base, npix, None if k is None else
@@ -609,6 +621,7 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
                 f.delta_chi2 /= f.dispersion
                 f.error *= math.sqrt(f.dispersion)
             f.held = f.delta_chi2
+            f.floor = floor
             f.rho2 = rho2.get(cand.name, 0.0)
             if f.rho2 > 1.0 - DEGENERATE:
                 most = max(held_named, key=lambda n: abs(dirs.fisher[dirs.index(n.name), dirs.index(cand.name)])
@@ -719,7 +732,8 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
         weakest = None
         for k in order:
             entry, cand = named[k]
-            need = threshold(entry["free_parameters"])
+            need = threshold(entry["free_parameters"]) + FIDELITY * sum(
+                max(e.get("forward_delta_chi2", 0.0), 0.0) for e, c in named if c is not cand)
             if stats[k] >= RETEST_MARGIN * need:
                 break
             delta = _retest(problem, current, original, named, entry, cand, m2, npix)
@@ -828,7 +842,7 @@ def _best_pair(problem, current, named, fits, dirs, evaluation, shared, base, np
 
     from .joint import joint_fit
 
-    need = float(chi2.isf(PAIR_P, 2))
+    need = float(chi2.isf(PAIR_P, 2)) + FIDELITY * sum(max(e.get("forward_delta_chi2", 0.0), 0.0) for e, _ in named)
     by_name = {f.candidate.name: f for f in fits}
     names = [c.name for c in dirs.candidates]
     s_idx = [names.index(c.name) for _, c in named if c.fit is None]
@@ -955,7 +969,10 @@ def _best_set(problem, current, original, named, usable, variance_only, disp_of,
         alternatives = sorted(((sorted(pool[k].name for k in t), v - scores[best]) for t, v in scores.items()
                                if t != best and v - scores[best] < MIN_DELTA_BIC and len(t) == len(best)),
                               key=lambda a: a[1])
-        if best == mine or not scores[mine] - scores[best] > SET_MARGIN:
+        # the forward model's fidelity: a set that differs from the named one by less than that share of what
+        # the named effects bring is no better description
+        margin = SET_MARGIN + FIDELITY * sum(max(e.get("forward_delta_chi2", 0.0), 0.0) for e, _ in named)
+        if best == mine or not scores[mine] - scores[best] > margin:
             break
         # the better set, fitted exactly from the original model's values of what it leaves out
         trial = current
@@ -970,7 +987,7 @@ def _best_set(problem, current, original, named, usable, variance_only, disp_of,
         names = [c.name for c in cands]
         say(f"sets: {', '.join(names) or 'none'} instead of {', '.join(sorted(held)) or 'none'}: score "
             f"{exact:+.1f} (quadratic {scores[best] - scores[mine]:+.1f})")
-        if not exact < -SET_MARGIN:
+        if not exact < -margin:
             break
         entries = []
         physical = True
@@ -1002,7 +1019,7 @@ def _best_set(problem, current, original, named, usable, variance_only, disp_of,
         dirs = None
     if dirs is None:
         dirs = directions(problem, current, pool)
-    hints = _hints(dirs, named, disp_of)
+    hints = _hints(dirs, named, disp_of, FIDELITY * sum(max(e.get("forward_delta_chi2", 0.0), 0.0) for e, _ in named))
     by_entry = {c.name: e for e, c in named}
     # the degenerate groups of the rounds were judged beside part of the set: the whole set's alternatives replace
     # them
@@ -1022,12 +1039,13 @@ def _best_set(problem, current, original, named, usable, variance_only, disp_of,
 HINT_P = 0.01
 
 
-def _hints(dirs, named, disp_of) -> list:
-    """Candidates below the naming threshold whose improvement beside the named effects (the score test at the
-    final model) still passes :data:`HINT_P`: where more data would look first."""
+def _hints(dirs, named, disp_of, floor: float = 0.0) -> list:
+    """Candidates below the naming threshold (plus ``floor``, :data:`FIDELITY`'s) whose improvement beside the
+    named effects (the score test at the final model) still passes :data:`HINT_P`: where more data would look
+    first."""
     from scipy.stats import chi2
 
-    low, high = float(chi2.isf(HINT_P, 1)), threshold(1)
+    low, high = float(chi2.isf(HINT_P, 1)), threshold(1) + floor
     names = [c.name for c in dirs.candidates]
     held = [names.index(c.name) for _, c in named if c.fit is None and c.name in names]
     g, f = dirs.score, dirs.fisher
