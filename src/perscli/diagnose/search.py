@@ -695,7 +695,7 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
                 law = [c for c in persistence_law(problem, problem.evaluate(best.model), best.model) if c.fired]
                 if law:
                     entry = best.as_dict()
-                    entry.update(withdrawn_because="; ".join(c.reason for c in law), checks=[c.name for c in law],
+                    entry.update(withdrawn_because=_because(law), checks=[c.name for c in law],
                                  degenerate_with=[], round=round_no + 1)
                     return _without_persistence(problem, model, candidates, law, [entry], best.model, progress,
                                                 ramp, rounds)
@@ -763,7 +763,7 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
         for entry, cand in named:
             why = [c for c in fired.values() if cand.name in c.blocks]
             if why:
-                withdrawn.append({**entry, "withdrawn_because": "; ".join(c.reason for c in why),
+                withdrawn.append({**entry, "withdrawn_because": _because(why),
                                   "checks": [c.name for c in why]})
             else:
                 keep.append((entry, cand))
@@ -1114,6 +1114,17 @@ def _without_persistence(problem, model, candidates, law, withdrawn, current, pr
         inner.rounds = list(rounds) + inner.rounds
         inner.candidates = rounds[0]
     return inner
+
+
+def _because(checks) -> str:
+    """Why a fit is withdrawn, in a few words: the reasons of the checks that say what the data hold instead
+    (the persistence law's), and the names of the others (their descriptions are in ``unexplained``)."""
+    said = [c.why for c in checks if c.why]
+    others = [c.name for c in checks if not c.why]
+    if others:
+        said.append(f"the {', '.join(others)} check{'s' if len(others) > 1 else ''} fire{'' if len(others) > 1 else 's'}"
+                    ": the fit may only absorb what they find")
+    return "; ".join(said)
 
 
 def _put_entry(model, entry, cand, problem):
