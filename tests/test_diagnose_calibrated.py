@@ -10,7 +10,8 @@ trust, over enough seeds to support them:
 
 - null cases (the chain at Roman's values) name nothing in at least 99% of seeds, and each
   candidate's improvement of -2 ln L follows the chi^2 it is tested against;
-- each candidate at 6 sigma is named in at least 95% of seeds, alone; at 2 sigma nothing false is named;
+- each candidate at 6 sigma is named in at least 95% of seeds; at 2 sigma nothing false is named (but in the
+  1% of data sets in which the threshold of 1e-3 a candidate lets a false name through: one seed of 20 or 25);
 - interpixel capacitance at 5.5 and 10 sigma is named as IPC (not brighter-fatter) in at least 90%;
 - sets of effects (gain + reciprocity + IPC, brighter-fatter + IPC + nonlinearity) are recovered whole,
   every value within 3 marginal sigma and nothing else named, in at least 4 of 5 seeds; a 4-sigma
@@ -41,6 +42,8 @@ IPC_SEEDS = 10
 SET_SEEDS = 5
 #: of SET_SEEDS, how many must recover the set
 SET_PASS = 4
+#: of DETECT_SEEDS (20), how many may name a false effect beside the true one
+FALSE_SEEDS_PER_20 = 1
 LAW_SEEDS = 5
 OUTSIDE_SEEDS = 4
 PAIR_SEEDS = 5
@@ -179,22 +182,31 @@ def test_each_candidate_at_six_sigma_is_named_in_95_percent_of_seeds(sims, effec
                 assert abs(entry["params"][param] - value) <= 4 * entry["errors"][param], \
                     (entry["params"], entry["errors"])
         # anything else named is a wrong effect stated with confidence
-        wrong += [e["effect"] for e in report["found"] if e is not entry]
+        wrong += [(s, e["effect"]) for e in report["found"] if e is not entry]
     assert hits >= 0.95 * DETECT_SEEDS, (effect, hits, sigmas)
     # the strengths are about 6 sigma, not far above: the test would not show the rate otherwise
     assert 4.5 < np.median(sigmas) < 9.0, sigmas
-    assert not wrong, wrong
+    # the threshold names a candidate that is not there in about 1% of data sets (1e-3 for each of ten): one seed
+    # of twenty may (two or more: 1.7% at that rate)
+    assert len({s for s, _ in wrong}) <= FALSE_SEEDS_PER_20, wrong
 
 
-@pytest.mark.parametrize("effect", ["ipc", "dark", "nonlinearity", "brighter_fatter", "persistence"])
-def test_at_two_sigma_nothing_false_is_named(sims, effect):
+TWO_SIGMA = ["ipc", "dark", "nonlinearity", "brighter_fatter", "persistence"]
+
+
+def test_at_two_sigma_nothing_false_is_named(sims):
     """An effect at 2 sigma is at the edge of what the data say: it may be named (about one seed in ten, at a
-    threshold of 3.29 sigma), never anything else, and nothing is unexplained."""
-    hidden = hidden_at(sims, {effect: 2.0})
-    for s in range(TWO_SIGMA_SEEDS):
-        report = diagnose_case(sims, f"two_{effect}", 25_000 + s, **hidden)
-        assert {e["effect"] for e in report["found"]} <= {effect}, report["verdict"]
-        assert not report["unexplained"], report["verdict"]
+    threshold of 3.29 sigma), nothing else (but in the 1% of data sets the threshold lets through: at most one
+    of the 25), and nothing is unexplained."""
+    false = []
+    for effect in TWO_SIGMA:
+        hidden = hidden_at(sims, {effect: 2.0})
+        for s in range(TWO_SIGMA_SEEDS):
+            report = diagnose_case(sims, f"two_{effect}", 25_000 + s, **hidden)
+            if not {e["effect"] for e in report["found"]} <= {effect}:
+                false.append(report["verdict"])
+            assert not report["unexplained"], report["verdict"]
+    assert len(false) <= 1, false
 
 
 @pytest.mark.parametrize("k", [5.5, 10.0])
