@@ -231,7 +231,7 @@ def evaluate(self, *a, **k):
     finally:
         if stack and stack[0].startswith("fit "):
             inner = [s for s in stack if s in ("Brent", "curvature")]
-            name = inner[-1] if inner else ("own fit" if stack[0] == "fit ipc" else "scan")
+            name = inner[-1] if inner else "scan"
             stages[name][0] += 1
             stages[name][1] += time.perf_counter() - t0
 L.Problem.evaluate = evaluate
@@ -367,8 +367,8 @@ def profile_markdown(p: dict, best: float) -> str:
                    f"{st['computed'] / st['nexp'] / st['nstripes'] / 1e3:.0f} kpix each.")
     fits = [v for name, v in p["top"].items() if name.startswith("fit ")]
     if p.get("stages"):
-        labels = {"scan": "the coarse scan (9 grid points + the start +- 2 scales)", "Brent": "Brent's method",
-                  "curvature": "the curvature error", "own fit": "ipc's linear least squares"}
+        labels = {"scan": "Newton steps (and coarse scans where the likelihood is not quadratic)",
+                  "Brent": "Brent's method", "curvature": "the curvature error"}
         stages = sorted(p["stages"].items(), key=lambda kv: -kv[1][1])
         out.append(f"- the {sum(c for c, _ in fits)} candidate fits ({sum(t for _, t in fits):.1f} s): "
                    + "; ".join(f"{labels.get(k, k)} {n} `evaluate` calls, {t:.1f} s" for k, (n, t) in stages) + ".")
