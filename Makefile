@@ -109,7 +109,7 @@ bench-diagnose: $(STAMP)
 	$(BIN)/python benchmarks/bench_diagnose.py
 
 man: $(STAMP)
-	$(BIN)/python -m perscli.cli.manpages man
+	$(BIN)/perscli man --all -o man --overwrite
 
 samples: $(STAMP)
 	$(BIN)/python sample_data/make_samples.py sample_data

@@ -130,7 +130,7 @@ def correlate_command() -> tuple[list, str]:
     probe = subprocess.run([*exe, "correlate", "--help"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     if probe.returncode == 0:
         return [*exe, "correlate"], "perscli correlate"
-    code = ("import sys; from perscli.cli.main import configure_logging; configure_logging(0); "
+    code = ("import sys; from perscli.cli.helpers import configure_logging; configure_logging(0); "
             "from perscli.cli.correlate import correlate; correlate(prog_name='perscli correlate')")
     return [sys.executable, "-c", code], "python -c '...correlate(...)' (command not registered in perscli yet)"
 

@@ -26,7 +26,7 @@ What it does:
    recovered within 10 %, and reports any other effect named (a false name)
    with its significance.
 3. Runs it once more under cProfile with counters on the forward model
-   (``perscli.detector.effects.forward`` as ``likelihood`` calls it), the
+   (``perscli.detector.chain.forward`` as ``likelihood`` calls it), the
    evaluations of the fit stripes and of every pixel, and the persistence
    charges, split by phase (skip with ``--no-profile``); the listing goes to
    ``work/diagnose/diagnose_profile.txt``.
@@ -69,7 +69,8 @@ LIMIT_S, LIMIT_RSS = 120.0, 6e9
 
 def sca_centre() -> tuple:
     """(ra, dec) of the centre of SCA 7 of the pointing, from GalSim's Roman WCS, rounded to 1e-6 deg."""
-    from perscli.render.exposure import Exposure, Optics
+    from perscli.optics import Optics
+    from perscli.render.exposure import Exposure
 
     optics = Optics(Exposure(mjd=MJD0, **POINT))
     ra, dec = optics.wcs.xyToradec(2044.5, 2044.5, units="deg")
@@ -333,7 +334,7 @@ def profile_markdown(p: dict, best: float) -> str:
         ev.setdefault(ph, {}).setdefault(meth, 0)
         ev[ph][meth] += calls
     out = [f"### Where the time goes\n\nOne more run under cProfile, on one thread (`--workers 1`: {wall:.1f} s "
-           f"wall, against {best:.1f} s unprofiled on two), with counters on `perscli.detector.effects.forward` as `diagnose.likelihood` calls it and "
+           f"wall, against {best:.1f} s unprofiled on two), with counters on `perscli.detector.chain.forward` as `diagnose.likelihood` calls it and "
            "on `Problem.evaluate` (the fit stripes of every exposure) and `Problem.chi2_full` (every pixel, 512 rows "
            "at a time).  Phases are outermost calls; `forward` calls are charged to the phase they happen in.\n",
            "| phase | calls | seconds | share | `evaluate` / `chi2_full` calls | `forward` calls "

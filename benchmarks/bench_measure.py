@@ -469,7 +469,7 @@ REAL_PHASES = [
     ("the command (`measure`, with the imports it makes)", "measure", "cli/measure.py", "max"),
     ("read the frame (`Frame.planes`)", "planes", "io/frames.py", "sum"),
     ("Roman PSF (`psf_model`)", "psf_model", "measure/psf.py", "sum"),
-    ("PSF transfer tables (`StampDrawer.table`, every stamp side)", "table", "render/draw.py", "sum"),
+    ("PSF transfer tables (`StampDrawer.table`, every stamp side)", "table", "optics.py", "sum"),
     ("predicted S/N (`predicted_snr`)", "predicted_snr", "measure/noise.py", "sum"),
     ("S/N tables (`SnrTable`)", "_snr_table", "measure/noise.py", "sum"),
     ("fits (`measure_object`, all)", "measure_object", "measure/perframe.py", "sum"),
@@ -669,7 +669,7 @@ def real_report(res: dict) -> str:
 def process_reference(frame_path: Path, cat_path: Path):
     """The exp fits ``perscli measure`` makes of the mosaic, made here from the library's pieces.
 
-    The stamp side each galaxy gets (:func:`perscli.measure.shapes.stamp_side`), cut from the float32
+    The stamp side each galaxy gets (:func:`perscli.measure.perframe.stamp_side`), cut from the float32
     frame with the WHT weights, and the start from the catalogue: what ``measure_object`` does.
     """
     from perscli.io.frames import open_frame

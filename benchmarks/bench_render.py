@@ -146,7 +146,8 @@ def galsim_loop(cols, exposure, keep: bool = False, subset=None, maxk_threshold=
     """
     import galsim
 
-    from perscli.render.exposure import Optics, plan_objects
+    from perscli.optics import Optics
+    from perscli.render.exposure import plan_objects
 
     gsparams = None if maxk_threshold is None else galsim.GSParams(maxk_threshold=maxk_threshold)
     t0 = time.perf_counter()
@@ -265,7 +266,7 @@ def render_command(truth: Path, dest: Path, workers: int, bounds) -> list:
 # --------------------------------------------------------------------------------------------
 
 def perscli_stamp(drawer, optics, cols, i, x, y, flux, n):
-    """One object's stamp exactly as ``perscli.render.exposure.draw_one`` draws it."""
+    """One object's stamp exactly as ``perscli.render.exposure.draw_sources`` draws it."""
     import galsim
 
     profile = None
@@ -279,7 +280,7 @@ def perscli_stamp(drawer, optics, cols, i, x, y, flux, n):
 
 def perscli_stamps(cols, exposure, plan, p_image):
     """Every object's perscli stamp, re-drawn one by one; and how far their sum is from ``p_image``."""
-    from perscli.render.draw import StampDrawer
+    from perscli.optics import StampDrawer
 
     optics, todo, x, y, flux, sizes = plan
     xmin, xmax, ymin, ymax = exposure.full_bounds
@@ -359,7 +360,7 @@ def same_period(cols, exposure, plan, stride: int, max_n: int, maxk_threshold: f
     """
     import galsim
 
-    from perscli.render.draw import StampDrawer
+    from perscli.optics import StampDrawer
 
     optics, todo, x, y, flux, sizes = plan
     drawer = StampDrawer(optics.psf_pixels)
@@ -505,7 +506,8 @@ def main(argv=None):
     if args.repeats < 1:
         ap.error("--repeats must be >= 1")
 
-    from perscli.render.exposure import Optics, read_truth
+    from perscli.optics import Optics
+    from perscli.render.exposure import read_truth
 
     workdir = args.workdir.resolve()
     workdir.mkdir(parents=True, exist_ok=True)

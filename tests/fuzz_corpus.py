@@ -317,7 +317,7 @@ def _frame_wcs_header():
 #: (x, y) FITS pixels of the two objects on the frame seed
 FRAME_OBJECTS = [(10.3, 11.2, 20.4, 0.35, 0.15, -0.1), (22.1, 20.6, 19.8, 0.30, -0.2, 0.05)]
 #: ra/dec of two objects inside the render cutout RENDER_BOUNDS (Roman SCA 7 at ra 10, dec -44, pa 30,
-#: pixels (1005.3, 2006.1) and (1011.7, 2010.4), from perscli.render.exposure.Optics' WCS)
+#: pixels (1005.3, 2006.1) and (1011.7, 2010.4), from perscli.optics.Optics' WCS)
 RENDER_OBJECTS = [(9.539532272511588, -44.04113205864226, "galaxy", 19.0, 0.4, 0.2, -0.1),
                   (9.53938852738555, -44.04133748678204, "star", 17.0, 0.0, 0.0, 0.0)]
 RENDER_ARGS = ["--ra", "10", "--dec", "-44", "--pa", "30", "--mjd", "61541.97", "--filter", "J129", "--sca", "7",

@@ -5,7 +5,7 @@ import pytest
 from astropy.io import fits
 from scipy import integrate
 
-from perscli.detector.persistence import PRESETS
+from perscli.detector.settings import PRESETS
 
 from conftest import fluence_grid
 from fits_factory import run

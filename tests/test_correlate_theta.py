@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from perscli.stats.correlate import MIN_EXPECTED, N_ANGLE, correlate_files
+from perscli.stats.correlate import correlate_files
+from perscli.stats.de_stats import MIN_EXPECTED, N_ANGLE
 from perscli.stats.de_stats import chi2_sf, theta_distribution
 from perscli.stats.settings import CorrelateOptions
 

@@ -479,7 +479,7 @@ def test_bad_overrides_rejected(text, needle):
 
 
 def test_persistence_model_of_the_default_chain_is_typical():
-    from perscli.detector.persistence import PRESETS
+    from perscli.detector.settings import PRESETS
 
     pm = load_detector_model().persistence_model()
     assert pm.kind == "fermi"

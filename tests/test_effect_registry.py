@@ -115,6 +115,7 @@ def test_renders_are_byte_identical_to_the_chain_before_the_registry(work, truth
 
 def test_registry_order_and_schemas():
     from perscli.detector import effects
+    from perscli.detector.model import default_model
 
     assert effects.ORDER == ("sky", "poisson", "reciprocity", "dark", "persistence", "brighter_fatter", "saturation",
                              "nonlinearity", "ipc", "read_noise", "correlated_read_noise", "offset", "gain",
@@ -123,7 +124,7 @@ def test_registry_order_and_schemas():
     # noise (GalSim's Roman chain has neither): candidates for diagnose, switched on with --set
     off = ("offset", "brighter_fatter", "correlated_read_noise")
     assert effects.ROMAN_ORDER == tuple(n for n in effects.ORDER if n not in off)
-    assert [e.name for e in effects.default_model().effects] == list(effects.ROMAN_ORDER)
+    assert [e.name for e in default_model().effects] == list(effects.ROMAN_ORDER)
     for name, cls in effects.REGISTRY.items():
         assert cls.name == name and cls.description and cls.stage in ("scene", "charge", "readout")
         for p in cls.schema:
@@ -504,7 +505,8 @@ def test_saturated_fluence_and_its_persistence(work, truth, earlier):
     import math
 
     from perscli.detector.effects import FULL_WELL
-    from perscli.detector.persistence import PRESETS, PersistenceModel
+    from perscli.detector.persistence import PersistenceModel
+    from perscli.detector.settings import PRESETS
 
     e1, e2 = earlier
     i1, i2 = read_images(e1), read_images(e2)

@@ -20,7 +20,7 @@ def _commands():
 
 
 def test_one_page_per_command_and_all_current():
-    pages = render_all()
+    pages = render_all(cli)
     assert set(pages) == {"perscli.1"} | {f"perscli-{name.replace(' ', '-')}.1" for name, _ in _commands()}
     assert {"perscli-pointings-plan.1", "perscli-pointings-select.1", "perscli-pointings-before.1"} <= set(pages)
     for name, text in pages.items():
@@ -32,13 +32,13 @@ def test_one_page_per_command_and_all_current():
 
 
 def test_pages_carry_the_options_and_examples():
-    page = render_all()["perscli-apply-persistence.1"]
+    page = render_all(cli)["perscli-apply-persistence.1"]
     for text in ("\\-\\-time\\-model", "\\-\\-max\\-previous", "\\-\\-combine", "Examples:", ".SH SYNOPSIS"):
         assert text in page
 
 
 def test_a_subcommands_page_and_its_groups():
-    pages = render_all()
+    pages = render_all(cli)
     plan = pages["perscli-pointings-plan.1"]
     assert plan.startswith('.TH "PERSCLI-POINTINGS-PLAN" "1"')
     for text in ("\\-\\-dither", "\\-\\-exptime", "\\-\\-footprints", "Examples:",
@@ -50,15 +50,15 @@ def test_a_subcommands_page_and_its_groups():
     assert "\\-\\-dither" not in group.split(".SH OPTIONS")[1]
 
 
-def test_the_generator_writes_every_page(tmp_path, capsys):
-    from perscli.cli.manpages import main
+def test_the_generator_writes_every_page(tmp_path):
+    from perscli.cli.manpages import write_pages
 
-    main([str(tmp_path / "man")])
-    pages = render_all()
+    paths = write_pages(str(tmp_path / "man"), cli, overwrite=True)
+    pages = render_all(cli)
     assert sorted(p.name for p in (tmp_path / "man").iterdir()) == sorted(pages)
     assert all((tmp_path / "man" / name).read_text() == text for name, text in pages.items())
-    assert capsys.readouterr().out.split() == [str(tmp_path / "man" / name) for name in pages]
-    main([str(tmp_path / "man")])                      # regenerating replaces them
+    assert paths == [str(tmp_path / "man" / name) for name in pages]
+    write_pages(str(tmp_path / "man"), cli, overwrite=True)      # regenerating replaces them
 
 
 def test_plain_text_and_troff_are_the_same_page():
@@ -81,4 +81,4 @@ def test_the_pages_are_installed_with_the_package():
         project = tomllib.load(fh)
     patterns = project["tool"]["setuptools"]["data-files"]["share/man/man1"]
     installed = {p.name for pattern in patterns for p in MAN.parent.glob(pattern)}
-    assert installed == set(render_all())
+    assert installed == set(render_all(cli))

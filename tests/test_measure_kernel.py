@@ -123,7 +123,7 @@ def test_cli_defaults_are_the_library_defaults():
 
     from perscli.cli.measure import measure
     from perscli.measure.settings import MeasureOptions
-    from perscli.measure.shapes import MIN_SNR_DEFAULT
+    from perscli.measure.settings import MIN_SNR_DEFAULT
 
     defaults = {p.name: p.default for p in measure.params}
     o = MeasureOptions()

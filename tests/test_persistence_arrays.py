@@ -10,8 +10,8 @@ from conftest import SAMPLE_DATA, fluence_grid
 from fits_factory import run
 from perscli import PerscliError
 from perscli.detector.model import load_persistence_model as load_model
-from perscli.detector.persistence import (PRESETS, PersistenceModel, persistence_charge,
-                                          time_factor)
+from perscli.detector.persistence import PersistenceModel, persistence_charge, time_factor
+from perscli.detector.settings import PRESETS
 from perscli.io.frames import SECONDS_PER_DAY, open_frame
 
 EXP = [str(SAMPLE_DATA / f"exp{k}.fits") for k in (1, 2, 3, 4)]

@@ -8,8 +8,8 @@ from scipy import integrate
 
 from perscli import PerscliError, _kernels
 from perscli.detector.model import load_persistence_model as load_model
-from perscli.detector.persistence import (GALSIM_LINEAR_COEFFICIENTS, PRESETS, PersistenceModel,
-                                          accumulate, time_factor)
+from perscli.detector.persistence import PersistenceModel, accumulate, time_factor
+from perscli.detector.settings import GALSIM_LINEAR_COEFFICIENTS, PRESETS
 from perscli.io.checksum import ones_complement_add
 
 

@@ -292,7 +292,7 @@ def test_man_shows_a_subcommands_page():
     from perscli.cli.manpages import render_all
 
     result = invoke("man", "pointings", "plan", "--troff")
-    assert result.exit_code == 0 and result.stdout == render_all()["perscli-pointings-plan.1"]
+    assert result.exit_code == 0 and result.stdout == render_all(cli)["perscli-pointings-plan.1"]
     assert "\\-\\-dither" in result.stdout and "perscli\\-pointings" in result.stdout.split(".SH SEE ALSO")[1]
     result = invoke("man", "pointings", "plna")
     assert result.exit_code == 2 and "'plna' is not a subcommand of perscli pointings; did you mean 'plan'?" in \

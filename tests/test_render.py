@@ -520,7 +520,8 @@ def test_persistence_with_the_full_chain_changes_only_persistent_pixels(pairs):
 
 
 def test_persist_matches_apply_persistence_predict(pairs, work):
-    from perscli.detector.persistence import PRESETS, PersistenceModel, persistence_charge
+    from perscli.detector.persistence import PersistenceModel, persistence_charge
+    from perscli.detector.settings import PRESETS
     from perscli.io.frames import SECONDS_PER_DAY, open_frame
 
     w = load(pairs["with"])

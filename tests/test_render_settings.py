@@ -32,12 +32,3 @@ def test_the_command_takes_its_defaults_from_render_options():
 def test_options_are_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         RenderOptions().compress = "gzip"
-
-
-def test_old_import_paths_are_the_optics_module():
-    """render.draw and render.exposure re-export perscli.optics' names: the same objects, one PSF cache."""
-    import perscli.optics as optics
-    from perscli.render import draw, exposure
-
-    assert draw.StampDrawer is optics.StampDrawer and exposure.Optics is optics.Optics
-    assert exposure.roman_psf is optics.roman_psf and exposure.stamp_drawer is optics.stamp_drawer

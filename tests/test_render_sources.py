@@ -82,7 +82,8 @@ def images(path):
 
 def law(x):
     """The paper's persistence in the later exposure from a fluence x of the earlier one, by hand."""
-    from perscli.detector.persistence import PRESETS, PersistenceModel
+    from perscli.detector.persistence import PersistenceModel
+    from perscli.detector.settings import PRESETS
 
     model = PersistenceModel(name="typical", **PRESETS["typical"])
     return model.F(np.asarray(x, dtype=np.float64)) * 1000.0 * math.log((GAP + T) / GAP)

@@ -10,7 +10,8 @@ from astropy.io import fits
 from scipy import stats
 
 from perscli import PerscliError
-from perscli.scene import ROMAN_FILTERS, project
+from perscli.instrument import ROMAN_FILTERS
+from perscli.scene import project
 from perscli.scene.catalog import (Field, GalaxyModel, cumulative_fraction, draw_galaxies, filter_magnitudes,
                                    make_truth_catalog, power_law_magnitudes, truncated_ellipticities,
                                    truncated_sigma)

@@ -14,7 +14,7 @@ import pytest
 from astropy.io import fits
 
 from perscli import PerscliError
-from perscli.scene.pointings import PLAN_REFERENCE_MJD
+from perscli.scene.settings import PLAN_REFERENCE_MJD
 from perscli.scene.dithers import plan_dithers
 from perscli.scene.observability import best_pa, first_observable_start, observable, sun_angle
 

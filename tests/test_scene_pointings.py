@@ -398,7 +398,7 @@ def test_sca_footprint_margin_and_edges_are_great_circles():
 
 
 def test_every_sca_lies_within_the_focal_plane_reach():
-    from perscli.scene.pointings import FPA_REACH_DEG
+    from perscli.scene.schedule import FPA_REACH_DEG
 
     for pa in (0.0, 123.0):
         p = Pointing(**{**P7.__dict__, "pa": pa})

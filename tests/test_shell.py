@@ -201,7 +201,7 @@ def test_plain_text_wraps_at_the_width():
 
 
 def test_man_troff_is_the_installed_page():
-    pages = manpages.render_all()
+    pages = manpages.render_all(cli)
     for name in ("render", "man", "completion"):
         result = invoke("man", name, "--troff")
         assert result.exit_code == 0
@@ -212,7 +212,7 @@ def test_man_troff_is_the_installed_page():
 def test_man_output_writes_the_troff_and_refuses_to_replace_it(tmp_path):
     out = tmp_path / "perscli-render.1"
     assert invoke("man", "render", "-o", out).exit_code == 0
-    assert out.read_text() == manpages.render_all()["perscli-render.1"]
+    assert out.read_text() == manpages.render_all(cli)["perscli-render.1"]
     out.write_text("old")
     result = invoke("man", "render", "-o", out)
     assert result.exit_code == 1 and result.stderr == f"Error: {out}: already exists; use --overwrite to replace it\n"
@@ -225,7 +225,7 @@ def test_man_all_installs_every_page_in_a_new_folder(tmp_path):
     folder = tmp_path / "share" / "man" / "man1"
     result = invoke("man", "--all", "-o", folder)
     assert result.exit_code == 0, result.stderr
-    pages = manpages.render_all()
+    pages = manpages.render_all(cli)
     assert sorted(p.name for p in folder.iterdir()) == sorted(pages)
     for name, text in pages.items():
         assert (folder / name).read_text() == text
@@ -266,7 +266,7 @@ def test_man_on_a_terminal_goes_through_man(monkeypatch):
     result = invoke("man", "study")
     assert result.exit_code == 0 and result.stdout == ""
     assert seen["argv"][:2] == ["/usr/bin/man", "-l"]
-    assert seen["page"] == manpages.render_all()["perscli-study.1"]
+    assert seen["page"] == manpages.render_all(cli)["perscli-study.1"]
     assert not os.path.exists(seen["argv"][-1])                       # the temporary page is gone
 
 
@@ -285,7 +285,7 @@ def test_man_on_a_terminal_without_a_working_man_uses_the_pager(monkeypatch, man
 @pytest.mark.skipif(shutil.which("man") is None, reason="man(1) is not installed")
 def test_real_man_reads_the_pages(tmp_path):
     page = tmp_path / "perscli-render.1"
-    page.write_text(manpages.render_all()["perscli-render.1"])
+    page.write_text(manpages.render_all(cli)["perscli-render.1"])
     env = dict(os.environ, MANPAGER="cat", PAGER="cat", MANWIDTH="80", LANG="C.UTF-8")
     proc = subprocess.run(["man", "-l", str(page)], capture_output=True, text=True, env=env, timeout=60)
     if proc.returncode != 0 and "not found" in proc.stderr:       # man without its formatter (groff)

@@ -10,7 +10,8 @@ from scipy import stats
 
 from perscli import PerscliError
 from perscli.scene import starcounts as sc
-from perscli.scene.catalog import Field, StarModel, gaia_roman_jh, make_truth_catalog
+from perscli.scene.catalog import Field, StarModel, make_truth_catalog
+from perscli.scene.photometry import gaia_roman_jh
 from perscli.scene.regions import FootprintUnion
 
 from fits_factory import expect_error, invoke, listing

@@ -9,7 +9,7 @@ from perscli.cli.main import cli
 from perscli.io.frames import open_frame
 
 from test_persistence_model import paper_F
-from perscli.detector.persistence import PRESETS
+from perscli.detector.settings import PRESETS
 
 EARLIER, LATER, OTHER = "ibxy01aoq_raw.fits", "ibxy04s4q_raw.fits", "ibh7a7lsq_raw.fits"
 

@@ -14,13 +14,20 @@ SHELLS = ("bash", "zsh", "fish")
 COMPLETE_VAR = "_PERSCLI_COMPLETE"
 
 
-def completion_script(shell: str) -> str:
-    """The completion script of the ``perscli`` console script for ``shell`` (bash, zsh or fish)."""
+def completion_script(group: click.Group, shell: str) -> str:
+    """The completion script of the ``perscli`` console script for ``shell`` (bash, zsh or fish).
+
+    Parameters
+    ----------
+    group : click.Group
+        The ``perscli`` group (:data:`perscli.cli.main.cli`); the command
+        finds it as the root of its context, so that this module need not
+        import the group that imports it.
+    shell : {'bash', 'zsh', 'fish'}
+    """
     from click.shell_completion import get_completion_class
 
-    from .main import cli
-
-    return get_completion_class(shell)(cli, {}, "perscli", COMPLETE_VAR).source()
+    return get_completion_class(shell)(group, {}, "perscli", COMPLETE_VAR).source()
 
 
 @click.command("completion", cls=PerscliCommand,
@@ -53,7 +60,7 @@ def completion(shell, dest, overwrite):
     """
     from ..io.output import atomic_output, check_output, send_to_stdout
 
-    script = completion_script(shell)
+    script = completion_script(click.get_current_context().find_root().command, shell)
     if not script.endswith("\n"):
         script += "\n"
     if dest == "-":

@@ -6,7 +6,6 @@ import errno
 import functools
 import logging
 import signal
-import sys
 
 import click
 

@@ -16,7 +16,7 @@ from .diagnose import diagnose
 from .study import study
 from .manpages import man
 from .completion import completion
-from .helpers import configure_logging  # noqa: F401  (re-exported: perscli.cli.main.configure_logging)
+from .helpers import configure_logging
 # every usage error of the group and its commands is one line on stderr: see helpers.OneLineUsage
 from .helpers import PerscliGroup
 from .options import no_checksum_opt

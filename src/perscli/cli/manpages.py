@@ -1,4 +1,4 @@
-"""Manual pages from the click help: the ``perscli man`` command, and ``python -m perscli.cli.manpages man``.
+"""Manual pages from the click help: the ``perscli man`` command (``make man`` runs ``perscli man --all``).
 
 One page for the group (perscli.1), one per command (perscli-NAME.1) and one
 per subcommand of a command that has them (perscli-NAME-SUB.1, e.g.
@@ -160,10 +160,8 @@ def render_page(command: click.Command, name: str, parent: click.Context | None 
     return to_troff(page_parts(command, name, parent))
 
 
-def _pages():
+def _pages(cli: click.Group):
     """{file name: (command, name, parent context)} for the group, every command and every subcommand."""
-    from .main import cli
-
     root = click.Context(cli, info_name="perscli", **cli.context_settings)
     pages = {"perscli.1": (cli, "perscli", None)}
     for sub in cli.list_commands(root):
@@ -177,12 +175,13 @@ def _pages():
     return pages
 
 
-def render_all() -> dict:
-    """{file name: troff text} for the group, every command and every subcommand."""
-    return {fname: render_page(*spec) for fname, spec in _pages().items()}
+def render_all(cli: click.Group) -> dict:
+    """{file name: troff text} for the group ``cli`` (:data:`perscli.cli.main.cli`), every command and every
+    subcommand."""
+    return {fname: render_page(*spec) for fname, spec in _pages(cli).items()}
 
 
-def write_pages(folder: str, *, overwrite: bool = False) -> list:
+def write_pages(folder: str, cli: click.Group, *, overwrite: bool = False) -> list:
     """Write every page (troff) into ``folder``, created if missing.
 
     Each page is written atomically; an existing page is an error without
@@ -192,6 +191,8 @@ def write_pages(folder: str, *, overwrite: bool = False) -> list:
     ----------
     folder : str
         e.g. ``man`` (the repository's copy) or ``~/.local/share/man/man1``.
+    cli : click.Group
+        The ``perscli`` group (:data:`perscli.cli.main.cli`).
     overwrite : bool
         Replace pages already there.
 
@@ -210,7 +211,7 @@ def write_pages(folder: str, *, overwrite: bool = False) -> list:
 
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise PerscliError(f"{folder}: is not a folder; give the folder that receives the pages")
-    pages = render_all()
+    pages = render_all(cli)
     paths = [os.path.join(folder, fname) for fname in pages]
     existing = [path for path in paths if os.path.exists(path)]
     if existing and not overwrite:
@@ -222,22 +223,13 @@ def write_pages(folder: str, *, overwrite: bool = False) -> list:
     return paths
 
 
-def main(argv=None):
-    """``python -m perscli.cli.manpages [FOLDER]``: (re)write every page into FOLDER (default man)."""
-    argv = sys.argv[1:] if argv is None else argv
-    for path in write_pages(argv[0] if argv else "man", overwrite=True):
-        print(path)
-
-
 # -- perscli man ---------------------------------------------------------------------------------
 
 def _command_names(ctx, param, incomplete):
     """Complete COMMAND, then SUBCOMMAND when COMMAND has them (perscli man pointings <TAB>)."""
     from click.shell_completion import CompletionItem
 
-    from .main import cli
-
-    group = cli
+    group = ctx.find_root().command
     for word in ctx.params.get("command_name") or ():
         group = group.commands.get(word) if isinstance(group, click.Group) else None
     if not isinstance(group, click.Group):
@@ -247,8 +239,7 @@ def _command_names(ctx, param, incomplete):
 
 def _known_command(ctx, param, value):
     """COMMAND [SUBCOMMAND]: a perscli command, and one of its subcommands when it has them."""
-    from .main import cli
-
+    cli = ctx.find_root().command
     group, path = cli, "perscli"
     for word in value or ():
         if not isinstance(group, click.Group):
@@ -335,20 +326,22 @@ def man(command_name, troff, all_pages, dest, overwrite):
       perscli man --all -o ~/.local/share/man/man1
     """
     from ..io.output import atomic_output, check_output, send_to_stdout
-    from .main import cli
+
+    # the group this command runs under: manpages is one of its commands, and does not import it
+    cli = click.get_current_context().find_root().command
 
     if all_pages:
         if command_name:
             raise click.UsageError("--all writes every page: give no COMMAND with it")
         if dest is None or dest == "-":
             raise click.UsageError("--all needs -o FOLDER, e.g. -o ~/.local/share/man/man1")
-        write_pages(dest, overwrite=overwrite)
+        write_pages(dest, cli, overwrite=overwrite)
         return
     if not command_name:
         parts = page_parts(cli, "perscli")
     else:
         # the page as installed (the same contexts as render_all's)
-        parts = page_parts(*_pages()[f"perscli-{'-'.join(command_name)}.1"])
+        parts = page_parts(*_pages(cli)[f"perscli-{'-'.join(command_name)}.1"])
     if dest is not None and dest != "-":
         check_output(dest, overwrite=overwrite)
         with atomic_output(dest, overwrite=overwrite) as fh:
@@ -361,6 +354,3 @@ def man(command_name, troff, all_pages, dest, overwrite):
     else:
         send_to_stdout(to_text(parts, _man_width()).encode())
 
-
-if __name__ == "__main__":
-    main()

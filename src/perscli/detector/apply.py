@@ -28,7 +28,6 @@ exceeds that many electrons per second (WFC3's advice: 0.01 e-/s).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import re
@@ -38,16 +37,15 @@ import numpy as np
 
 from .. import PerscliError, _kernels
 from ..executor import thread_map
-from ..io.fitsfile import OutHDU, format_card, ones_complement_add
+from ..io.cards import format_card
+from ..io.checksum import ones_complement_add
+from ..io.fitsfile import OutHDU
 from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, require_timing
 from ..io.output import add_provenance
-from .persistence import GALSIM_EXPTIME, PersistenceModel, accumulate, round_charge, time_factor
+from .persistence import PersistenceModel, accumulate, round_charge
 from .settings import DEFAULT_DQ_BIT, DEFAULT_MODEL_ERROR, MODES, ApplyOptions
 
-# re-exported for existing callers (``from perscli.detector.apply import check_earlier``): the checks
-# and the placement of earlier exposures moved to perscli.detector.earlier
-from .earlier import (Overlap, _check_detector, _check_start, _detector, check_earlier,  # noqa: F401
-                      overlap)
+from .earlier import Overlap, _check_detector, _check_start, _detector, overlap
 
 log = logging.getLogger(__name__)
 

@@ -61,18 +61,10 @@ Persistence is not implemented here: the chain calls
 :mod:`perscli.detector.persistence`, the one home of that model.
 
 This module holds the registry of effects and the effect classes; the rest
-of the detector model lives beside it, its names re-exported here for
-existing callers:
-
-- :mod:`perscli.detector.params`: :class:`Param`, the parameter schema;
-- :mod:`perscli.detector.blocks`: :class:`ChainContext` and the noise blocks
-  (:data:`NOISE_BLOCK`, :func:`block_grid`, :func:`block_streams`,
-  :class:`BlockStack`, :func:`active_pixels`);
-- :mod:`perscli.detector.model`: :class:`Effect`, :class:`DetectorModel`,
-  :func:`default_model`, :func:`load_detector_model`, :func:`model_to_yaml`,
-  the MODEL table of a frame and the schema table;
-- :mod:`perscli.detector.chain`: :func:`run_chain`, :func:`run_chains`,
-  :func:`forward`.
+of the detector model lives beside it: the parameter schema in
+:mod:`perscli.detector.params`, the chain's context and noise blocks in
+:mod:`perscli.detector.blocks`, models (YAML, MODEL tables) in
+:mod:`perscli.detector.model` and the chain in :mod:`perscli.detector.chain`.
 """
 
 from __future__ import annotations
@@ -80,26 +72,16 @@ from __future__ import annotations
 import copy
 import math
 import zlib
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
 from .. import PerscliError
 from ..instrument import (ROMAN_DARK_CURRENT, ROMAN_DETECTOR_SIZE, ROMAN_FULL_WELL, ROMAN_GAIN,
                           ROMAN_NONLINEARITY_BETA, ROMAN_READ_NOISE, ROMAN_RECIPROCITY_ALPHA)
-# re-exported for existing callers (``from perscli.detector.effects import ...``, ``effects.X``): the parameter
-# schema and the noise blocks moved to params.py and blocks.py, which do not import this module
-from .blocks import NOISE_BLOCK, BlockStack, ChainContext, active_pixels, block_grid, block_streams  # noqa: F401
-from .params import Param  # noqa: F401
-from .settings import PERSISTENCE_SCHEMA
-
-if TYPE_CHECKING:
-    # re-exported for existing callers, lazily (see __getattr__ at the end): model.py and chain.py import
-    # this module, so importing them here would make a cycle
-    from .chain import ChainResult, Forward, forward, run_chain, run_chains  # noqa: F401
-    from .model import (MODEL_COLUMNS, DetectorModel, Effect, default_model, format_schema,  # noqa: F401
-                        load_detector_model, model_from_table, model_of_frame, model_rows, model_table,
-                        model_to_yaml, schema_rows)
+from .blocks import NOISE_BLOCK, ChainContext, active_pixels, block_streams
+from .params import Param
+from .settings import FERMI_PARAMETERS, PERSISTENCE_SCHEMA, PRESETS, preset_settings
 
 # -- interpixel capacitance ----------------------------------------------------------------------
 
@@ -319,8 +301,6 @@ class Persistence(DetectorEffect):
 
     @classmethod
     def resolve(cls, params):
-        from .persistence import PRESETS, preset_settings
-
         out = super().resolve(params)
         for key, value in PRESETS[out["base"]].items():
             if out.get(key) is None:
@@ -345,7 +325,7 @@ class Persistence(DetectorEffect):
         """The :class:`~perscli.detector.persistence.PersistenceModel` of these parameters."""
         import dataclasses
 
-        from .persistence import FERMI_PARAMETERS, PersistenceModel
+        from .persistence import PersistenceModel
 
         p = cls.resolve(params)
         explicit = [k for k in FERMI_PARAMETERS if params.get(k) is not None] or p["kind"] != "fermi"
@@ -366,14 +346,22 @@ class Persistence(DetectorEffect):
         return mean if charge is None else mean + charge
 
     @staticmethod
-    def floor(model: "DetectorModel") -> float:
-        """Electrons: earlier pixels at or below this leave no persistence in ``model`` (0: none left out)."""
+    def floor(model) -> float:
+        """Electrons: earlier pixels at or below this leave no persistence in ``model`` (0: none left out).
+
+        ``model`` is a :class:`perscli.detector.model.DetectorModel` (model.py imports this module).
+        """
         eff = model.get("persistence")
         return float((eff.resolved() if eff is not None else Persistence.resolve({}))["floor"])
 
     @staticmethod
-    def fluence_input(model: "DetectorModel") -> tuple:
+    def fluence_input(model) -> tuple:
         """What of an earlier exposure feeds the law in ``model``: (source, threshold, cap).
+
+        Parameters
+        ----------
+        model : perscli.detector.model.DetectorModel
+            The detector model (model.py imports this module, hence no annotation).
 
         Returns
         -------
@@ -667,34 +655,3 @@ ROMAN_ORDER = tuple(name for name, cls in REGISTRY.items() if cls.default_enable
 DEFAULTS = {name: cls.defaults() for name, cls in REGISTRY.items()}
 
 DESCRIPTIONS = {name: cls.description for name, cls in REGISTRY.items()}
-
-
-# -- re-exported for existing callers ------------------------------------------------------------
-
-#: names that moved to model.py and chain.py -> their module; re-exported for existing callers
-#: (``from perscli.detector.effects import load_detector_model``, ``effects.run_chain``), on first use:
-#: those modules import this one (the registry), so importing them at the top would make an import cycle
-_MOVED = {
-    **dict.fromkeys(("Effect", "DetectorModel", "default_model", "model_to_yaml", "load_detector_model",
-                     "schema_rows", "format_schema", "MODEL_COLUMNS", "model_rows", "model_table",
-                     "model_from_table", "model_of_frame", "_plain", "_is_fits", "_from_yaml", "_build",
-                     "_override", "_show", "_from_fits"), "model"),
-    **dict.fromkeys(("ChainResult", "run_chain", "run_chains", "Forward", "forward", "_same_step", "_Steps"),
-                    "chain"),
-}
-
-
-def __getattr__(name: str):
-    """A name that moved to model.py or chain.py, imported on first use (PEP 562)."""
-    module = _MOVED.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(f"{__package__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_MOVED))

@@ -197,7 +197,7 @@ def load_persistence_model(spec: str = "typical", overrides=()):
     -------
     perscli.detector.persistence.PersistenceModel
     """
-    from .persistence import PRESETS
+    from .settings import PRESETS
 
     if spec in PRESETS:
         params, name = {"base": spec}, spec
@@ -227,7 +227,7 @@ def load_persistence_model(spec: str = "typical", overrides=()):
 def _persistence_from_yaml(path: str) -> tuple:
     """(step parameters, model name) of a YAML persistence model or detector model."""
     from ..io.config import load_yaml
-    from .persistence import FERMI_PARAMETERS, PRESET_SETTINGS, SETTINGS
+    from .settings import FERMI_PARAMETERS, PRESET_SETTINGS, SETTINGS
 
     doc = load_yaml(path, "persistence model")
     if isinstance(doc, dict) and isinstance(doc.get("effects"), list):
@@ -267,7 +267,7 @@ def _persistence_overrides(overrides, pmodel) -> dict:
     """{key: value} of 'KEY=VALUE' overrides (or a mapping) of a persistence model, checked."""
     import yaml
 
-    from .persistence import FERMI_PARAMETERS, SETTINGS
+    from .settings import FERMI_PARAMETERS, SETTINGS
 
     if isinstance(overrides, dict):
         items = list(overrides.items())

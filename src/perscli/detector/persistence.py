@@ -14,7 +14,7 @@ pixel once per earlier frame, by a compiled loop that streams the frame.
 
 Three parameter sets are built in: the paper's Table 1 ('typical',
 'pessimistic') and 'wfc3', STScI's parameters for HST WFC3-IR, which also
-brings the WFC3 persistence pipeline's conventions (:data:`PRESET_SETTINGS`).
+brings the WFC3 persistence pipeline's conventions (:data:`perscli.detector.settings.PRESET_SETTINGS`).
 
 This module is the only place where persistence is computed: render,
 apply-persistence and diagnose all call it.
@@ -23,14 +23,12 @@ apply-persistence and diagnose all call it.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .. import PerscliError
-from .settings import (COMBINES, FERMI_PARAMETERS, GALSIM_EXPTIME, GALSIM_LINEAR_COEFFICIENTS,  # noqa: F401
-                       PRESET_SETTINGS, PRESETS, ROUNDINGS, SETTINGS, TIME_MODELS, preset_settings)
+from .settings import COMBINES, FERMI_PARAMETERS, GALSIM_EXPTIME, GALSIM_LINEAR_COEFFICIENTS, PRESETS, ROUNDINGS, SETTINGS
 
 
 @dataclass(frozen=True)
@@ -148,15 +146,6 @@ class PersistenceModel:
         if self.rounding != "none":
             out["rounding"] = self.rounding
         return out
-
-
-def __getattr__(name):
-    # the loader's old home: perscli.detector.model.load_persistence_model reads every form of a model
-    if name == "load_model":
-        from .model import load_persistence_model
-
-        return load_persistence_model
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def time_factor(t_start, t_end, gamma: float) -> np.ndarray:

@@ -128,7 +128,7 @@ def _persistence_schema():
         Param("coefficients", "floats", list(GALSIM_LINEAR_COEFFICIENTS), "",
               "kind linear: fraction of each earlier exposure's fluence, most recent first (galsim.roman)"),
         # the settings of how the law is applied: defaults from the base preset (wfc3 brings the WFC3
-        # pipeline's), written once in perscli.detector.persistence.SETTINGS
+        # pipeline's), written once in perscli.detector.settings.SETTINGS
         *(Param(key, kind, None, unit, f"{text} (default: from base)", derived="base", **extra)
           for key, (kind, unit, extra) in (("time_model", ("choice", "", dict(choices=TIME_MODELS))),
                                            ("combine", ("choice", "", dict(choices=COMBINES))),

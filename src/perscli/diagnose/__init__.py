@@ -12,7 +12,9 @@ The data flow:
   Gaussian likelihood of the data;
 - :mod:`perscli.diagnose.candidates` lists the effects diagnose can add or
   re-tune (each a parameter of a registered effect), and
-  :mod:`perscli.diagnose.search` fits them by likelihood, ranks them by
+  :mod:`perscli.diagnose.search` fits them by likelihood
+  (:mod:`perscli.diagnose.candidate_fit`, one candidate at a time;
+  :mod:`perscli.diagnose.noise`, the noise pixels share), ranks them by
   delta chi^2 and delta BIC and adds the significant ones one by one;
 - :mod:`perscli.diagnose.probes` bins the normalised residuals against the
   covariates that separate effects, and :mod:`perscli.diagnose.report`

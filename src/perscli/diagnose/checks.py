@@ -50,6 +50,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .noise import counts_gain, dispersion, noise_correlation, significance
+
 #: a check fires below this p-value: 8 checks at 1e-4 each keep the false alarms of a null case well
 #: under 1% (measured: tests/test_diagnose_calibrated.py)
 ALPHA = 1e-4
@@ -86,9 +88,7 @@ class Check:
         from scipy.stats import norm
 
         if self.name != "outliers" and self.dof and self.dof >= 1 and self.p_value < 1e-200:
-            from .search import _sigma
-
-            return _sigma(self.statistic, int(round(self.dof)))
+            return significance(self.statistic, int(round(self.dof)))
         p = max(self.p_value, 1e-300)
         return float(norm.isf(p / 2.0))
 
@@ -118,15 +118,6 @@ def _planes(problem, evaluation, variance: bool = False):
 LINE_CLIP = 5.0
 
 
-def _counts_gain(problem, model, exp) -> float:
-    """e- per count of the model's expectation of ``exp`` (as the problem compares it)."""
-    if exp.counts != "DN":
-        return 1.0
-    if model is not None and model.enabled("gain"):
-        return float(model.value("gain", "gain"))
-    return float(exp.gain or 1.0)
-
-
 def line_means(problem, evaluation, model=None) -> dict:
     """The mean residual of each detector row and column of each exposure, with its white variance.
 
@@ -151,7 +142,7 @@ def line_means(problem, evaluation, model=None) -> dict:
         if r.ndim != 2 or r.shape[1] < 8:
             continue
         exp = problem.exposures[i] if i < len(problem.exposures) else None
-        g = _counts_gain(problem, model, exp) if exp is not None else 1.0
+        g = counts_gain(problem, model, exp) if exp is not None else 1.0
         line_var = (row_sig ** 2, col_sig ** 2)
         corr = (line_var[0] + line_var[1]) / g ** 2
         ok = mask & np.isfinite(r) & (np.abs(np.nan_to_num(r)) < LINE_CLIP)
@@ -498,13 +489,11 @@ def persistence_law(problem, evaluation, model) -> list:
       (only saturated pixels persisting, another turn-on).
 
     Their chi^2 are divided by the noise correlation's dispersion along the
-    law's direction (:func:`perscli.diagnose.search.dispersion`).  Each check
+    law's direction (:func:`perscli.diagnose.noise.dispersion`).  Each check
     blocks persistence: a fitted A would only absorb it.  Returns the checks
     the data allow (none for one exposure, a law that is not the Fermi law,
     or earlier exposures combined by their maximum).
     """
-    from .search import dispersion, noise_correlation
-
     if len(problem.exposures) < 2 or not hasattr(problem, "persistence_parts"):
         return []
     pm = model.persistence_model()
@@ -583,7 +572,7 @@ def persistence_law(problem, evaluation, model) -> list:
         total = base_a + amp
         detail = {"groups": [labels.get(g, str(g)) for g in groups], "amplitude": total.tolist(),
                   "error": err.tolist(), "law_A": base_a, "gamma": pm.gamma,
-                  "signal_sigma": _sigma_of(signal, len(groups)), "dispersion": disp}
+                  "signal_sigma": significance(signal, len(groups)), "dispersion": disp}
         shown = ", ".join(f"{labels.get(g, g)}: {t:.3g} +- {e:.2g}" for g, t, e in zip(groups, total, err))
         detail["shown"] = shown
         if name == "persistence_decay":
@@ -600,12 +589,6 @@ def persistence_law(problem, evaluation, model) -> list:
         out.append(Check(name, chi2, dof, _chi2_p(chi2, dof), description, blocks=("persistence",),
                          detail=detail, why=why))
     return out
-
-
-def _sigma_of(delta_chi2: float, dof: int) -> float:
-    from .search import _sigma
-
-    return _sigma(delta_chi2, dof)
 
 
 def run_checks(problem, evaluation, model=None, *, ramp: bool = False, final: bool = False) -> list:

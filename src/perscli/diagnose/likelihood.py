@@ -1,7 +1,7 @@
 """Expectation, variance and Gaussian likelihood of measured frames under a detector model.
 
 The expectation of a measured frame is the model's noise-free forward model
-(:func:`perscli.detector.effects.forward`, the same effects render samples)
+(:func:`perscli.detector.chain.forward`, the same effects render samples)
 of the simulation's IDEAL (sources and sky, so the model's sky effect is not
 applied again), with the persistence the earlier exposures' fluence leaves
 in it; its variance is the model's noise carried through the effects that

@@ -16,7 +16,7 @@ from .. import PerscliError, __version__
 from .candidates import by_name
 from .checks import ALPHA as CHECK_ALPHA
 from .probes import PROBES, run_probes
-from .search import MIN_DELTA_CHI2
+from .candidate_fit import MIN_DELTA_CHI2
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +112,7 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         # seldom put it, is not written into model.yaml: its likelihood gain on the fit pixels comes from
         # absorbing what the model lacks.  (Beyond that the gap is no test: two models of the same data differ in
         # it by what they fit, and a right effect moves a gap that noise put below 1 further down.)
-        from .search import _reset
+        from .candidate_fit import _reset
 
         final = result.model
         for e in worse:
@@ -193,7 +193,7 @@ def _effect_gaps(problem, original, result, gap_after: float, gap_before: float,
     the change exceed the noise: a share of noise is no share) and
     ``gap_note`` are set in each entry.
     """
-    from .search import _reset
+    from .candidate_fit import _reset
 
     found = result.found
     for entry in found:

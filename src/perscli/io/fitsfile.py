@@ -36,8 +36,7 @@ Layout: this module is the writer (:class:`OutHDU`, :func:`table_hdu`,
 rest is in :mod:`perscli.io.sources` (paths, stdin, FIFOs, gzip),
 :mod:`perscli.io.cards` (header cards: parsing, checks, formatting),
 :mod:`perscli.io.checksum` (CHECKSUM/DATASUM, ``--no-checksum``) and
-:mod:`perscli.io.fitsreader` (:class:`FitsFile`, :class:`HDU`), whose names
-are re-exported here.
+:mod:`perscli.io.fitsreader` (:class:`FitsFile`, :class:`HDU`).
 """
 
 from __future__ import annotations
@@ -51,15 +50,12 @@ import numpy as np
 
 from .. import PerscliError
 
-# Moved to their own modules: imported for the writer below and re-exported for existing callers
-# (``from perscli.io.fitsfile import open_fits``; tests monkeypatch ``fitsfile._ascii_checksum``, which
-# the writer below looks up here, as it does ``_header_cards`` and ``_plain_image``, defined here).
-from .cards import BLOCK, CARD, Header, format_card, history_cards, padded  # noqa: F401
-from .cards import _card_problem, _is_structural, _parse_value  # noqa: F401
-from .checksum import CHECKSUM_HINT, checksums_enabled, ones_complement_add, read_options  # noqa: F401
-from .checksum import _ascii_checksum  # noqa: F401
-from .fitsreader import HDU, FitsFile, _cfitsio_reason, open_fits  # noqa: F401
-from .sources import FIFO_TIMEOUT, Source, _CHUNK, open_source, split_selector, stat_input  # noqa: F401
+# tests monkeypatch ``fitsfile._ascii_checksum``, which the writer below looks up here, as it does
+# ``_header_cards`` and ``_plain_image``, defined here
+from .cards import BLOCK, CARD, Header, _card_problem, _is_structural, _parse_value, format_card, history_cards, padded
+from .checksum import _ascii_checksum, ones_complement_add
+from .fitsreader import _cfitsio_reason
+from .sources import _CHUNK
 
 # -- writing -------------------------------------------------------------------------------------
 

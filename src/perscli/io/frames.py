@@ -38,7 +38,7 @@ Keywords are looked up in the science extension's header first, then in the
 primary header.  Opening a frame reads only its headers; pixels are read
 when asked for, row block by row block (:meth:`Frame.rows`), so that many
 frames can be streamed side by side, and the CHECKSUM/DATASUM of every HDU
-read are verified.  Files are opened by :func:`perscli.io.fitsfile.open_fits`:
+read are verified.  Files are opened by :func:`perscli.io.fitsreader.open_fits`:
 ``-`` (standard input), FIFOs, ``.fits.gz``, tile-compressed images,
 ``file.fits[SCI,2]`` (that HDU is the science image) and image sections
 ``file.fits[1][x1:x2,y1:y2]`` (LTV1/LTV2 shifted as CFITSIO does).
@@ -47,7 +47,6 @@ read are verified.  Files are opened by :func:`perscli.io.fitsfile.open_fits`:
 from __future__ import annotations
 
 import datetime as _dt
-import sys
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -152,7 +151,7 @@ class Frame:
     ----------
     name : str
         The path, or '-' for standard input.
-    hdus : list of perscli.io.fitsfile.HDU
+    hdus : list of perscli.io.fitsreader.HDU
         Every HDU of the file (headers parsed, data not read).
     sci : list of int
         HDU indices of the science arrays in time order (one for an image or

@@ -43,9 +43,7 @@ import tempfile
 
 from .. import PerscliError, __version__
 
-# re-exported for existing callers (``from perscli.io.output import make_temp_file``): the temporary
-# files and folders of outputs moved to perscli.io.tempfiles
-from .tempfiles import make_temp_file, make_temp_folder  # noqa: F401
+from .tempfiles import make_temp_file
 
 CREATOR = f"perscli {__version__}"
 
@@ -265,7 +263,7 @@ def check_output(dest: str, *, overwrite: bool = False, inputs=()) -> None:
             continue
         name = str(name)
         if not os.path.exists(name):
-            from .fitsfile import split_selector
+            from .sources import split_selector
 
             name = split_selector(name)[0]
         if os.path.exists(name) and os.path.exists(dest) and os.path.samefile(name, dest):

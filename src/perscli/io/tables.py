@@ -1,6 +1,6 @@
 """Reading FITS binary tables (schedules, Gaia chunks, pointings, truth catalogues, SHAPES, XI).
 
-:func:`read_table` opens a file with :func:`perscli.io.fitsfile.open_fits` (so
+:func:`read_table` opens a file with :func:`perscli.io.fitsreader.open_fits` (so
 that a file that is not FITS, is truncated, or whose CHECKSUM/DATASUM do not
 match gives one clear line; ``-``, FIFOs, ``.fits.gz`` and ``file[EXT]`` work
 as for frames) and hands out its first binary table; CFITSIO (fitsio) reads
@@ -40,7 +40,7 @@ class InputTable:
         The name used in messages ('stdin' for '-').
     index : int
         HDU number of the table in the file.
-    header : perscli.io.fitsfile.Header
+    header : perscli.io.cards.Header
         The table's header.
     datasum : int
         FITS DATASUM of the table's data as stored (for provenance; verified

@@ -65,7 +65,7 @@ def psf_profile(spec: str, frame, *, pixel_scale: float, options=None):
     """The optical PSF (without the pixel response) as a GalSim profile in the frame's pixel units, flux 1.
 
     What :class:`~perscli.measure.fit.ExpModel` and
-    :class:`~perscli.render.draw.StampDrawer` take with their default
+    :class:`~perscli.optics.StampDrawer` take with their default
     ``pixel=True``.  ``spec``, ``options``: as for
     :func:`perscli.measure.psf.psf_model`, which the command uses (it also
     takes PSF images that include the pixel response).

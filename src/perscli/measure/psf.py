@@ -67,9 +67,8 @@ import numpy as np
 
 from .. import PerscliError
 from ..instrument import ROMAN_PIXEL_SCALE
-# GalSim's Roman PSF and filters: the ones render draws with (roman_wavelength stays importable from here)
-from ..optics import roman_psf as galsim_roman_psf
-from ..optics import roman_wavelength, to_pixels
+# GalSim's Roman PSF and filters: the ones render draws with
+from ..optics import roman_psf, roman_wavelength, to_pixels
 
 log = logging.getLogger(__name__)
 
@@ -204,7 +203,7 @@ class PsfModel:
         return np.asarray(drawn.array, dtype=np.float64), float(WRITE_OVERSAMPLING), False
 
 
-def roman_psf(frame) -> PsfModel:
+def frame_roman_psf(frame) -> PsfModel:
     """galsim.roman.getPSF for the frame's SCA and FILTER, at the SCA centre and the filter's effective
     wavelength (:func:`perscli.optics.roman_psf`, what ``perscli render`` draws with), in Roman pixels (0.11")."""
     import galsim.roman as roman
@@ -220,7 +219,7 @@ def roman_psf(frame) -> PsfModel:
         sca_number = int(sca)
     except (TypeError, ValueError):
         raise PerscliError(f"{frame.label}: SCA={sca!r} is not a Roman SCA number (1-18)") from None
-    psf = galsim_roman_psf(sca_number, name)
+    psf = roman_psf(sca_number, name)
     return PsfModel(profile=to_pixels(psf), pixel_included=False, source="roman",
                     sca=str(sca_number), filter=name, pixel_scale=roman.pixel_scale, wavelength=wavelength,
                     arcsec_profile=psf)
@@ -494,7 +493,7 @@ def check_sampling(label: str, oversampling: float, where: str, power: float, fr
 
 
 def psf_model(spec: str, frame, *, pixel_scale: float, options: PsfOptions | None = None) -> PsfModel:
-    """The PSF of a frame's fits: 'roman' (:func:`roman_psf`) or a FITS image.
+    """The PSF of a frame's fits: 'roman' (:func:`frame_roman_psf`) or a FITS image.
 
     Parameters
     ----------
@@ -517,7 +516,7 @@ def psf_model(spec: str, frame, *, pixel_scale: float, options: PsfOptions | Non
 
     options = options if options is not None else PsfOptions()
     if spec == "roman":
-        return roman_psf(frame)
+        return frame_roman_psf(frame)
     # warnings wait until the image is accepted: a refusal is one line
     notes = []
     data, keyword, label = read_psf_image(spec, frame, warn=notes.append)

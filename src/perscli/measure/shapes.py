@@ -25,8 +25,7 @@ The code is in modules of one job each: :mod:`perscli.measure.selection`
 :mod:`perscli.measure.perframe` (stamps, starts, flags and the fit of one
 frame, :func:`measure_frame`) and :mod:`perscli.measure.joint` (the joint
 fit, :func:`measure_joint`); this module is the file driver,
-:func:`measure_files`, and its output tables, and re-exports the names
-other modules and tests import from it.
+:func:`measure_files`, and its output tables.
 """
 
 from __future__ import annotations
@@ -38,20 +37,12 @@ import os
 import numpy as np
 
 from .. import PerscliError
+from .joint import measure_joint
 from .noise import _check_min_snr
-from .perframe import FLAGS, STAMP_HLR, STAMP_MARGIN, STAMP_MIN
+from .perframe import FLAGS, STAMP_HLR, STAMP_MARGIN, STAMP_MIN, measure_frame
 from .psf import psf_hdus
-from .selection import _pixel_scale, frame_wcs, select_kinds
+from .selection import _pixel_scale, frame_wcs, read_positions, select_kinds
 from .settings import MeasureOptions
-
-# re-exported for existing callers (perscli.measure.changes, perscli.study.differential, the tests and
-# benchmarks import them from here); some are also used below
-from .joint import measure_joint  # noqa: F401
-from .noise import MIN_SNR_DEFAULT, SnrTable, _noise_and_weights, predicted_snr  # noqa: F401
-from .noise import frame_detector_model, noise_model  # noqa: F401
-from .perframe import _FrameFacts, cut_stamp, measure_frame, psf_profile, start_point  # noqa: F401
-from .perframe import stamp_ladder, stamp_side  # noqa: F401
-from .selection import read_positions  # noqa: F401
 
 log = logging.getLogger(__name__)
 

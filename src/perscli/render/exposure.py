@@ -29,7 +29,7 @@ from .. import PerscliError
 from ..executor import imap
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
 # the optics moved to perscli.optics (render and measure draw through them); names kept here for callers
-from ..optics import Optics, StampDrawer, galaxy_stamp_size, roman_psf, stamp_drawer, star_stamp_size  # noqa: F401
+from ..optics import Optics, StampDrawer, galaxy_stamp_size, stamp_drawer, star_stamp_size
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +97,7 @@ class Exposure:
 
         Parameters
         ----------
-        pointing : perscli.scene.pointings.Pointing
+        pointing : perscli.scene.schedule.Pointing
             E.g. ``schedule_pointing(schedule, row)``, a row of
             ``read_pointings(...)``, ``select_covering(...)`` or
             ``previous_exposures(...)``: ra, dec, pa, filter, mjd, exptime and

@@ -440,7 +440,7 @@ def simulation_area(bounds) -> tuple:
 
     The frame grown by one pixel (interpixel capacitance brings in each
     neighbour's signal) and then out to whole noise blocks
-    (:data:`perscli.detector.effects.NOISE_BLOCK`: Poisson noise is only
+    (:data:`perscli.detector.blocks.NOISE_BLOCK`: Poisson noise is only
     reproducible for a whole block), within the detector.  A cutout is then
     exactly that part of the whole detector's frame (but for the persistence
     of pixels outside it, which its earlier frames do not hold).
@@ -473,7 +473,7 @@ def pad_to(image: np.ndarray | None, bounds, area) -> np.ndarray | None:
 
 
 def crop_result(result, area, bounds):
-    """A :class:`~perscli.detector.effects.ChainResult` over ``area`` cut to ``bounds``."""
+    """A :class:`~perscli.detector.chain.ChainResult` over ``area`` cut to ``bounds``."""
     import dataclasses
 
     if tuple(area) == tuple(bounds):
@@ -765,7 +765,7 @@ def _source_params(source: str, threshold, cap) -> dict:
 def _model_hdu(model: DetectorModel) -> OutHDU:
     """The resolved detector model as a MODEL table: one row per effect parameter, in physical order.
 
-    ``perscli render --model FRAME.fits`` (:func:`~perscli.detector.effects.load_detector_model`)
+    ``perscli render --model FRAME.fits`` (:func:`~perscli.detector.model.load_detector_model`)
     reads it back; values are JSON text, so every digit survives.
     """
     data, units = model_table(model)

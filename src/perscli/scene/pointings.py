@@ -53,7 +53,7 @@ Pointings are written as a FITS table 'POINTINGS' (:func:`write_pointings`,
 with each row's SCA corners when asked) and read back with
 :func:`read_pointings`.
 
-The code lives in one module per job, and every public name is re-exported here:
+The code lives in one module per job:
 :mod:`perscli.scene.schedule` (schedules, :class:`Pointing`),
 :mod:`perscli.scene.observability`, :mod:`perscli.scene.footprints`
 (detectors on the sky) and :mod:`perscli.scene.dithers` (planned sequences);
@@ -71,16 +71,12 @@ from ..instrument import ROMAN_SCA_SIZE
 from ..io.tables import read_table
 from . import check_filter, check_positions
 
-# re-exported for existing callers (``from perscli.scene.pointings import ...``, ``pointings.X``): the
-# schedule, observability, footprint and plan code moved to their own modules
-from .dithers import PLAN_REFERENCE_MJD, WAS_EXPTIME, WAS_GAP, plan_dithers  # noqa: F401
-from .footprints import (NEAR_SCA_DEG, count_on_sca, frame_bounds, objects_on_sca, sca_footprint,  # noqa: F401
-                         sca_wcs, sky_to_pixels)
-from .observability import (OBSERVABLE_SEARCH_DAYS, OBSERVABLE_SEARCH_STEP, best_pa,  # noqa: F401
-                            first_observable_start, observable, sun_angle, sun_limits, unobservable_message)
-from .schedule import (DAY, FPA_REACH_DEG, SCHEDULE_COLUMNS, Pointing, Schedule, _check_sca,  # noqa: F401
-                       check_exptimes, previous_exposures, read_schedule, schedule_pointing, select_covering)
-from .settings import PlanOptions, SelectOptions
+from .dithers import plan_dithers
+from .footprints import count_on_sca, sca_footprint
+from .observability import best_pa, sun_angle
+from .schedule import (SCHEDULE_COLUMNS, Pointing, _check_sca, check_exptimes, previous_exposures, read_schedule,
+                       select_covering)
+from .settings import PLAN_REFERENCE_MJD, PlanOptions, SelectOptions
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +116,8 @@ def pointings_hdulist(pointings, *, step: str, params: dict | None = None, input
     corners (:func:`sca_footprint` of its ``sca``, which must be 1-18);
     with ``counts`` (:func:`count_on_sca`) those of :data:`COUNT_COLUMNS`.
     """
-    from ..io.fitsfile import OutHDU, format_card, table_hdu
+    from ..io.cards import format_card
+    from ..io.fitsfile import OutHDU, table_hdu
     from ..io.output import add_provenance
 
     values = {

@@ -1,6 +1,6 @@
 """Regions of the sky made of detector footprints: convex spherical polygons and their union.
 
-A detector footprint (:func:`perscli.scene.pointings.sca_footprint`) is a
+A detector footprint (:func:`perscli.scene.footprints.sca_footprint`) is a
 quadrilateral whose corners are on the sky and whose sides are taken as
 great-circle arcs.  (For a Roman SCA the true edge, through GalSim's TAN-SIP
 WCS, departs from the arc between its corners by less than 0.001 arcsec.)
@@ -194,7 +194,7 @@ class FootprintUnion:
     ----------
     footprints : sequence of (ra, dec)
         Corners of each footprint in degrees, in order around it (e.g.
-        :func:`perscli.scene.pointings.sca_footprint`).
+        :func:`perscli.scene.footprints.sca_footprint`).
     margin_arcsec : float
         Each footprint is grown by this much (:func:`expand_polygon`).
     centre : (float, float), optional

@@ -87,7 +87,7 @@ class PlanOptions(RowOptions):
         Roman filter of every exposure.
     start : float or None
         MJD at which the first exposure starts; None: the first date from
-        :data:`perscli.scene.dithers.PLAN_REFERENCE_MJD`, in steps of one
+        :data:`perscli.scene.settings.PLAN_REFERENCE_MJD`, in steps of one
         day, at which Roman can take every exposure.
     exptime : float
         Seconds each exposure lasts (the Roman Wide Area Survey's).

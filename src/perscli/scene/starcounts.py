@@ -34,7 +34,7 @@ brighter than J = 24 at b = -73 grow by 0.9% to 200 kpc and 1.4% to 1 Mpc.
   RA 10, Dec -44, b = -72 and -73, 0.42029 deg^2 each), by
   :func:`fit_luminosity_function`: the Poisson maximum likelihood (EM) of
   the LF in 11 bins given each star's J (perscli's conversion of G and
-  BP-RP, :func:`perscli.scene.catalog.gaia_roman_jh`) and parallax (with its
+  BP-RP, :func:`perscli.scene.photometry.gaia_roman_jh`) and parallax (with its
   error, after adding 0.029 mas, the global DR2 zero point of Lindegren et
   al. 2018, A&A 616, A2), with the density laws above.  J129 < 18 is where
   these chunks are complete (their reddest stars there have G < 20.6).
@@ -662,7 +662,7 @@ def read_gaia_chunk(path: str) -> dict:
 
     from astropy.io import fits
 
-    from .catalog import gaia_roman_jh
+    from .photometry import gaia_roman_jh
 
     stem = os.path.basename(path).split(".")[0]
     if not stem.isdigit():

@@ -16,7 +16,7 @@ import re
 
 import numpy as np
 
-from . import ROMAN_FILTERS
+from ..instrument import ROMAN_FILTERS
 from .starcounts import META_KEYWORDS as _STAR_META
 
 #: header keyword -> comment, for the keywords :func:`make_truth_catalog` puts in ``meta``

@@ -42,22 +42,12 @@ xi- exp(4i phi), mixing its real and imaginary parts.  Catalogues that
 combine detectors or pointings with different orientations need g in sky
 axes (a joint fit), or De rotated to the sky first (given with --de1/--de2).
 
-Modules: this one holds the driver, :func:`correlate_files` (checks of its
-options, the figures' file names, writing everything or nothing), and
-re-exports the names below from where they live, for existing callers:
-
-- :mod:`perscli.stats.shape_changes`: :class:`ShapeChanges`,
-  :class:`NoObjects` and :func:`load_shape_changes` (De from SHAPES tables);
-- :mod:`perscli.stats.pairs`: :func:`read_pairs_file` and :func:`load_pairs`
-  (many pairs pooled);
-- :mod:`perscli.stats.de_stats`: :func:`de_statistics`, :func:`de_histogram`,
-  :func:`theta_distribution`, :func:`chi2_sf`, :func:`theta_summary` and
-  their constants;
-- :mod:`perscli.stats.patches`: the ``--patch-centers`` file
-  (:func:`read_patch_centers` and its parts);
-- :mod:`perscli.stats.xi`: :func:`correlate_de` (TreeCorr) and :class:`Errors`;
-- :mod:`perscli.stats.correlate_hdus`: :func:`build_hdus` and :func:`xi_table`
-  (the output file's HDUs).
+This module holds the driver, :func:`correlate_files` (checks of its
+options, the figures' file names, writing everything or nothing); De is read
+by :mod:`perscli.stats.shape_changes` and :mod:`perscli.stats.pairs`, its
+statistics are in :mod:`perscli.stats.de_stats`, xi+/- in
+:mod:`perscli.stats.xi` and the output's HDUs in
+:mod:`perscli.stats.correlate_hdus`.
 """
 
 from __future__ import annotations
@@ -69,38 +59,12 @@ import os
 from .. import PerscliError
 from .settings import CorrelateOptions
 
-# the pieces of perscli correlate, each in its own module; every name that lived here before is
-# re-exported for existing callers (``from perscli.stats.correlate import ...``), see __all__
-from .correlate_hdus import XI_COLUMNS, build_hdus, xi_table  # noqa: F401
-from .de_stats import (  # noqa: F401
-    DEFAULT_THETA_EDGES, DEFAULT_THRESHOLDS, HIST_HI, HIST_LO, HIST_PER_DECADE, MAX_BOOT_GROUPS, MAX_NULL_OBJECTS,
-    MIN_EXPECTED, N_ANGLE, NULL_DRAWS, _abs, chi2_sf, de_histogram, de_statistics, position_angle,
-    theta_distribution, theta_summary)
-from .pairs import MAX_PAIR_KEYWORDS, _check_pairs, load_pairs, read_pairs_file  # noqa: F401
-from .patches import (  # noqa: F401
-    MAX_PATCH_TEXT, check_patch_centers_file, patch_center_vectors, read_patch_center_columns, read_patch_centers)
-from .shape_changes import G_AXES_KEYWORDS, WHAT, NoObjects, ShapeChanges, load_shape_changes  # noqa: F401
-from .xi import CROSS_PATCH_WEIGHTS, MIN_PER_PATCH, SEP_UNITS, VAR_METHODS, Errors, correlate_de  # noqa: F401
-
-__all__ = [
-    # shape_changes
-    "G_AXES_KEYWORDS", "WHAT", "NoObjects", "ShapeChanges", "load_shape_changes",
-    # pairs
-    "MAX_PAIR_KEYWORDS", "load_pairs", "read_pairs_file",
-    # de_stats
-    "DEFAULT_THETA_EDGES", "DEFAULT_THRESHOLDS", "HIST_HI", "HIST_LO", "HIST_PER_DECADE", "MAX_BOOT_GROUPS",
-    "MAX_NULL_OBJECTS", "MIN_EXPECTED", "N_ANGLE", "NULL_DRAWS", "chi2_sf", "de_histogram", "de_statistics",
-    "position_angle", "theta_distribution", "theta_summary",
-    # patches
-    "MAX_PATCH_TEXT", "check_patch_centers_file", "patch_center_vectors", "read_patch_center_columns",
-    "read_patch_centers",
-    # xi
-    "CROSS_PATCH_WEIGHTS", "MIN_PER_PATCH", "SEP_UNITS", "VAR_METHODS", "Errors", "correlate_de",
-    # correlate_hdus
-    "XI_COLUMNS", "build_hdus", "xi_table",
-    # this module
-    "CorrelateOptions", "correlate_files",
-]
+from .correlate_hdus import build_hdus, xi_table
+from .de_stats import _abs, de_histogram, de_statistics, theta_distribution, theta_summary
+from .pairs import _check_pairs, load_pairs
+from .patches import patch_center_vectors, read_patch_center_columns
+from .shape_changes import load_shape_changes
+from .xi import VAR_METHODS, correlate_de
 
 log = logging.getLogger("perscli")
 
@@ -188,7 +152,8 @@ def correlate_files(catalogs, dest: str, options: CorrelateOptions | None = None
         |De| bin: de_lo, de_hi, n, n_eff, chi2, dof, p, p_method), figures
         and source.
     """
-    from ..io.output import check_output, make_temp_file, write_hdus
+    from ..io.output import check_output, write_hdus
+    from ..io.tempfiles import make_temp_file
 
     o = options if options is not None else CorrelateOptions()
     de_columns, common_ids, positions, pixel_scale, columns = (o.de_columns, o.common_ids, o.positions,

@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from .settings import DEFAULT_THETA_EDGES, DEFAULT_THRESHOLDS  # noqa: F401  (their home: stats/settings.py)
+from .settings import DEFAULT_THETA_EDGES, DEFAULT_THRESHOLDS
 
 #: position-angle bins over [-90, 90) degrees
 N_ANGLE = 18

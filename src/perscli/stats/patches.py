@@ -28,7 +28,7 @@ def check_patch_centers_file(path: str) -> None:
     """Refuse, before anything is read, a --patch-centers name that is not a regular file.
 
     The checks every input of perscli makes before reading it
-    (:func:`perscli.io.fitsfile.open_source`), in one line each: missing, a
+    (:func:`perscli.io.sources.open_source`), in one line each: missing, a
     broken or looping symbolic link, a directory, a device (/dev/null,
     /dev/zero: read for ever), a socket, an empty file.  A named pipe is
     refused too, without waiting for a writer: a patch-centre file may be
@@ -63,7 +63,7 @@ def read_patch_center_columns(path: str) -> dict:
     """The columns of a patch-centre file, by lower-case name (see :func:`read_patch_centers`).
 
     Checked as every input is (:func:`check_patch_centers_file`), then read
-    as FITS (through :func:`perscli.io.fitsfile.open_fits`: structure and
+    as FITS (through :func:`perscli.io.fitsreader.open_fits`: structure and
     checksums verified) when it starts with a SIMPLE card (or is gzip
     compressed), else as a whitespace-separated text table with a header
     line of column names (at most :data:`MAX_PATCH_TEXT` bytes).

@@ -118,7 +118,7 @@ def theta_figure(theta: dict, png: str) -> None:
 
     The y axis is scaled to the bins with enough objects for their
     fractions to mean something: an expected (weighted) count n_eff /
-    nangle of at least :data:`perscli.stats.correlate.MIN_EXPECTED` per
+    nangle of at least :data:`perscli.stats.de_stats.MIN_EXPECTED` per
     angle bin, the rule that also chooses the chi2 p-value.  A bin with
     fewer (three galaxies put fractions of 1/3 and error bars of 0.5 into a
     plot of fractions near 1/18) is drawn faint, and its points beyond the

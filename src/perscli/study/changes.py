@@ -21,20 +21,15 @@ from __future__ import annotations
 import numpy as np
 
 from .. import PerscliError
-from ..measure.noise import MIN_SNR_DEFAULT
 from ..measure.selection import read_positions
-from ..measure.settings import MeasureOptions
+from ..measure.settings import MIN_SNR_DEFAULT, MeasureOptions
+from .differential import read_stamps, stamp_windows, variant_extname
 
 #: |De| of a galaxy fitted on both: De = g(variant) - g(reference); Delta|e| = |g(variant)| - |g(reference)|
 COLUMNS = ("id", "ra", "dec", "expid", "g1", "g2", "g1_ref", "g2_ref", "de1", "de2", "dabs", "e1_true",
            "e2_true", "snr_pred", "fitted", "flags", "method", "bound")
 #: with a check of the linear response (``cold``): De of the variant fitted from the start too
 COLD_COLUMNS = ("de1_cold", "de2_cold")
-
-
-def variant_extname(variant: str) -> str:
-    """The image HDU of a final's file that holds a variant ('stars-typical' -> 'STARS-TYPICAL')."""
-    return variant.upper()
 
 
 def _truth_shapes(catalog: str, n: int):
@@ -135,7 +130,6 @@ def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions =
         from ..scene import separation
 
         subset &= separation(field["ra"], field["dec"], cat["ra"], cat["dec"]) <= field["radius"]
-    from .differential import read_stamps
 
     changed = {v: [] for v in variants}
     stored = [None] * len(finals)
@@ -209,7 +203,6 @@ def _joint_changes(refs, variants, cat, per_variant, options, *, workers=1, cold
     from ..executor import run
     from ..measure.joint import ChangesContext, joint_setup, measure_joint_changes_object
     from ..measure.perframe import Windows, stamp_window
-    from .differential import stamp_windows
 
     only = np.logical_or.reduce(per_variant) if per_variant else None
     setup = joint_setup(refs, cat, options, only=only)

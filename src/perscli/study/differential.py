@@ -21,7 +21,7 @@ the differential result is the full result, not an approximation of it
 The final's file holds the reference (no persistence) in SCI, and one image
 per variant (persistence model and source) holding only the stamps it
 changed, NaN elsewhere, with a CHANGED table of which galaxies changed in
-which variant; :func:`perscli.measure.changes.measure_changes` fits those.
+which variant; :func:`perscli.study.changes.measure_changes` fits those.
 """
 
 from __future__ import annotations
@@ -190,7 +190,7 @@ def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=N
     ----------
     laws : dict
         Name -> (PersistenceModel, source, threshold, cap, floor); source 'drawn' or 'stars'.
-    blocks : perscli.detector.effects.BlockStack, optional
+    blocks : perscli.detector.blocks.BlockStack, optional
         Only these noise blocks of ``area`` (the simulation area around the
         final's frame): the charge as a stack of them.  The law is per pixel,
         so a block's values are the whole frame's there.
@@ -266,7 +266,7 @@ def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, are
     """Every model's SCI over ``area`` (NaN outside the active blocks), one model at a time.
 
     With ``blocks`` (few active blocks), the chain runs on the stack of them
-    (:class:`perscli.detector.effects.BlockStack`; ``charges`` are stacks
+    (:class:`perscli.detector.blocks.BlockStack`; ``charges`` are stacks
     too) and the result is put back in the area; noise is keyed on blocks,
     so each pixel is the bits the whole area gives.
 
@@ -301,7 +301,7 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     dest : str
         Output file: SCI (the reference: ``model`` without earlier
         exposures) holding the pixels of the rows' stamps (NaN elsewhere);
-        one image per variant (:func:`perscli.measure.changes.variant_extname`)
+        one image per variant (:func:`variant_extname`)
         holding the stamps it changed (NaN elsewhere); MODEL (the
         reference's detector model); CHANGED (id, and per variant whether
         it changed that galaxy's stamp).
@@ -434,8 +434,6 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         format_card("CONTENT", "the reference's header", "pixels: REFPIX at the STAMPS windows")],
         None, extname="SCI"))
     out.append(_model_hdu(model))
-    from .changes import variant_extname
-
     ids = np.asarray(cols["id"])[gal[windows[0]]].astype(np.int64)
     table = {"id": ids, "x0": wx0.astype(np.int32), "y0": wy0.astype(np.int32), "nx": wnx.astype(np.int32),
              "ny": wny.astype(np.int32), "offset": offsets[:-1],
@@ -477,10 +475,13 @@ STAMPS_EXTNAME = "STAMPS"
 REF_EXTNAME = "REFPIX"
 
 
+def variant_extname(variant: str) -> str:
+    """The image HDU of a final's file that holds a variant ('stars-typical' -> 'STARS-TYPICAL')."""
+    return variant.upper()
+
+
 def delta_extname(variant: str) -> str:
     """The 1-D image of a final's file holding a variant's change in the windows: 'D_DRAWN-TYPICAL'."""
-    from .changes import variant_extname
-
     return "D_" + variant_extname(variant)
 
 
@@ -493,8 +494,6 @@ def read_stamps(path: str, variants=()) -> dict:
         'table' (column arrays of STAMPS), 'ref' (1-D), 'deltas' (variant -> 1-D), as stored.
     """
     from ..io.tables import read_table
-    from .changes import variant_extname
-
     table = read_table(f"{path}[{STAMPS_EXTNAME}]", what="the windows of a study's final")
     names = {n.upper(): n for n in table.names}
     cols = {k: table.column(k, kind="integer") for k in ("id", "x0", "y0", "nx", "ny", "offset")}

@@ -28,6 +28,10 @@ import numpy as np
 
 from .. import PerscliError
 
+#: the folder of a study's task records (one JSON a finished task), which the runner and the
+#: summary both read
+STATE = ".state"
+
 
 @dataclass
 class Task:
@@ -127,7 +131,7 @@ def model_settings(model: str) -> list:
     -------
     list of str
         ``persistence.KEY=VALUE`` settings for
-        :func:`perscli.detector.effects.load_detector_model`.
+        :func:`perscli.detector.model.load_detector_model`.
     """
     if model in ("typical", "pessimistic"):
         return [f"persistence.base={model}"]
@@ -154,24 +158,25 @@ def select_exposures(s: dict, progress=None) -> Exposures:
     -------
     Exposures
     """
-    from ..scene import pointings as P
+    from ..scene.dithers import plan_dithers
+    from ..scene.schedule import previous_exposures, read_schedule, select_covering
 
     e, f = s["exposures"], s["field"]
     finals, history, every = {}, {}, {}
     if e["source"] == "plan":
         n = e["count"] + e["history"]
-        seq = P.plan_dithers(f["ra"], f["dec"], n, dither=e["plan_dither"], filter=s["filter"],
+        seq = plan_dithers(f["ra"], f["dec"], n, dither=e["plan_dither"], filter=s["filter"],
                              start=e["plan_start"], pa=e["plan_pa"], seed=s["seed"])
         for sca in s["scas"]:
             finals[sca] = [_with_sca(p, sca) for p in seq[e["history"]:]]
             for k, p in enumerate(seq[e["history"]:], start=e["history"]):
                 history[(sca, p.expid)] = [_with_sca(q, sca) for q in seq[max(0, k - e["history"]):k][::-1]]
     else:
-        schedule = P.read_schedule(e["schedule"])
+        schedule = read_schedule(e["schedule"])
         for k, sca in enumerate(s["scas"]):
             if progress is not None:
                 progress(k, len(s["scas"]), f"SCA {sca}: its footprints in {len(schedule)} exposures")
-            chosen = P.select_covering(schedule, f["ra"], f["dec"], f["radius"], filter=s["filter"],
+            chosen = select_covering(schedule, f["ra"], f["dec"], f["radius"], filter=s["filter"],
                                        after=e["after"] or None, limit=e["count"] or None, sca=sca)
             if not chosen:
                 raise PerscliError(f"no {s['filter']} exposure of the schedule puts SCA {sca} within "
@@ -182,7 +187,7 @@ def select_exposures(s: dict, progress=None) -> Exposures:
             finals[sca] = sorted(chosen, key=lambda p: (p.mjd, p.expid))
             for p in chosen:
                 history[(sca, p.expid)] = [_with_sca(q, sca) for q in
-                                           P.previous_exposures(schedule, p.expid, e["history"])] \
+                                           previous_exposures(schedule, p.expid, e["history"])] \
                     if e["history"] else []
         if progress is not None:
             progress(len(s["scas"]), len(s["scas"]), f"{sum(map(len, finals.values()))} finals")
@@ -293,7 +298,7 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
     over all their finals; without, each task fits its finals' galaxies right away and writes only their
     shape changes (shapes/scaNN/eNNNNNN.fits), so that a study of thousands of finals keeps no frames.
     """
-    from .changes import variant_extname
+    from .differential import variant_extname
 
     tasks = [_catalog_task(s, ex, seed, pre)]
     finals = [(sca, p) for sca, ps in sorted(ex.finals.items()) for p in ps]

@@ -195,7 +195,7 @@ def window_boxes(x, y, stamp, margin: int = WINDOW_MARGIN) -> np.ndarray:
     """The detector pixels of the stamps ``perscli measure`` cuts around positions (x, y), grown by ``margin``.
 
     ``perscli measure`` cuts a stamp of side n around the pixel nearest the
-    galaxy (:func:`perscli.measure.shapes.cut_stamp`); a smaller stamp lies
+    galaxy (:func:`perscli.measure.perframe.cut_stamp`); a smaller stamp lies
     inside a larger one.
 
     Parameters
@@ -223,7 +223,7 @@ SIDE_SCALE = 0.95
 def stamp_sides(cols: dict, rows, stamp: int) -> np.ndarray:
     """The stamp side ``perscli measure`` can cut for each galaxy (``rows`` of the catalogue), or larger.
 
-    :func:`perscli.measure.shapes.stamp_side` with a pixel scale a little
+    :func:`perscli.measure.perframe.stamp_side` with a pixel scale a little
     below any the frames have (:data:`SIDE_SCALE`), on the ladder of
     ``stamp``: a stamp sized for a galaxy's half-light radius, mostly 16 to
     32 pixels, rather than ``stamp`` for all.

@@ -390,7 +390,7 @@ def _g(v):
 
 def cost(study_dir: str) -> dict:
     """CPU seconds and bytes per kind of product, measured from this run's task records."""
-    from .tasks import STATE
+    from .plan import STATE
 
     per = {}
     for path in sorted(glob.glob(os.path.join(study_dir, STATE, "*.json"))):

@@ -19,8 +19,7 @@ import numpy as np
 
 from .. import PerscliError
 from ..measure.settings import MeasureOptions
-
-STATE = ".state"
+from .plan import STATE
 
 
 def record_path(study_dir: str, key: str) -> str:
@@ -161,7 +160,7 @@ def _measure(study_dir, p, out):
             "frames": len(frames)}
 
 
-def _exposure(p) -> "Exposure":
+def _exposure(p):
     from ..render.exposure import Exposure
 
     pt = p["pointing"] if "pointing" in p else p
@@ -333,7 +332,8 @@ def _changes(study_dir, p, out):
 
 
 def _correlate(study_dir, p, out):
-    from ..stats.correlate import CorrelateOptions, correlate_files
+    from ..stats.correlate import correlate_files
+    from ..stats.settings import CorrelateOptions
 
     figures = os.path.join(study_dir, p["figures"])
     os.makedirs(figures, exist_ok=True)

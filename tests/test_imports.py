@@ -1,0 +1,103 @@
+"""perscli's modules import one another without a circle, and the layers import one way.
+
+The graph is built from the sources with ``ast``: every import, at the top of a
+module or inside a function (the ones deferred to keep ``--help`` fast are real
+edges too), with relative imports resolved against the importing module's
+package.  ``from package import name`` is an edge to ``package.name`` when that
+is a module, else to the package itself.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "perscli"
+
+
+def _modules() -> dict:
+    """{dotted module name: path} of every module of perscli (a package is its __init__.py)."""
+    out = {}
+    for path in SRC.rglob("*.py"):
+        parts = list(path.relative_to(SRC.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def _imports(name: str, path: Path, modules: dict) -> set:
+    """The perscli modules that module ``name`` imports, anywhere in it."""
+    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package[:len(package) - node.level + 1] + ([node.module] if node.module else []))
+            for alias in node.names:
+                if f"{base}.{alias.name}" in modules:
+                    found.add(f"{base}.{alias.name}")
+                elif base in modules:
+                    found.add(base)
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                target = alias.name
+                while target and target not in modules:
+                    target = target.rpartition(".")[0]
+                if target:
+                    found.add(target)
+    found.discard(name)
+    return found
+
+
+def import_graph() -> dict:
+    """{module: set of the perscli modules it imports}."""
+    modules = _modules()
+    return {name: _imports(name, path, modules) for name, path in modules.items()}
+
+
+def find_cycle(graph: dict) -> list:
+    """One import circle of ``graph`` as [a, b, ..., a], or [] when there is none (depth-first search)."""
+    state = {}                       # 1: on the current path, 2: finished
+    path = []
+
+    def visit(node):
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return path[path.index(nxt):] + [nxt]
+            if nxt not in state:
+                cycle = visit(nxt)
+                if cycle:
+                    return cycle
+        path.pop()
+        state[node] = 2
+        return []
+
+    for node in sorted(graph):
+        if node not in state:
+            cycle = visit(node)
+            if cycle:
+                return cycle
+    return []
+
+
+def test_the_graph_sees_every_kind_of_import():
+    graph = import_graph()
+    assert len(graph) > 50
+    # a relative import at the top, one inside a function, and `from package import module`
+    assert "perscli.detector.settings" in graph["perscli.detector.effects"]
+    assert "perscli.detector.persistence" in graph["perscli.detector.effects"]
+    assert "perscli.cli.main" in graph["perscli.__main__"]
+
+
+def test_find_cycle_reports_the_circle():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set(), "c": {"a", "b"}}) == []
+
+
+def test_no_import_circle():
+    cycle = find_cycle(import_graph())
+    assert not cycle, "import circle: " + " -> ".join(cycle)
