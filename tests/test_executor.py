@@ -357,7 +357,8 @@ def test_one_progress_callback_drawn_as_lines_or_a_bar():
     """progress(done, total, name): lines for logs (the study's), a bar only at a terminal, nothing with -q."""
     import io
 
-    from perscli.progress import bar, lines
+    from perscli.cli.progress import bar
+    from perscli.progress import lines
 
     out = io.StringIO()
     step = lines("study", out)

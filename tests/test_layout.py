@@ -51,3 +51,32 @@ def test_optics_sits_below_render_and_measure():
 def test_measure_does_not_reach_into_render():
     """measure draws through perscli.optics, as render does, rather than importing render's modules."""
     assert not _reaching(sorted((SRC / "measure").rglob("*.py")), ("perscli.render", "perscli.study", "perscli.cli"))
+
+
+def test_render_reaches_no_layer_above_it():
+    """render draws frames; shapes, statistics, diagnose and the study's machinery sit above it."""
+    assert not _reaching(sorted((SRC / "render").rglob("*.py")), ("perscli.measure", "perscli.stats",
+                                                                  "perscli.diagnose", "perscli.study", "perscli.cli"))
+
+
+def _third_party(path: Path) -> set:
+    """The top-level names of the modules a file imports that are not perscli's (function-level too)."""
+    import ast
+
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            names.add(node.module.split(".")[0])
+        elif isinstance(node, ast.Import):
+            names.update(alias.name.split(".")[0] for alias in node.names)
+    return names
+
+
+def test_the_library_knows_nothing_of_click():
+    """Everything the command line does can be done from Python: only perscli.cli imports click or the cli."""
+    library = [p for p in sorted(SRC.rglob("*.py")) if p.relative_to(SRC).parts[0] != "cli"
+               and p.name != "__main__.py"]
+    assert len(library) > 50
+    assert not _reaching(library, ("perscli.cli",))
+    clicking = sorted(str(p.relative_to(SRC)) for p in library if "click" in _third_party(p))
+    assert not clicking, f"library modules that import click: {clicking}"

@@ -1,11 +1,13 @@
 """Progress on stderr for long work: a bar at a terminal, a line per step (or per tenth of the work) elsewhere,
-nothing with -q, nothing for small work in a log (perscli.progress, and the commands that report through it)."""
+nothing with -q, nothing for small work in a log (perscli.progress, perscli.cli.progress and the commands that
+report through them)."""
 
 import io
 
 import pytest
 
-from perscli.progress import bar, lines, reporter
+from perscli.cli.progress import bar, reporter
+from perscli.progress import lines
 
 from fits_factory import invoke
 from test_measure_cli import scene  # noqa: F401  (a fixture: a truth catalogue and frames on a cutout)

@@ -25,37 +25,6 @@ import sys
 import time
 
 
-def bar(label: str, stream=None, *, quiet: bool = False):
-    """A callback drawing a bar on ``stream`` (stderr), or None when quiet or not a terminal.
-
-    Parameters
-    ----------
-    label : str
-        What is counted ('rows', 'objects').
-    stream : file, optional
-        Where to draw (default stderr).
-    quiet : bool
-        Draw nothing (``-q``).
-    """
-    stream = stream if stream is not None else sys.stderr
-    if quiet or not stream.isatty():
-        return None        # logs and pipes stay clean
-    state = {"done": 0, "bar": None}
-
-    def progress(done, total, name=None):
-        import click
-
-        if state["bar"] is None:
-            state["bar"] = click.progressbar(length=total, label=label, file=stream)
-            state["bar"].__enter__()
-        state["bar"].update(done - state["done"], current_item=name)
-        state["done"] = done
-        if done >= total:
-            state["bar"].__exit__(None, None, None)
-
-    return progress
-
-
 def lines(label: str, stream=None, *, quiet: bool = False, every: float | None = None, least: int = 1):
     """A callback writing ``LABEL: [done/total] NAME; N s elapsed`` on ``stream`` (stderr) per step.
 
@@ -92,29 +61,3 @@ def lines(label: str, stream=None, *, quiet: bool = False, every: float | None =
               file=stream, flush=True)
 
     return progress
-
-
-def reporter(label: str, stream=None, *, quiet: bool = False, least: int = 1, command: str = "perscli"):
-    """The progress of a command: a bar at a terminal, else a line per tenth of the work; None when quiet.
-
-    Parameters
-    ----------
-    label : str
-        What is counted ('objects', 'galaxies', 'rows').
-    stream : file, optional
-        Where to report (default stderr).
-    quiet : bool
-        Nothing (``-q``).
-    least : int
-        Work of fewer steps says nothing when stderr is not a terminal (a
-        cutout's objects take a second; a full frame's, minutes).
-    command : str
-        The lines' first word ('render'), so that a log says whose they are.
-    """
-    stream = stream if stream is not None else sys.stderr
-    if quiet:
-        return None
-    isatty = getattr(stream, "isatty", None)
-    if isatty is not None and isatty():
-        return bar(label, stream)
-    return lines(f"{command}: {label}", stream, every=0.1, least=least)

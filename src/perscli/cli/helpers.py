@@ -237,12 +237,12 @@ def verbosity() -> int:
 
 
 def progress_reporter(label: str, stream=None, *, least: int = 1):
-    """A ``progress(done, total, name=None)`` callback for the current command (:func:`perscli.progress.reporter`).
+    """A ``progress(done, total, name=None)`` callback for the current command (:func:`.progress.reporter`).
 
     A bar at a terminal; elsewhere (a log, a pipe, a batch job) one line per
     tenth of the work, for work of at least ``least`` steps; nothing with -q.
     """
-    from ..progress import reporter
+    from .progress import reporter
 
     ctx = click.get_current_context(silent=True)
     command = ctx.command_path.replace("perscli ", "", 1) if ctx is not None else "perscli"

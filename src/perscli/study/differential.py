@@ -38,6 +38,7 @@ from ..detector.blocks import NOISE_BLOCK, BlockStack
 from ..detector.chain import iter_chains
 from ..detector.effects import Persistence
 from ..detector.model import DetectorModel
+from ..measure.settings import MeasureOptions
 from ..optics import Optics
 from ..render.exposure import Exposure, draw_sources, plan_objects, read_truth
 from .reach import (IPC_REACH, WINDOW_MARGIN, _active_blocks, _clip_keep, _objects_reaching, galaxy_positions,
@@ -288,7 +289,7 @@ def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, are
 
 
 def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorModel, variants: dict, seed: int,
-                 histories=(), rows=None, stamp: int = 48, compress: str = "gzip", overwrite: bool = False,
+                 histories=(), rows=None, stamp: int = MeasureOptions.stamp, compress: str = "gzip", overwrite: bool = False,
                  pixels: dict | None = None, keep_light: bool = False, region: Region | None = None) -> dict:
     """The reference and every variant of a final exposure, on the stamps of ``rows`` only; write ``dest``.
 

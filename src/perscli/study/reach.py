@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..detector.blocks import NOISE_BLOCK, block_grid
+from ..measure.settings import MeasureOptions
 from ..optics import Optics
 from ..render.exposure import Exposure, plan_objects
 
@@ -352,7 +353,7 @@ def _clip_keep(boxes: np.ndarray, bounds):
     return np.flatnonzero(ok), c[ok]
 
 
-def final_candidates(cols: dict, final: Exposure, history, *, stamp: int = 48, sources=("drawn",), floor: float = 0.0,
+def final_candidates(cols: dict, final: Exposure, history, *, stamp: int = MeasureOptions.stamp, sources=("drawn",), floor: float = 0.0,
                      sample=None, cache=None):
     """Which galaxies' stamps on ``final`` the light of its earlier exposures can reach.
 
@@ -419,7 +420,7 @@ def in_field(cols: dict, field: dict) -> np.ndarray:
     return (np.asarray(cols["kind"]) == "galaxy") & (dist <= field["radius"])
 
 
-def plan_regions(cols: dict, finals, *, stamp: int = 48, joint: bool = True, sources=("drawn",), floor: float = 0.0,
+def plan_regions(cols: dict, finals, *, stamp: int = MeasureOptions.stamp, joint: bool = True, sources=("drawn",), floor: float = 0.0,
                  sample=None):
     """Which galaxies of which finals a differential study simulates.
 
