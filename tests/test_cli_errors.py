@@ -9,7 +9,7 @@ import pytest
 from astropy.io import fits
 
 import fits_factory
-from fits_factory import DAY, SHAPE, T0, frame_file, invoke, listing, snapshot
+from fits_factory import DAY, SHAPE, T0, frame_file, invoke, snapshot
 from fits_factory import collect_leaked_files  # noqa: F401  (fixture)
 
 MID = T0 + 150.0 / DAY      # a 100 s exposure starting here fits between the two of ``good``

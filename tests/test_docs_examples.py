@@ -13,7 +13,6 @@ paper's or run diagnose take tens of seconds to minutes each: the slow tests
 run them, the fast ones every other example.
 """
 
-from pathlib import Path
 
 import pytest
 

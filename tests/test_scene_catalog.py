@@ -17,7 +17,7 @@ from perscli.scene.catalog import (Field, GalaxyModel, cumulative_fraction, draw
                                    truncated_sigma)
 
 import fits_factory
-from fits_factory import invoke, listing, raw_cards_masked
+from fits_factory import invoke, raw_cards_masked
 
 RA, DEC = 10.0, -44.0
 

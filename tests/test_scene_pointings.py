@@ -20,7 +20,7 @@ from perscli.scene.schedule import (Pointing, Schedule, previous_exposures, read
                                     select_covering)
 
 import fits_factory
-from fits_factory import invoke, listing, raw_cards_masked
+from fits_factory import invoke, raw_cards_masked
 
 RA, DEC = 10.0, -44.0
 DAY = 86400.0

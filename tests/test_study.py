@@ -7,14 +7,12 @@ import subprocess
 import sys
 import time
 
-import numpy as np
 import pytest
 
 from fits_factory import invoke, one_line_error, run
 from perscli import PerscliError
 from perscli.study.config import load_study
 from perscli.study.plan import build, frame_seed, select_exposures, variant_name
-from perscli.study.runner import task_dicts
 
 SCHEDULE = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "roman",
                         "Roman_WAS_obseq_11_1_23.fits")

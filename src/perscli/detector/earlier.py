@@ -10,8 +10,6 @@ so is one that does not end before the current exposure starts.
   the current frame, through their LTV1/LTV2 (detector pixel = image
   pixel - LTV, FITS 1-indexed), as an :class:`Overlap`, for
   :func:`perscli.detector.apply.plan`.
-
-Moved out of :mod:`perscli.detector.apply`, which re-exports these names.
 """
 
 from __future__ import annotations

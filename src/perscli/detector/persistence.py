@@ -207,7 +207,7 @@ def middle_time_factor(gap, ends, gamma: float) -> np.ndarray:
     Notes
     -----
     STScI's WFC3-IR persistence estimate counts time from EXPEND of the
-    earlier exposure to the middle of the later one (NOTES.md section 1).  The
+    earlier exposure to the middle of the later one.  The
     decay is convex, so this falls below the exact integral
     (:func:`time_factor`): for gamma = 1 and a 300 s exposure by 30% when it
     starts 30 s after the earlier one ends, by 1.4% 600 s after, and by

@@ -27,9 +27,9 @@ from .params import Param
 #:
 #: 'wfc3': HST WFC3-IR, the Fermi-function form of Long et al. (2012, SPIE 8442,
 #: cited by the paper; the exposure-time dependent version is WFC3 ISR 2015-15)
-#: with the parameters of STScI's WFC3 persistence software as NOTES.md section 1
-#: records them: norm 0.3 (A, e-/s at t = 1000 s), alpha 0.174, gamma 1.0,
-#: x0 9.0e4 e- and dx 2.0e4 e-, in the parametrisation used here.  Long's law has
+#: with the parameters of STScI's WFC3 persistence software: norm 0.3 (A, e-/s at
+#: t = 1000 s), alpha 0.174, gamma 1.0, x0 9.0e4 e- and dx 2.0e4 e-, in the parametrisation
+#: used here.  Long's law has
 #: no linear branch: the Fermi function holds down to zero fluence, which
 #: half_well = 0 expresses.  STScI's later "A-gamma" model tabulates A and gamma
 #: against fluence and exposure time from calibration data that perscli does not
@@ -42,7 +42,7 @@ PRESETS = {
 
 #: How a preset is applied when it is chosen by name (``--model wfc3``, or ``base: wfc3`` in a
 #: YAML file); the settings of a preset missing here are the defaults of :data:`SETTINGS`.
-#: 'wfc3' follows STScI's WFC3-IR persistence pipeline (NOTES.md sections 1 and 10): the
+#: 'wfc3' follows STScI's WFC3-IR persistence pipeline (and the WFC3 Data Handbook, ch. 8): the
 #: current at the MIDDLE of the later exposure times its length, the per-pixel MAXIMUM over
 #: earlier exposures rather than their sum, every earlier exposure of the last 16 hours
 #: (older ones are ignored), however many there are.
@@ -100,7 +100,7 @@ def preset_settings(base: str) -> dict:
 MODES = ("add", "subtract", "predict")
 
 #: Fractional uncertainty of the predicted persistence (the default of ``model_error``): a judgement,
-#: not a published or fitted figure.  The WFC3 Data Handbook (ch. 8, NOTES.md section 10) gives no
+#: not a published or fitted figure.  The WFC3 Data Handbook (ch. 8) gives no
 #: number; it says the model can differ from the short-term persistence and underestimates it after
 #: spatial scans.  0.3 stands for "good to some tens of per cent"; give your own with --model-error.
 DEFAULT_MODEL_ERROR = 0.3

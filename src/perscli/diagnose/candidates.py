@@ -15,7 +15,6 @@ from typing import Callable
 
 import numpy as np
 
-from ..detector.model import DetectorModel
 from .likelihood import with_effect
 
 
@@ -256,8 +255,3 @@ CANDIDATES = (
 
 def by_name(name: str) -> Candidate:
     return next(c for c in CANDIDATES if c.name == name)
-
-
-def current_values(model: DetectorModel, exposures) -> dict:
-    """Each applicable candidate's value in ``model``."""
-    return {c.name: c.get(model, exposures) for c in CANDIDATES if c.applies(exposures)}

@@ -10,7 +10,7 @@
 - :func:`format_card`, :func:`history_cards`: card images for outputs, and
   :func:`_is_structural`: the keywords the writer sets itself.
 
-Part of the FITS layer of :mod:`perscli.io.fitsfile`, which re-exports these names.
+Part of the FITS layer whose writer is :mod:`perscli.io.fitsfile`.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@
 
 The sums of data are computed by the compiled :mod:`perscli._kernels`;
 :class:`perscli.io.fitsreader.HDU` verifies data as it reads them and the
-writer (:mod:`perscli.io.fitsfile`, which re-exports these names) signs
+writer (:mod:`perscli.io.fitsfile`) signs
 its outputs.
 """
 

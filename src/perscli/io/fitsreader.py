@@ -8,7 +8,7 @@ images straight from the :class:`~perscli.io.sources.Source` with
 ``os.pread`` (the fast path), the rest through CFITSIO, CHECKSUM/DATASUM
 verified on the way.
 
-Part of the FITS layer of :mod:`perscli.io.fitsfile`, which re-exports these names.
+Part of the FITS layer whose writer is :mod:`perscli.io.fitsfile`.
 """
 
 from __future__ import annotations

@@ -361,7 +361,8 @@ class OutputGroup:
     publishing them is the only line on stderr.
 
     Used by the command line (:func:`perscli.cli.helpers.report_errors`);
-    library code finds the active group with :func:`active_group`.
+    library code declares its outputs to the active group with
+    :func:`declare_output`.
     """
 
     def __init__(self):
@@ -441,7 +442,7 @@ class OutputGroup:
 
     @contextlib.contextmanager
     def active(self):
-        """Make this the group :func:`active_group` returns for the duration of the block."""
+        """Make this the group outputs are declared to (:func:`declare_output`) for the duration of the block."""
         global _ACTIVE
         outer, _ACTIVE = _ACTIVE, self
         try:
@@ -451,11 +452,6 @@ class OutputGroup:
 
 
 _ACTIVE: OutputGroup | None = None
-
-
-def active_group() -> OutputGroup | None:
-    """The :class:`OutputGroup` of the running command, if any."""
-    return _ACTIVE
 
 
 def declare_output(dest) -> None:

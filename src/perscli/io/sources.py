@@ -8,7 +8,7 @@ at once.  :func:`stat_input` says in one line why there is nothing to read at
 a path, and :func:`split_selector` takes CFITSIO-style HDU selectors and image
 sections off a name.
 
-Part of the FITS layer of :mod:`perscli.io.fitsfile`, which re-exports these names.
+Part of the FITS layer whose writer is :mod:`perscli.io.fitsfile`.
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@
 :func:`tempfile.mkstemp` and :func:`tempfile.mkdtemp` with the permissions of
 any new file or folder (0666 or 0777 less the umask, where those of
 :mod:`tempfile` are 0600 and 0700), so that the output renamed from them is
-readable as any other file.  Used by :mod:`perscli.io.output` (which
-re-exports both) for every output written to a path.
+readable as any other file.  Used by :mod:`perscli.io.output` for
+every output written to a path.
 """
 
 from __future__ import annotations

@@ -7,9 +7,6 @@ S/N of each object (:func:`predicted_snr`, through :class:`SnrTable`) uses
 its catalogue magnitude and size, the PSF and that noise, and is what the
 ``--min-snr`` cut (:data:`MIN_SNR_DEFAULT`) compares against, so that the
 cut is the same on frames with and without persistence.
-
-Split out of :mod:`perscli.measure.shapes`, which still re-exports the names
-other modules import from it.
 """
 
 from __future__ import annotations

@@ -7,9 +7,6 @@ a fit (:func:`perscli.measure.fit.fit_exp`, or GalSim's HSM) by
 :func:`measure_object` on the workers of :func:`perscli.executor.run`.
 The flag bits of the output (:data:`FLAGS`) and the stamp helpers are
 shared with the joint fit (:mod:`perscli.measure.joint`).
-
-Split out of :mod:`perscli.measure.shapes`, which still re-exports the names
-other modules import from it.
 """
 
 from __future__ import annotations

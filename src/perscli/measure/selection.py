@@ -7,9 +7,6 @@ by default), their FITS pixel positions on a frame through its WCS
 (:func:`on_frame`), and which have a neighbour close enough to spoil their
 shapes (:func:`blended`, :func:`blended_on_sky`).  The cut on the predicted
 S/N is in :mod:`perscli.measure.noise`.
-
-Split out of :mod:`perscli.measure.shapes`, which still re-exports the names
-other modules import from it.
 """
 
 from __future__ import annotations

@@ -28,7 +28,6 @@ import numpy as np
 from .. import PerscliError
 from ..executor import imap
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
-# the optics moved to perscli.optics (render and measure draw through them); names kept here for callers
 from ..optics import Optics, StampDrawer, galaxy_stamp_size, stamp_drawer, star_stamp_size
 
 log = logging.getLogger(__name__)

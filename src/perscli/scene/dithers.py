@@ -13,8 +13,6 @@ day (:func:`perscli.scene.observability.first_observable_start`); without a
 PA, at GalSim's best PA (:func:`perscli.scene.observability.best_pa`) at
 that start.  A start given is checked, and refused with the first observable
 date after it.
-
-Moved out of :mod:`perscli.scene.pointings`, which re-exports these names.
 """
 
 from __future__ import annotations

@@ -9,8 +9,6 @@
   land on an SCA, and which of them land on it (or on a cutout of it,
   :func:`frame_bounds`); :func:`count_on_sca` counts them, by kind, for
   every row of a table.
-
-Moved out of :mod:`perscli.scene.pointings`, which re-exports these names.
 """
 
 from __future__ import annotations

@@ -12,7 +12,6 @@ limit would refuse the real survey.
 every exposure of a sequence (planned sequences,
 :func:`perscli.scene.dithers.plan_dithers`); :func:`unobservable_message`
 says in one line why a position cannot be observed and when it can.
-Moved out of :mod:`perscli.scene.pointings`, which re-exports these names.
 """
 
 from __future__ import annotations

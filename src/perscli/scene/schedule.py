@@ -16,8 +16,7 @@ A schedule (:func:`read_schedule`) is a FITS binary table with columns
   are what leaves persistence in it.
 
 Also :class:`Pointing` (one exposure) and :class:`Schedule` (a schedule as
-columns).  Moved out of :mod:`perscli.scene.pointings`, which re-exports
-these names.
+columns).
 """
 
 from __future__ import annotations

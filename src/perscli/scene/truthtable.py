@@ -6,8 +6,6 @@ the 'TRUTH' table (units and a TCOMMn description per column,
 :data:`_COLUMN_INFO`; the ``meta`` keywords with their comments,
 :data:`KEYWORD_COMMENTS`, and provenance) and, for footprints, the
 'FOOTPRNT' table; :func:`write_truth_catalog` writes it atomically.
-
-Moved out of :mod:`perscli.scene.catalog`, which re-exports these names.
 """
 
 from __future__ import annotations

@@ -17,7 +17,6 @@ import time
 
 import numpy as np
 
-from .. import PerscliError
 from ..measure.settings import MeasureOptions
 from .plan import STATE
 
@@ -371,8 +370,3 @@ def _summary(study_dir, p, out):
 
 RUNNERS = dict(pointings=_pointings, catalog=_catalog, render=_render, measure=_measure, correlate=_correlate,
                budget=_budget, summary=_summary, regions=_regions, final=_final, changes=_changes)
-
-
-def check_kind(kind: str) -> None:
-    if kind not in RUNNERS:
-        raise PerscliError(f"unknown task kind {kind!r}")
