@@ -8,8 +8,8 @@ import click
 
 from .helpers import FILE, PerscliCommand, check_outputs, deprecated_option, file_or, progress_reporter, report_errors
 from ..detector.settings import COMBINES, MODES, PRESET_SETTINGS, PRESETS, SETTINGS, TIME_MODELS, ApplyOptions
-from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, no_checksum_opt, output_opt, overwrite_opt,
-                      units_opt, verbosity_opts, workers_opt)
+from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, key_values, no_checksum_opt, output_opt,
+                      overwrite_opt, units_opt, verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -53,6 +53,7 @@ def _power_of_two(ctx, param, value):
 @click.option("--model", "model_spec", default=None, hidden=True, type=file_or("typical", "pessimistic", "wfc3",
               "galsim-linear"), callback=deprecated_option("apply-persistence --model", "--law"))
 @click.option("--set", "settings", multiple=True, metavar="persistence.KEY=VALUE",
+              callback=key_values(effect="persistence"),
               help="Override a parameter of the law (A, x0, dx, alpha, gamma, half_well) or a setting (time_model, "
                    "combine, max_previous, lookback), as render's --set does: persistence.gamma=1.1. "
                    "Repeatable.")
@@ -159,22 +160,10 @@ def apply_persistence(current, previous, output, law, model_spec, settings, para
     law = law if law is not None else model_spec if model_spec is not None else "typical"
     if dq_bit is not None and flag_above is None:
         raise click.UsageError("--dq-bit sets the bit --flag-above flags: give --flag-above E_PER_S too")
-    # one KEY=VALUE syntax with render and study: a dotted path; apply-persistence knows one effect
-    overrides = []
-    for text in settings:
-        key, eq, value = text.partition("=")
-        effect, dot, name = key.strip().partition(".")
-        if not eq or not dot or not name:
-            raise click.BadParameter(f"{text!r}: give persistence.KEY=VALUE, e.g. persistence.gamma=1.1",
-                                     param_hint="'--set'")
-        if effect != "persistence":
-            raise click.BadParameter(f"{text!r}: apply-persistence applies persistence only (give "
-                                     f"persistence.{name}=...); render's --set takes the other effects",
-                                     param_hint="'--set'")
-        overrides.append(f"{name}={value}")
     check_outputs(output, inputs=[current, *previous, law], overwrite=overwrite)
     # the options --time-model, --combine, --max-previous and --lookback are the law's settings
-    model = load_persistence_model(law, (*overrides, *params)).with_settings(
+    # --set persistence.KEY=VALUE arrives as KEY=VALUE (options.key_values), as the older --param gives it
+    model = load_persistence_model(law, (*settings, *params)).with_settings(
         time_model=time_model, combine=combine, max_previous=max_previous, lookback=lookback)
     options = ApplyOptions(mode=mode, model_error=model_error, flag_above=flag_above,
                            dq_bit=D.dq_bit if dq_bit is None else dq_bit, units=units, gain=gain, exptime=exptime,

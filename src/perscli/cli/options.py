@@ -32,6 +32,8 @@ option            meaning                                         used by
 --columns         a table's column names (NAME=COL,...)           render, measure, catalog, pointings, correlate,
                                                                   budget
 --compress        lossless tile compression of the output         apply-persistence, render
+--set             KEY=VALUE overrides, repeatable, read by        render, study, apply-persistence
+                  :func:`key_values`
 ================  ==============================================  ===========================================
 
 No output may replace an input: every file a command reads (FITS inputs,
@@ -47,7 +49,7 @@ import click
 
 from ..instrument import ROMAN_FILTERS, ROMAN_N_SCA
 from ..scene import DEC_RANGE, MJD_RANGE, PA_RANGE, RA_RANGE
-from .helpers import FILE, OUTPUT, file_or
+from .helpers import FILE, OUTPUT, DataError, file_or
 
 output_opt = click.option(
     "-o", "--output", "output", required=True, metavar="PATH", type=OUTPUT,
@@ -275,3 +277,48 @@ def columns_opt(what: str, example: str = "ra=ALPHA_J2000,dec=DELTA_J2000", name
         name, name.lstrip("-").replace("-", "_"), multiple=True, metavar="NAME=COL,...", callback=_columns,
         help=f"Column names of {what} when they differ from perscli's: NAME=COL pairs, comma-separated or "
              f"repeated (e.g. {example}); NAME is the column perscli reads, COL the file's.")
+
+
+def key_values(item: dict | None = None, *, effect: str | None = None):
+    """A click callback for a repeatable ``--set KEY=VALUE`` (rasterio's ``_cb_key_val``): each item read by
+    :func:`perscli.io.config.split_key_value`, the library's one reading, as the command line parses it.
+
+    Parameters
+    ----------
+    item : dict, optional
+        How the library names the items (:data:`perscli.io.config.DETECTOR_ITEM`,
+        :data:`~perscli.io.config.STUDY_ITEM`): an item without '=' is
+        refused with the library's own line, exit status 1.  The items go on
+        as given: the library types each value and checks it against its
+        schema, once.
+    effect : str, optional
+        The one effect the command applies ('persistence' for
+        apply-persistence): items are ``EFFECT.KEY=VALUE`` and go on as
+        ``KEY=VALUE``; another effect, or no dotted path, is a usage error
+        (exit status 2).
+    """
+    from .. import PerscliError
+    from ..io.config import split_key_value
+
+    def callback(ctx, param, value):
+        out = []
+        for text in value:
+            try:
+                key, raw = split_key_value(text, **(item or {}))
+            except PerscliError as exc:
+                if effect is None:
+                    raise DataError(str(exc)) from None
+                key, raw = "", None
+            if effect is None:
+                out.append(text)
+                continue
+            name, dot, sub = key.partition(".")
+            if raw is None or not dot or not sub:
+                raise click.BadParameter(f"{text!r}: give {effect}.KEY=VALUE, e.g. {effect}.gamma=1.1", ctx, param)
+            if name != effect:
+                raise click.BadParameter(f"{text!r}: apply-persistence applies {effect} only (give "
+                                         f"{effect}.{sub}=...); render's --set takes the other effects", ctx, param)
+            out.append(f"{sub}={raw}")
+        return tuple(out)
+
+    return callback

@@ -8,10 +8,11 @@ import click
 
 from .. import PerscliError
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
+from ..io.config import DETECTOR_ITEM
 from ..render.settings import DEFAULT_HDUS, HDU_NAMES, RenderOptions
 from .helpers import FILE, PerscliCommand, check_outputs, progress_reporter, report_errors
-from .options import (columns_opt, compress_opt, dec_opt, mjd_opt, model_opt, no_checksum_opt, output_opt, overwrite_opt, pa_opt,
-                      plot_opt, ra_opt, required_seed_opt, verbosity_opts, workers_opt)
+from .options import (columns_opt, compress_opt, dec_opt, key_values, mjd_opt, model_opt, no_checksum_opt, output_opt,
+                      overwrite_opt, pa_opt, plot_opt, ra_opt, required_seed_opt, verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -58,7 +59,7 @@ def _list_effects(ctx, param, value):
 @model_opt("roman", "roman|MODEL.yaml|FRAME.fits",
            "roman (GalSim's Roman chain, with saturation), a YAML list of effects in physical order, or a frame "
            "perscli rendered (the model that made it); see --list-effects", names=("roman",))
-@click.option("--set", "settings", multiple=True, metavar="EFFECT.KEY=VALUE",
+@click.option("--set", "settings", multiple=True, metavar="EFFECT.KEY=VALUE", callback=key_values(DETECTOR_ITEM),
               help="Override the model: e.g. read_noise.sigma=5, persistence.base=pessimistic, ipc=off.")
 @click.option("--previous", multiple=True, metavar="FRAME", type=FILE,
               help="An earlier exposure of the same SCA (a frame perscli rendered); repeatable. Its DRAWN "

@@ -5,7 +5,8 @@ from __future__ import annotations
 import click
 
 from .helpers import FILE, FOLDER, PerscliCommand, report_errors
-from .options import no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
+from ..io.config import STUDY_ITEM
+from .options import key_values, no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
 
 
 @click.command("study", cls=PerscliCommand,
@@ -16,7 +17,7 @@ from .options import no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
 @click.option("--preset", type=click.Choice(["small", "paper", "ci"]), default=None,
               help="Start from a preset (small: a laptop; paper: the paper's 6.25 deg^2 and 18 SCAs; ci: the "
                    "test suite's); STUDY.yaml and --set override it.")
-@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", callback=key_values(STUDY_ITEM),
               help="Override a setting, e.g. exposures.count=5 or persistence.sources=[stars,all]; repeatable.")
 @click.option("--scheduler", default="local", show_default=True, metavar="serial|local|ADDRESS",
               callback=lambda ctx, param, value: _scheduler(value),

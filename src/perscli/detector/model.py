@@ -265,8 +265,7 @@ def _persistence_from_yaml(path: str) -> tuple:
 
 def _persistence_overrides(overrides, pmodel) -> dict:
     """{key: value} of 'KEY=VALUE' overrides (or a mapping) of a persistence model, checked."""
-    import yaml
-
+    from ..io.config import PERSISTENCE_ITEM, parse_value, split_key_value
     from .settings import FERMI_PARAMETERS, SETTINGS
 
     if isinstance(overrides, dict):
@@ -274,15 +273,8 @@ def _persistence_overrides(overrides, pmodel) -> dict:
     else:
         items = []
         for text in overrides:
-            if "=" not in text:
-                raise PerscliError(f"override {text!r} is not KEY=VALUE (e.g. --set persistence.gamma=1.1, or "
-                                   "--param gamma=1.1)")
-            key, value = (s.strip() for s in text.split("=", 1))
-            try:
-                value = yaml.safe_load(value)
-            except yaml.YAMLError:
-                pass
-            items.append((key, value))
+            key, value = split_key_value(text, **PERSISTENCE_ITEM)
+            items.append((key, parse_value(value)))
     changes = {}
     for key, value in items:
         if key not in FERMI_PARAMETERS and key not in SETTINGS and key != "rounding":
@@ -360,9 +352,9 @@ def _build(items, where: str) -> DetectorModel:
 
 
 def _override(model: DetectorModel, text: str) -> None:
-    if "=" not in text:
-        raise PerscliError(f"--set {text!r} is not EFFECT.KEY=VALUE or EFFECT=on|off")
-    key, value = (s.strip() for s in text.split("=", 1))
+    from ..io.config import DETECTOR_ITEM, parse_value, split_key_value
+
+    key, value = split_key_value(text, **DETECTOR_ITEM)
     name, _, param = key.partition(".")
     if name not in REGISTRY:
         raise PerscliError(f"--set {text!r}: unknown effect {name!r}; known: {', '.join(ORDER)}")
@@ -376,14 +368,8 @@ def _override(model: DetectorModel, text: str) -> None:
             raise PerscliError(f"--set {text!r}: use {name}=on or {name}=off")
         eff.enabled = value.lower() in ("on", "true")
         return
-    import yaml
-
-    try:
-        parsed = yaml.safe_load(value)
-    except yaml.YAMLError:
-        parsed = value
     params = dict(eff.params)
-    params.update(eff.cls.validate({param: parsed}, "--set"))
+    params.update(eff.cls.validate({param: parse_value(value)}, "--set"))
     eff.cls.validate(params, "--set")
     eff.params = params
     eff.enabled = True

@@ -283,13 +283,10 @@ class GalacticStarModel:
         elif isinstance(overrides, str):
             raise PerscliError(f"star-model parameters {overrides!r}: give a mapping or a list of KEY=VALUE")
         else:
-            items = []
-            for text in overrides:
-                if not isinstance(text, str) or "=" not in text:
-                    raise PerscliError(f"star-model parameter {text!r} is not KEY=VALUE "
-                                       "(e.g. thin_height=300)")
-                key, value = text.split("=", 1)
-                items.append((key.strip(), value.strip()))
+            from ..io.config import STAR_ITEM, split_key_value
+
+            # the values stay text: each is read as a number below, with a message naming its parameter
+            items = [split_key_value(text, **STAR_ITEM) for text in overrides]
         valid = cls.parameter_names()
         changes = {}
         for key, value in items:

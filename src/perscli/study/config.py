@@ -18,6 +18,7 @@ import yaml
 
 from .. import PerscliError
 from ..instrument import ROMAN_SCA_SIZE
+from ..io.config import STUDY_ITEM, parse_value, split_key_value, yaml_problem
 from ..measure.settings import MeasureOptions
 from ..stats.settings import CorrelateOptions
 
@@ -204,15 +205,10 @@ def _coerce(path: str, default, value):
 
 
 def _parse_override(text: str) -> dict:
-    if "=" not in text:
-        raise PerscliError(f"override {text!r} is not KEY=VALUE (e.g. exposures.count=5)")
-    key, raw = text.split("=", 1)
-    try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError as exc:
-        raise PerscliError(f"override {text!r}: not a YAML value: {_yaml_problem(exc)}") from None
+    key, raw = split_key_value(text, **STUDY_ITEM)
+    value = parse_value(raw, blank="", strict=text)
     out = cur = {}
-    parts = key.strip().split(".")
+    parts = key.split(".")
     for part in parts[:-1]:
         cur[part] = {}
         cur = cur[part]
@@ -266,7 +262,7 @@ def load_study(path: str | None, *, preset: str | None = None, overrides=()) -> 
             raise PerscliError(f"{path}: not UTF-8 text (byte {exc.start} is 0x{exc.object[exc.start]:02x}; a "
                                "UTF-16 file?): save the study description as UTF-8") from None
         except yaml.YAMLError as exc:
-            raise PerscliError(f"{path}: not valid YAML: {_yaml_problem(exc)}") from None
+            raise PerscliError(f"{path}: not valid YAML: {yaml_problem(exc)}") from None
         if not isinstance(given, dict):
             raise PerscliError(f"{path}: a study description is a mapping of settings")
         preset_in_file = given.pop("preset", None)
@@ -284,15 +280,6 @@ def load_study(path: str | None, *, preset: str | None = None, overrides=()) -> 
     _check_files(settings)
     check(settings)
     return settings
-
-
-def _yaml_problem(exc) -> str:
-    """A YAML error in one line: its problem, and for a tag a plain YAML value cannot carry, why it is refused."""
-    text = str(getattr(exc, "problem", None) or str(exc).splitlines()[0])
-    if "constructor for the tag" in text:
-        # safe_load refuses !!python/... and other tags that would build objects: said as such, not as a traceback
-        return f"{' '.join(text.split())} (tags that build objects are refused: give plain values)"
-    return " ".join(text.split())
 
 
 def _check_files(s: dict) -> None:
