@@ -398,3 +398,11 @@ def test_real_pipe_stdin_to_stdout(tmp_path):
     with fits.open(io.BytesIO(run.stdout)) as hdul:
         assert hdul["BUDGET"].header["XI"] == "stdin"
         np.testing.assert_allclose(hdul["BUDGET"].data["ratio"], 0.01, rtol=1e-12)
+
+
+def test_the_budgets_the_command_offers_are_the_library_s():
+    """perscli budget lists its bands without importing the library (fast --help): the same names."""
+    from perscli.stats.budget import BANDS, BAND_SOURCES
+    from perscli.stats.settings import BAND_NAMES, BudgetOptions
+
+    assert tuple(BANDS) == BAND_NAMES == tuple(BAND_SOURCES) and BudgetOptions().bands in BAND_NAMES

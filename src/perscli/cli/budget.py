@@ -6,34 +6,36 @@ import logging
 
 import click
 
+from ..stats.settings import BAND_NAMES, BudgetOptions
 from .helpers import FILE, PerscliCommand, check_outputs, report_errors
+from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, verbosity_opts
 
 #: ``--check``'s exit status when a bin exceeds the budget (1 is an error, 2 a usage error)
 EXIT_OVER_BUDGET = 3
-from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
 
-# the names of perscli.stats.budget.BANDS, repeated here so that --help does not import scipy
-BAND_NAMES = ("dore2018", "troxel2021", "hirata")
+#: the defaults, written once (perscli.stats.settings)
+D = BudgetOptions()
 
 
 @click.command("budget", cls=PerscliCommand,
                short_help="Compare a measured xi+ with the Roman additive shear budget.")
 @click.argument("xi", required=False, metavar="[XI.fits]", type=FILE)
-@click.option("--bands", type=click.Choice(BAND_NAMES), default="dore2018", show_default=True,
+@click.option("--bands", type=click.Choice(BAND_NAMES), default=D.bands, show_default=True,
               help="Additive shear rms per multipole band: dore2018 (HLIS requirement, Dore et al. 2018), "
                    "troxel2021 (7.0e-5 in the first band) or hirata (Hirata's allocation).")
-@click.option("--modes", type=click.Choice(["E", "EB"], case_sensitive=False), default="E", show_default=True,
+@click.option("--modes", type=click.Choice(["E", "EB"], case_sensitive=False), default=D.modes, show_default=True,
               metavar="E|EB",
               help="E: the budget is for E modes only; EB: B modes get the same budget, which doubles xi+.")
-@click.option("--sigma", "n_sigma", type=click.FloatRange(min=0), default=2.0, show_default=True, metavar="N",
+@click.option("--sigma", "n_sigma", type=click.FloatRange(min=0), default=D.n_sigma, show_default=True, metavar="N",
               help="A bin exceeds the budget when |xi+| - N sigma_xip > |budget|.")
 @click.option("--theta-range", type=(click.FloatRange(min=0, min_open=True), click.FloatRange(min=0, min_open=True)),
               default=None, metavar="ARCMIN ARCMIN",
-              help="Without XI: smallest and largest separation of the table [default: 0.1 300].")
+              help=f"Without XI: smallest and largest separation of the table [default: {D.theta_min:g} "
+                   f"{D.theta_max:g}].")
 @click.option("--nbins", type=click.IntRange(min=1), default=None, metavar="N",
-              help="Without XI: number of log-spaced separations [default: 50].")
+              help=f"Without XI: number of log-spaced separations [default: {D.nbins}].")
 @plot_opt("xi+ with error bars against the budget (log theta, symlog xi+, linear range shaded)")
 @columns_opt("XI", "meanr=theta,xip=xi_plus,sigma_xip=sigma")
 @no_checksum_opt
@@ -106,11 +108,11 @@ def budget(ctx, xi, bands, modes, n_sigma, theta_range, nbins, plot, columns, ch
         raise click.BadParameter(f"the smallest separation must come first: {theta_range[0]:g} >= "
                                  f"{theta_range[1]:g}", ctx, param_hint="'--theta-range'")
 
-    from ..stats.budget import DEFAULT_GRID, budget_file
+    from ..stats.budget import budget_file
 
     check_outputs(output, inputs=[xi], plot=plot, overwrite=overwrite)
-    lo, hi = theta_range if theta_range is not None else DEFAULT_GRID[:2]
-    grid = (lo, hi, nbins if nbins is not None else DEFAULT_GRID[2])
+    lo, hi = theta_range if theta_range is not None else (D.theta_min, D.theta_max)
+    grid = (lo, hi, nbins if nbins is not None else D.nbins)
     result = budget_file(output, xi, bands=bands, modes=modes.upper(), n_sigma=n_sigma, grid=grid, plot=plot,
                          overwrite=overwrite, columns=columns)
     where = "stdout" if output == "-" else output

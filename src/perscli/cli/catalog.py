@@ -7,10 +7,14 @@ import logging
 import click
 
 from ..instrument import ROMAN_N_SCA, ROMAN_SCA_SIZE
+from ..scene.settings import CatalogOptions
 from .helpers import FILE, PerscliCommand, check_outputs, deprecated_option, report_errors
 from .options import columns_opt, dec_opt, no_checksum_opt, output_opt, overwrite_opt, ra_opt, seed_opt, verbosity_opts
 
 log = logging.getLogger("perscli")
+
+#: the defaults, written once (perscli.scene.settings)
+D = CatalogOptions()
 
 
 @click.command("catalog", cls=PerscliCommand,
@@ -18,7 +22,7 @@ log = logging.getLogger("perscli")
 @ra_opt("Centre of the square field: right ascension")
 @dec_opt("Centre of the square field: declination")
 @click.option("--size", type=click.FloatRange(min=0, max=3600, min_open=True, max_open=True), default=None,
-              metavar="ARCMIN", help="Side of the square field on the tangent plane  [default: 10].")
+              metavar="ARCMIN", help=f"Side of the square field on the tangent plane  [default: {D.size:g}].")
 @click.option("--pointings", "pointings_table", metavar="POINTINGS.fits", default=None, type=FILE,
               help="Instead of a square: the union of the SCA footprints of every row of this pointings table "
                    "(perscli pointings, as render --pointings takes), each grown by --margin.")
@@ -29,14 +33,14 @@ log = logging.getLogger("perscli")
               help=f"--pointings: the detector (1-{ROMAN_N_SCA}); 0: each row's own sca.")
 @click.option("--margin", type=click.FloatRange(min=0, max=3600), default=None, metavar="ARCSEC",
               help="--pointings: grow each footprint by this much, so that objects just off a detector still "
-                   "spill light onto it  [default: 30].")
+                   f"spill light onto it  [default: {D.margin_arcsec:g}].")
 @click.option("--bounds", type=int, nargs=4, default=None, metavar="XMIN XMAX YMIN YMAX",
               help=f"--pointings: the footprint of this cutout (1-indexed inclusive SCA pixels, as render "
                    f"--bounds) [default: the full {ROMAN_SCA_SIZE} x {ROMAN_SCA_SIZE}].")
 @click.option("--galaxy-rows", "galaxy_rows", default=None, metavar="ROWS",
               help="--pointings: galaxies only in the footprints of these rows of the table (0-based, e.g. "
                    "3,4 or 3-9), stars in every row's: earlier exposures whose stars' light alone persists.")
-@click.option("--galaxy-density", type=click.FloatRange(min=0), default=40.0, show_default=True,
+@click.option("--galaxy-density", type=click.FloatRange(min=0), default=D.galaxy_density, show_default=True,
               metavar="PER_ARCMIN2", help="Mean number of galaxies per arcmin^2 (Poisson).")
 @click.option("--star-density", type=click.FloatRange(min=0), default=None, metavar="PER_ARCMIN2",
               help="Instead of the Galactic star model: power-law stars at this mean number per arcmin^2 "

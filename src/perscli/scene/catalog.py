@@ -109,6 +109,7 @@ from ..instrument import ROMAN_FILTERS
 from ..io.tables import read_table
 from . import EFFECTIVE_WAVELENGTH_UM, deproject, project
 from .photometry import DEFAULT_BP_RP, gaia_roman_jh
+from .settings import CatalogOptions
 from .starcounts import GalacticStarModel
 from .truthtable import _COLUMN_INFO, write_truth_catalog
 
@@ -122,11 +123,9 @@ MAG_COLUMNS = tuple(f"mag_{f}" for f in ROMAN_FILTERS)
 
 COLUMNS = ("id", "ra", "dec", "kind", *MAG_COLUMNS, "hlr", "e1", "e2", "gaia_id")
 
-#: default growth of each footprint, arcsec: the half-width of the stamp of a J = 14 star (28") and of
-#: the largest galaxy (14"), so that every object whose light render would draw on a detector at a level
-#: that matters is in the catalogue (stars of J < 14, ~120 per deg^2 at high latitude, spill only their
-#: faint outer halo)
-DEFAULT_MARGIN_ARCSEC = 30.0
+#: default growth of each footprint, arcsec (stars of J < 14, ~120 per deg^2 at high latitude, spill only
+#: their faint outer halo beyond it)
+DEFAULT_MARGIN_ARCSEC = CatalogOptions.margin_arcsec
 
 
 @dataclass(frozen=True)
@@ -174,7 +173,7 @@ class Field:
 
     ra: float
     dec: float
-    size: float = 10.0
+    size: float = CatalogOptions.size
 
     def __post_init__(self):
         from . import check_position
@@ -404,8 +403,8 @@ def read_gaia_stars(paths, fld, *, stdin=None, columns=None) -> GaiaStars:
 
 def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: float | None = None, *,
                        footprints=None, margin_arcsec: float = DEFAULT_MARGIN_ARCSEC, galaxy_footprints=None,
-                       galaxy_density: float = 40.0, star_density: float | None = None, gaia=None,
-                       seed: int = 1, galaxy_model: GalaxyModel = GalaxyModel(), star_model=None,
+                       galaxy_density: float = CatalogOptions.galaxy_density, star_density: float | None = None,
+                       gaia=None, seed: int = 1, galaxy_model: GalaxyModel = GalaxyModel(), star_model=None,
                        stdin=None, columns=None):
     """A truth catalog of galaxies and stars for a square field or for detector footprints.
 

@@ -1,4 +1,4 @@
-"""The settings of ``perscli pointings``, with their defaults written once.
+"""The settings of ``perscli pointings`` and ``perscli catalog``, with their defaults written once.
 
 :class:`PlanOptions` (``perscli pointings plan``) and :class:`SelectOptions`
 (``perscli pointings select``) are the one home of the pointings commands'
@@ -8,7 +8,10 @@ the library (:func:`perscli.scene.pointings.plan_dithers_file`,
 :func:`perscli.scene.dithers.plan_dithers`) takes one, and the command's
 options show and use its defaults.  What each row of the table carries
 besides its exposure (the detector, its corners, the catalogue's columns) is
-common to both: :class:`RowOptions`.
+common to both: :class:`RowOptions`.  :class:`CatalogOptions` holds the
+defaults of a truth catalogue (``perscli catalog``,
+:func:`perscli.scene.catalog.make_truth_catalog` and a study's ``catalog``
+section).
 
 This module, and its package's ``__init__``, import nothing heavy: it is read
 when the command line is built, and ``--help`` must stay fast.
@@ -111,3 +114,25 @@ class PlanOptions(RowOptions):
     gap: float = ROMAN_WAS_GAP
     pa: float | None = None
     seed: int = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class CatalogOptions:
+    """The defaults of a truth catalogue's field and galaxies.
+
+    Attributes
+    ----------
+    size : float
+        Arcmin: the side of a square field.
+    margin_arcsec : float
+        Arcsec: how much each detector footprint is grown, the half-width of
+        the stamp of a J = 14 star (28") and of the largest galaxy (14"), so
+        that every object whose light render would draw on a detector at a
+        level that matters is in the catalogue.
+    galaxy_density : float
+        Galaxies per arcmin^2 (Poisson): the paper's.
+    """
+
+    size: float = 10.0
+    margin_arcsec: float = 30.0
+    galaxy_density: float = 40.0

@@ -44,12 +44,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError
+from .settings import BudgetOptions
 
 #: multipole bands of the HLIS requirement, inclusive
 L_BANDS = ((31, 99), (100, 315), (316, 999), (1000, 3161))
 LMAX = L_BANDS[-1][1]
 
-#: additive shear rms per component in each of :data:`L_BANDS`
+#: additive shear rms per component in each of :data:`L_BANDS`, one entry for each of
+#: :data:`perscli.stats.settings.BAND_NAMES` (the names the command line offers without importing this module)
 BANDS = {
     "dore2018": (7.5e-5, 9.9e-5, 1.4e-4, 1.9e-4),
     "troxel2021": (7.0e-5, 9.9e-5, 1.4e-4, 1.9e-4),
@@ -75,13 +77,13 @@ SEP_UNITS = {
 }
 
 #: the default separations when no measured xi+ is given: arcmin, log-spaced
-DEFAULT_GRID = (0.1, 300.0, 50)
+DEFAULT_GRID = (BudgetOptions.theta_min, BudgetOptions.theta_max, BudgetOptions.nbins)
 
 #: columns of a correlate (TreeCorr GG) table that the comparison reads
 XI_COLUMNS = ("meanr or r_nom", "xip", "sigma_xip")
 
 
-def amplitudes(bands="dore2018") -> tuple:
+def amplitudes(bands=BudgetOptions.bands) -> tuple:
     """The additive shear rms per component in each multipole band.
 
     Parameters
@@ -118,7 +120,7 @@ def _modes_factor(modes: str) -> int:
         raise PerscliError(f"unknown modes '{modes}': use E (E modes only) or EB (E and B modes)") from None
 
 
-def power_spectrum(bands="dore2018") -> tuple:
+def power_spectrum(bands=BudgetOptions.bands) -> tuple:
     """The budget's angular power spectrum C_l (E mode), l = 0 ... :data:`LMAX`.
 
     Parameters
@@ -145,7 +147,7 @@ def power_spectrum(bands="dore2018") -> tuple:
     return ell, cl
 
 
-def xi_plus(theta, bands="dore2018", modes: str = "E") -> np.ndarray:
+def xi_plus(theta, bands=BudgetOptions.bands, modes: str = BudgetOptions.modes) -> np.ndarray:
     """The budget as xi+(theta): ``sum_l (2l+1) / (4 pi) C_l J0(l theta)``.
 
     Parameters
@@ -386,7 +388,7 @@ class Comparison:
     budget: np.ndarray
     bands: str
     modes: str
-    n_sigma: float = 2.0
+    n_sigma: float = BudgetOptions.n_sigma
     xip: np.ndarray | None = None
     sigma_xip: np.ndarray | None = None
     ratio: np.ndarray | None = None
@@ -421,7 +423,8 @@ class Comparison:
                  "ratio": float(self.ratio[k]), "sigma_ratio": float(self.sigma_ratio[k])} for k in idx]
 
 
-def budget_at(theta, unit: str = "arcmin", *, bands="dore2018", modes: str = "E") -> Comparison:
+def budget_at(theta, unit: str = "arcmin", *, bands=BudgetOptions.bands,
+              modes: str = BudgetOptions.modes) -> Comparison:
     """The budget alone at separations ``theta`` (in ``unit``), as a :class:`Comparison` without a measurement."""
     theta = np.atleast_1d(np.asarray(theta, dtype=float))
     unit = _canonical_unit(unit)
@@ -432,7 +435,7 @@ def budget_at(theta, unit: str = "arcmin", *, bands="dore2018", modes: str = "E"
                       amplitudes=amps)
 
 
-def bin_verdicts(xip, sigma, budget, n_sigma: float = 2.0, supported=None) -> np.ndarray:
+def bin_verdicts(xip, sigma, budget, n_sigma: float = BudgetOptions.n_sigma, supported=None) -> np.ndarray:
     """Per separation bin: 'below' the budget, 'above' it, or 'cannot tell'.
 
     The budget bounds the size of a systematic whatever its sign, so a bin is
@@ -454,7 +457,8 @@ def bin_verdicts(xip, sigma, budget, n_sigma: float = 2.0, supported=None) -> np
     return out
 
 
-def compare(xi: XiTable, *, bands="dore2018", modes: str = "E", n_sigma: float = 2.0) -> Comparison:
+def compare(xi: XiTable, *, bands=BudgetOptions.bands, modes: str = BudgetOptions.modes,
+            n_sigma: float = BudgetOptions.n_sigma) -> Comparison:
     """Compare a measured xi+ with the budget at its separations.
 
     Parameters
@@ -711,9 +715,9 @@ def budget_figure(result: Comparison, *, linthresh: float | None = None) -> byte
     return buffer.getvalue()
 
 
-def budget_file(dest: str, xi_path: str | None = None, *, bands: str = "dore2018", modes: str = "E",
-                n_sigma: float = 2.0, grid=DEFAULT_GRID, plot: str | None = None, overwrite: bool = False,
-                stdin=None, stdout=None, columns=None) -> Comparison:
+def budget_file(dest: str, xi_path: str | None = None, *, bands: str = BudgetOptions.bands,
+                modes: str = BudgetOptions.modes, n_sigma: float = BudgetOptions.n_sigma, grid=DEFAULT_GRID,
+                plot: str | None = None, overwrite: bool = False, stdin=None, stdout=None, columns=None) -> Comparison:
     """Check the outputs, compute the budget (and the comparison), write the table and the figure.
 
     Parameters

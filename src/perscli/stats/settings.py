@@ -1,11 +1,13 @@
-"""The settings of ``perscli correlate``, with their defaults written once.
+"""The settings of ``perscli correlate`` and ``perscli budget``, with their defaults written once.
 
 :class:`CorrelateOptions` is the one home of correlate's analysis settings
 (in the manner of TreeCorr's ``corr2_valid_params``): the library
 (:func:`perscli.stats.correlate.correlate_files`) takes one, the command's
 options show and use its defaults, and a study's ``correlate`` section
-starts from them.  This module imports nothing heavy, so that ``--help``
-stays fast.
+starts from them.  :class:`BudgetOptions` is budget's: the defaults of
+:mod:`perscli.stats.budget`'s functions, of the command's options and of a
+study's ``budget`` section.  This module imports nothing heavy, so that
+``--help`` stays fast.
 """
 
 from __future__ import annotations
@@ -86,6 +88,37 @@ class CorrelateOptions:
     seed: int = 1
     flagged: str = "drop"
     within: tuple | None = None
+
+
+#: the additive shear budgets :mod:`perscli.stats.budget` knows (its ``BANDS`` holds their values)
+BAND_NAMES = ("dore2018", "troxel2021", "hirata")
+
+
+@dataclasses.dataclass(frozen=True)
+class BudgetOptions:
+    """How ``perscli budget`` draws the Roman additive shear budget and compares a measured xi+ with it.
+
+    Attributes
+    ----------
+    bands : str
+        The budget's rms per multipole band, one of :data:`BAND_NAMES`
+        (dore2018: the HLIS requirement, Dore et al. 2018).
+    modes : {'E', 'EB'}
+        E: the budget is for E modes only; EB: B modes get the same budget.
+    n_sigma : float
+        A bin exceeds the budget when ``|xi+| - n_sigma sigma_xip > |budget|``.
+    theta_min, theta_max : float
+        Arcmin: the separations of the budget's table when no xi+ is given.
+    nbins : int
+        How many log-spaced separations that table has.
+    """
+
+    bands: str = "dore2018"
+    modes: str = "E"
+    n_sigma: float = 2.0
+    theta_min: float = 0.1
+    theta_max: float = 300.0
+    nbins: int = 50
 
 
 def default_text(values) -> str:

@@ -20,7 +20,8 @@ from .. import PerscliError
 from ..instrument import ROMAN_SCA_SIZE
 from ..io.config import STUDY_ITEM, parse_value, split_key_value, yaml_problem
 from ..measure.settings import MeasureOptions
-from ..stats.settings import CorrelateOptions
+from ..scene.settings import CatalogOptions
+from ..stats.settings import BudgetOptions, CorrelateOptions
 
 #: the public Roman WAS schedule shipped with perscli (perscli.scene.schedule.BUNDLED_SCHEDULE)
 DEFAULT_SCHEDULE = "roman-was"
@@ -65,7 +66,7 @@ SCHEMA = {
     },
     "bounds": None,              # [xmin, xmax, ymin, ymax]: render a cutout of each SCA (CI-sized studies)
     "catalog": {
-        "galaxy_density": 40.0,  # per arcmin^2 (the paper)
+        "galaxy_density": CatalogOptions.galaxy_density,  # per arcmin^2 (the paper)
         # None: stars of the Galactic model (counts per magnitude of the real sky at the field's position;
         # perscli.scene.starcounts), with the parameters of star_model; a number: power-law stars at that
         # density per arcmin^2 (the paper's 2.5 has 1.7 times the real sky's stars brighter than J = 14)
@@ -116,8 +117,8 @@ SCHEMA = {
         "thresholds": [1e-8, 1e-6, 1e-4],
     },
     "budget": {
-        "bands": "dore2018",
-        "modes": "E",
+        "bands": BudgetOptions.bands,
+        "modes": BudgetOptions.modes,
     },
 }
 
@@ -151,7 +152,7 @@ PRESETS = {
         "scas": [1],
         "bounds": [1, 512, 1, 512],
         "exposures": {"source": "plan", "count": 2, "history": 3, "plan_dither": 3.0},
-        "catalog": {"galaxy_density": 40.0, "star_density": 20.0},
+        "catalog": {"galaxy_density": CatalogOptions.galaxy_density, "star_density": 20.0},
         "measure": {"parts": 2},
         "correlate": {"min_sep": 0.1, "max_sep": 1.0, "nbins": 4, "npatch": 4},
     },
