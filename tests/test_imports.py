@@ -101,3 +101,17 @@ def test_find_cycle_reports_the_circle():
 def test_no_import_circle():
     cycle = find_cycle(import_graph())
     assert not cycle, "import circle: " + " -> ".join(cycle)
+
+
+def test_one_function_per_name():
+    """No two library modules define a public function or class of the same name (a reader who meets
+    ``roman_psf`` knows which one it is); the commands in perscli.cli bear their command's name."""
+    homes = {}
+    for name, path in _modules().items():
+        if name.startswith("perscli.cli"):
+            continue
+        for node in ast.parse(path.read_text()).body:
+            if isinstance(node, (ast.FunctionDef, ast.ClassDef)) and not node.name.startswith("_"):
+                homes.setdefault(node.name, []).append(name)
+    shared = {key: where for key, where in homes.items() if len(where) > 1}
+    assert not shared, f"one name, several functions: {shared}"

@@ -172,13 +172,13 @@ def test_bad_scheduler_cost_file_and_output_are_one_line_before_anything_runs(tm
 
 
 def test_a_cost_file_lacking_kinds_says_what_the_projection_leaves_out(tmp_path):
-    from perscli.study.summary import project
+    from perscli.study.summary import project_cost
 
     # one final drawing its exposure and two earlier ones: three draws at the measured 10 s / 4 draws
     final = {"pointing": {"expid": 7}, "history": [{"expid": 3}, {"expid": 5}]}
     tasks = [{"kind": "final", "key": "final/sca1/e1", "params": {"finals": [final]}},
              {"kind": "budget", "key": "b", "params": {}}]
-    p = project(tasks, {"final": {"tasks": 2, "cpu_s": 10.0, "bytes": 100, "draws": 4}})
+    p = project_cost(tasks, {"final": {"tasks": 2, "cpu_s": 10.0, "bytes": 100, "draws": 4}})
     assert p["missing"] == ["budget"] and abs(p["cpu_hours"] - 3 * 2.5 / 3600) < 1e-12
 
 

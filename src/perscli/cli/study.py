@@ -86,7 +86,7 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
 
     from ..study.config import dump, load_study
     from ..study.plan import build
-    from ..study.runner import run, task_dicts
+    from ..study.runner import run_study, task_dicts
 
     ctx = click.get_current_context(silent=True)
     verbosity = (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
@@ -96,7 +96,7 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     check_output_folder(outdir, resume=True, inputs=[description])
     s = load_study(description, preset=preset, overrides=settings)
     from ..progress import lines
-    from ..study.summary import load_cost, project
+    from ..study.summary import load_cost, project_cost
 
     # read before anything is planned or printed: a bad file is the only line
     measured = load_cost(cost_from) if dry_run and cost_from else None
@@ -107,7 +107,7 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     if dry_run:
         click.echo(f"study {s['name']}: {len(tasks)} tasks: " + ", ".join(f"{v} {k}" for k, v in n.items()))
         if cost_from:
-            p = project(tasks, measured)
+            p = project_cost(tasks, measured)
             click.echo(f"projected from {cost_from}: {p['cpu_hours']:.1f} CPU-hours, {p['terabytes']:.3f} TB")
             if p["missing"]:
                 click.echo(f"study: {cost_from} has no {', '.join(p['missing'])} tasks to project from: they are "
@@ -138,7 +138,7 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
                 os.unlink(tmp)
     except OSError as exc:
         raise write_error(path, exc) from None
-    recs = run(tasks, outdir, scheduler=scheduler, workers=workers, quiet=verbosity < 0)
+    recs = run_study(tasks, outdir, scheduler=scheduler, workers=workers, quiet=verbosity < 0)
     made = sum(1 for r in recs if not r.get("skipped"))
     print(f"study {s['name']}: {made} products made, {len(tasks) - made} already there; "
           f"summary in {outdir}/summary.md", file=sys.stderr)

@@ -17,7 +17,7 @@ PAIR_TOLERANCE = 1.0
 
 
 @dataclass
-class Exposure:
+class MeasuredExposure:
     """One measured exposure and what the forward model needs of it.
 
     Attributes
@@ -144,7 +144,7 @@ def read_measured(names, *, gain=None, exptime=None) -> list:
             valid, nref, ndq = _valid_pixels(frame, data.shape[-2:])
             if not valid.any():
                 raise PerscliError(f"{frame.label}: every pixel is a reference pixel or flagged in DQ")
-            exposure = Exposure(label=frame.label, start=frame.start, end=frame.end,
+            exposure = MeasuredExposure(label=frame.label, start=frame.start, end=frame.end,
                                 exptime=float(frame.exptime or (frame.end - frame.start) * SECONDS_PER_DAY),
                                 data=data, counts=counts, gain=frame.gain, read_times=read_times,
                                 offsets=(frame.keyword("LTV1"), frame.keyword("LTV2")),
@@ -248,7 +248,7 @@ def attach_simulations(exposures, sims) -> list:
             frame.close()
 
 
-def measured_fluence(exp: Exposure) -> np.ndarray:
+def measured_fluence(exp: MeasuredExposure) -> np.ndarray:
     """The electrons an exposure collected, from its measured counts (the history without a simulation)."""
     last = exp.data[-1]
     if exp.counts == "DN":

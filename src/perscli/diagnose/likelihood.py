@@ -93,7 +93,7 @@ class Problem:
 
     Parameters
     ----------
-    exposures : list of perscli.diagnose.data.Exposure
+    exposures : list of perscli.diagnose.data.MeasuredExposure
         In time order, each with ``ideal`` (the simulation's noise-free electrons).
     fit_pixels : int
         About this many pixels, over all exposures, enter the fits and the

@@ -141,7 +141,7 @@ def remove_stale_parts(study_dir: str) -> int:
     return removed
 
 
-def run(tasks: list, study_dir: str, *, scheduler: str = "local", workers: int = 2, quiet: bool = False) -> list:
+def run_study(tasks: list, study_dir: str, *, scheduler: str = "local", workers: int = 2, quiet: bool = False) -> list:
     """Run the graph with ``scheduler`` ('serial', 'local' or a Dask scheduler address)."""
     os.makedirs(study_dir, exist_ok=True)
     if remove_stale_parts(study_dir):

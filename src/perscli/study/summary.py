@@ -437,7 +437,7 @@ def _write_bytes(path: str, data: bytes) -> None:
 
 
 def load_cost(path: str) -> dict:
-    """Read and check a study's cost.json (what :func:`cost` wrote) for :func:`project`.
+    """Read and check a study's cost.json (what :func:`cost` wrote) for :func:`project_cost`.
 
     Raises
     ------
@@ -480,7 +480,7 @@ def final_draws(params: dict) -> set:
         {int(q["expid"]) for f in finals for q in f.get("history", [])}
 
 
-def project(tasks, measured: dict) -> dict:
+def project_cost(tasks, measured: dict) -> dict:
     """The cost of a task graph from the per-product costs another run measured (its cost.json).
 
     Renders cost what they cost per task (one SCA-exposure each); a chunk of
