@@ -9,9 +9,9 @@ from astropy.io import fits
 
 from fits_factory import invoke, one_line_error
 from perscli import PerscliError
-from perscli.cli.budget import BAND_NAMES
 from perscli.stats.budget import (BANDS, L_BANDS, LMAX, amplitudes, bin_verdicts, budget_at, compare,
                                   power_spectrum, read_xi, xi_plus)
+from perscli.stats.settings import BAND_NAMES
 
 ARCMIN = math.pi / 180 / 60
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -115,3 +115,50 @@ def test_one_function_per_name():
                 homes.setdefault(node.name, []).append(name)
     shared = {key: where for key, where in homes.items() if len(where) > 1}
     assert not shared, f"one name, several functions: {shared}"
+
+
+def _defined(path: Path) -> set:
+    """The names a module defines at its top level (functions, classes, assignments), not those it imports."""
+    names = set()
+
+    def visit(body):
+        for node in body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                names.add(node.name)
+            elif isinstance(node, ast.Assign):
+                names.update(n.id for t in node.targets for n in ast.walk(t) if isinstance(n, ast.Name))
+            elif isinstance(node, (ast.AnnAssign, ast.AugAssign)) and isinstance(node.target, ast.Name):
+                names.add(node.target.id)
+            elif isinstance(node, (ast.If, ast.Try)):
+                visit(node.body)
+                visit(node.orelse)
+                for handler in getattr(node, "handlers", ()):
+                    visit(handler.body)
+    visit(ast.parse(path.read_text()).body)
+    return names
+
+
+def test_every_import_names_the_module_that_defines_the_name():
+    """``from perscli.X import name`` (in the package, its tests and benchmarks) finds ``name`` defined in X:
+    no module passes on another's names, so each name has one import path."""
+    modules = _modules()
+    defined = {name: _defined(path) for name, path in modules.items()}
+    root = SRC.parents[1]
+    files = [*SRC.rglob("*.py"), *(root / "tests").rglob("*.py"), *(root / "benchmarks").rglob("*.py")]
+    wrong = []
+    for path in files:
+        name = ".".join(path.relative_to(SRC.parent).with_suffix("").parts) if path.is_relative_to(SRC) else ""
+        package = name.split(".")[:-1]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package[:len(package) - node.level + 1] + ([node.module] if node.module else []))
+            if base not in modules:
+                continue
+            for alias in node.names:
+                if alias.name in defined[base] or f"{base}.{alias.name}" in modules or alias.name == "_kernels":
+                    continue
+                wrong.append(f"{path.relative_to(root)}:{node.lineno} from {base} import {alias.name}")
+    assert not wrong, "import each name from the module that defines it: " + "; ".join(wrong)

@@ -120,7 +120,7 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
         # forget what was made: every product is made again (and replaced)
         import shutil
 
-        from ..study.tasks import STATE
+        from ..study.plan import STATE
 
         shutil.rmtree(os.path.join(outdir, STATE), ignore_errors=True)
     from ..io.output import write_error
