@@ -228,7 +228,8 @@ class Windows:
         b0, b1, a0, a1 = window
         if np.shape(pixels) != (b1 - b0, a1 - a0):
             raise ValueError(f"window {window}: pixels of shape {np.shape(pixels)}")
-        self._parts[tuple(window)] = np.asarray(pixels, dtype=self.dtype)
+        # a copy: ``pixels`` is often a view into a final's whole table of windows, which must not stay alive
+        self._parts[tuple(window)] = np.array(pixels, dtype=self.dtype)
 
     def __contains__(self, window) -> bool:
         return window in self._parts

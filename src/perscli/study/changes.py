@@ -137,7 +137,8 @@ def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions =
         if pixels is not None:
             table = pixels[k]["CHANGED"]
         else:
-            stored[k] = read_stamps(path, variants)
+            # the table now, the pixels when the joint fits take this final (one final's at a time in memory)
+            stored[k] = read_stamps(path, variants, pixels=False)
             table = stored[k]["table"]
         for v in variants:
             mask = np.zeros(len(cat["id"]), dtype=bool)
@@ -220,15 +221,24 @@ def _joint_changes(refs, variants, cat, per_variant, options, *, workers=1, cold
         # measure's stamp of each galaxy, cut from the window the final kept of it
         wanted = {int(cat["id"][rows[j]]): stamp_window(f.shape, int(jc.sizes[j]), float(f.x[j]) - 1.0,
                                                         float(f.y[j]) - 1.0) for j in here}
+        if "ref" not in stored[k]:
+            stored[k] = read_stamps(stored[k]["path"], variants)
         f.data = Windows(f.shape)
         for window, block in stamp_windows(stored[k], "ref", wanted).items():
             f.data.put(window, block)
         for v, name in enumerate(variants):
-            if per_variant[v][rows[here]].any():
+            mine = here[per_variant[v][rows[here]]]
+            if len(mine):
+                # only the galaxies this variant changed are fitted with it: the others' windows are not kept
+                # (twenty variants' windows of every final would not fit in a worker's memory)
                 w = Windows(f.shape, stored[k]["deltas"][name].dtype)
-                for window, block in stamp_windows(stored[k], name, wanted).items():
+                keep = {int(cat["id"][rows[j]]) for j in mine}
+                for window, block in stamp_windows(stored[k], name,
+                                                   {g: wd for g, wd in wanted.items() if g in keep}).items():
                     w.put(window, block)
                 deltas[v][k] = w
+        # the final's windows are copied into the frames' Windows: its tables can go
+        stored[k] = None
     changed = [np.asarray(pv, dtype=bool)[rows] for pv in per_variant]
     ctx = ChangesContext(joint=jc, deltas=deltas, changed=changed, cold=cold)
     results = run(measure_joint_changes_object, todo, context=ctx, workers=workers)

@@ -486,13 +486,16 @@ def delta_extname(variant: str) -> str:
     return "D_" + variant_extname(variant)
 
 
-def read_stamps(path: str, variants=()) -> dict:
+def read_stamps(path: str, variants=(), pixels: bool = True) -> dict:
     """A final's windows (:func:`render_final`): their table, the reference's pixels, each variant's change.
+
+    With ``pixels`` False only the table is read (which galaxies each
+    variant changed), and 'path' says where the pixels are.
 
     Returns
     -------
     dict
-        'table' (column arrays of STAMPS), 'ref' (1-D), 'deltas' (variant -> 1-D), as stored.
+        'table' (column arrays of STAMPS), 'ref' (1-D), 'deltas' (variant -> 1-D), as stored; 'path'.
     """
     from ..io.tables import read_table
     table = read_table(f"{path}[{STAMPS_EXTNAME}]", what="the windows of a study's final")
@@ -502,7 +505,9 @@ def read_stamps(path: str, variants=()) -> dict:
         if variant_extname(v) not in names:
             raise PerscliError(f"{path}: its {STAMPS_EXTNAME} table has no column {variant_extname(v)} (variant {v})")
         cols[variant_extname(v)] = table.column(names[variant_extname(v)], kind="integer")
-    out = {"table": cols, "deltas": {}}
+    out = {"table": cols, "deltas": {}, "path": path}
+    if not pixels:
+        return out
     import fitsio
 
     with fitsio.FITS(path) as f:
