@@ -109,6 +109,8 @@ def test_a_hidden_effect_is_named_recovered_and_closes_the_gap(scene, simulated,
     report, outdir = diagnose(scene, measured, simulated, case)
     names = [e["effect"] for e in report["found"]]
     assert names == [effect], (names, report["verdict"])
+    # what the data cannot tell from the named set replaces it: sets of as many effects, never larger ones
+    assert all(len(alt) == len(names) for alt, _ in report.get("alternatives", [])), report["alternatives"]
     found = report["found"][0]
     value, error = found["params"][param], found["errors"][param]
     assert abs(value - truth) <= max(0.1 * abs(truth), 3 * error), (value, error, truth)

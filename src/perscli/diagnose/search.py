@@ -546,8 +546,10 @@ def _best_set(problem, current, original, named, usable, variance_only, disp_of,
         scores = _set_values(dirs, offsets, disp, pen)
         mine = frozenset(k for k, c in enumerate(pool) if c.name in held)
         best = min(scores, key=scores.get)
-        alternatives = sorted(((sorted(pool[k].name for k in t), v - scores[best]) for t, v in scores.items()
-                               if t != best and v - scores[best] < MIN_DELTA_BIC and len(t) == len(best)),
+        # what the data cannot tell from the set named (not from the quadratic best, which the exact fit below
+        # may refuse): sets of as many effects scoring within MIN_DELTA_BIC of it
+        alternatives = sorted(((sorted(pool[k].name for k in t), v - scores[mine]) for t, v in scores.items()
+                               if t != mine and v - scores[mine] < MIN_DELTA_BIC and len(t) == len(mine)),
                               key=lambda a: a[1])
         # the forward model's fidelity: a set that differs from the named one by less than that share of what
         # the named effects bring is no better description

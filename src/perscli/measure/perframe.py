@@ -213,9 +213,11 @@ class Windows:
     returns the stored pixels; anything else is an error.
     """
 
-    def __init__(self, shape, dtype=np.float32):
+    def __init__(self, shape, dtype=np.float32, *, absent_zero: bool = False):
         self.shape = tuple(shape)
         self.dtype = np.dtype(dtype)
+        # a change's windows: only those where something changed are kept, a window absent is all zeros
+        self.absent_zero = bool(absent_zero)
         self._parts = {}
 
     def keep(self, data, window) -> None:

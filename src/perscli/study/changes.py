@@ -152,7 +152,7 @@ def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions =
         per_variant = [np.logical_or.reduce(changed[v]) if finals else np.zeros(len(cat["id"]), dtype=bool)
                        for v in variants]
         ref, var = _joint_changes(refs, variants, cat, per_variant, opts, workers=workers, cold=cold,
-                                  pixels=pixels, stored=stored)
+                                  pixels=pixels, stored=stored, within=subset)
         for v in variants:
             parts[v].append(_assemble(cat, ref, var[v], subset, -1, e1_true, e2_true))
     else:
@@ -195,7 +195,8 @@ def _delta(ref: np.ndarray, var: np.ndarray) -> np.ndarray:
     return d32 if np.array_equal(d32, d) else d
 
 
-def _joint_changes(refs, variants, cat, per_variant, options, *, workers=1, cold=False, pixels=None, stored=None):
+def _joint_changes(refs, variants, cat, per_variant, options, *, workers=1, cold=False, pixels=None, stored=None,
+                   within=None):
     """The reference's joint fits and each variant's (:func:`measure_joint_changes_object`), as columns.
 
     The finals' pixels come from ``pixels`` (whole frames in memory) or
@@ -206,7 +207,7 @@ def _joint_changes(refs, variants, cat, per_variant, options, *, workers=1, cold
     from ..measure.perframe import Windows, stamp_window
 
     only = np.logical_or.reduce(per_variant) if per_variant else None
-    setup = joint_setup(refs, cat, options, only=only)
+    setup = joint_setup(refs, cat, options, only=only, within=within)
     jc, todo, rows = setup.ctx, setup.todo, setup.rows
     deltas = [[None] * len(refs) for _ in variants]
     for k, f in enumerate(jc.frames):
@@ -231,11 +232,12 @@ def _joint_changes(refs, variants, cat, per_variant, options, *, workers=1, cold
             if len(mine):
                 # only the galaxies this variant changed are fitted with it: the others' windows are not kept
                 # (twenty variants' windows of every final would not fit in a worker's memory)
-                w = Windows(f.shape, stored[k]["deltas"][name].dtype)
+                w = Windows(f.shape, stored[k]["deltas"][name].dtype, absent_zero=True)
                 keep = {int(cat["id"][rows[j]]) for j in mine}
                 for window, block in stamp_windows(stored[k], name,
                                                    {g: wd for g, wd in wanted.items() if g in keep}).items():
-                    w.put(window, block)
+                    if np.any(block):
+                        w.put(window, block)
                 deltas[v][k] = w
         # the final's windows are copied into the frames' Windows: its tables can go
         stored[k] = None
