@@ -26,27 +26,36 @@ def _modules() -> dict:
     return out
 
 
-def _imports(name: str, path: Path, modules: dict) -> set:
-    """The perscli modules that module ``name`` imports, anywhere in it."""
-    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
-    found = set()
+def import_statements(path: Path, package: list):
+    """Each import of a file, anywhere in it: (resolved base, [names]) for ``from base import names``,
+    (None, [modules]) for ``import modules``; relative imports resolved against ``package``."""
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
                 base = ".".join(package[:len(package) - node.level + 1] + ([node.module] if node.module else []))
-            for alias in node.names:
-                if f"{base}.{alias.name}" in modules:
-                    found.add(f"{base}.{alias.name}")
+            yield base, [alias.name for alias in node.names]
+        elif isinstance(node, ast.Import):
+            yield None, [alias.name for alias in node.names]
+
+
+def _imports(name: str, path: Path, modules: dict) -> set:
+    """The perscli modules that module ``name`` imports, anywhere in it."""
+    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    found = set()
+    for base, names in import_statements(path, package):
+        for alias in names:
+            if base is not None:
+                if f"{base}.{alias}" in modules:
+                    found.add(f"{base}.{alias}")
                 elif base in modules:
                     found.add(base)
-        elif isinstance(node, ast.Import):
-            for alias in node.names:
-                target = alias.name
-                while target and target not in modules:
-                    target = target.rpartition(".")[0]
-                if target:
-                    found.add(target)
+                continue
+            target = alias
+            while target and target not in modules:
+                target = target.rpartition(".")[0]
+            if target:
+                found.add(target)
     found.discard(name)
     return found
 

@@ -17,19 +17,15 @@ def test_no_module_is_over_800_lines():
 
 def _perscli_imports(path: Path) -> set:
     """The perscli modules (and names) a file imports, anywhere in it (function-level imports too)."""
-    import ast
+    from test_imports import import_statements
 
-    package = ["perscli", *path.relative_to(SRC).parts[:-1]]
     names = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                base = ".".join(package[:len(package) - node.level + 1] + ([node.module] if node.module else []))
+    for base, imported in import_statements(path, ["perscli", *path.relative_to(SRC).parts[:-1]]):
+        if base is None:
+            names.update(imported)
+        else:
             names.add(base)
-            names.update(f"{base}.{alias.name}" for alias in node.names)
-        elif isinstance(node, ast.Import):
-            names.update(alias.name for alias in node.names)
+            names.update(f"{base}.{alias}" for alias in imported)
     return {n for n in names if n == "perscli" or n.startswith("perscli.")}
 
 
