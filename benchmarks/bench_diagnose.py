@@ -221,7 +221,8 @@ import perscli.diagnose.checks as C
 C.run_checks = wrap("misspecification checks (final model)", C.run_checks)
 import scipy.optimize
 scipy.optimize.minimize_scalar = wrap("Brent", scipy.optimize.minimize_scalar)
-S._curvature_error = wrap("curvature", S._curvature_error)
+import perscli.diagnose.candidate_fit as F
+F._curvature_error = wrap("curvature", F._curvature_error)
 
 _ev = L.Problem.evaluate
 def evaluate(self, *a, **k):

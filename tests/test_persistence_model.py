@@ -262,3 +262,48 @@ def test_lookback_orders_and_drops_old_exposures():
     assert order_earlier(ends, start, load_model("wfc3", ["lookback=0"]), unit_seconds=86400.0)[0] == [2, 1, 0]
     capped = load_model("wfc3", ["max_previous=1"])
     assert order_earlier(ends, start, capped, unit_seconds=86400.0) == ([2], [0, 1])
+
+
+def test_one_table_of_persistence_parameters_makes_the_schema_presets_law_and_options():
+    """A persistence parameter is written once (settings.PERSISTENCE_PARAMETERS); everything else is made from it."""
+    import dataclasses
+
+    from perscli.cli.apply_persistence import apply_persistence
+    from perscli.detector.effects import Persistence
+    from perscli.detector.settings import (DEFAULT_PRESET, FERMI_PARAMETERS, PERSISTENCE_PARAMETERS,
+                                           PRESET_NAMES, SETTINGS)
+
+    table = {p.name: p for p in PERSISTENCE_PARAMETERS}
+    assert [p.name for p in Persistence.schema] == list(table)
+    for p in PERSISTENCE_PARAMETERS:
+        if p.group:
+            # a value that comes with the preset: one for every preset, none of its own
+            assert set(p.presets) == set(PRESET_NAMES), p.name
+            assert p.default is None
+    assert FERMI_PARAMETERS == ("A", "x0", "dx", "alpha", "gamma", "half_well")
+    assert SETTINGS == ("time_model", "combine", "max_previous", "lookback")
+    # every preset, loaded by name, is the table's column
+    for preset in PRESET_NAMES:
+        model = load_model(preset)
+        for key in (*FERMI_PARAMETERS, *SETTINGS):
+            assert getattr(model, key) == table[key].presets[preset], (preset, key)
+    # the law's fields: each one a parameter of the table, its default the table's (for the default preset)
+    for f in dataclasses.fields(PersistenceModel):
+        if f.name == "name":
+            continue
+        p = table[f.name]
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        expected = p.presets[DEFAULT_PRESET] if p.presets else p.default
+        assert (list(default) if f.name == "coefficients" else default) == expected, f.name
+    # apply-persistence's options of the settings take their type and range from the table
+    options = {o.name: o for o in apply_persistence.params}
+    for key in SETTINGS:
+        p, option = table[key], options[key]
+        if p.kind == "choice":
+            assert tuple(option.type.choices) == p.choices
+        else:
+            assert option.type.min == p.lo
+        assert option.default is None      # None: the law's own (per preset), said in the help
+        for preset in PRESET_NAMES:
+            value = p.presets[preset]
+            assert (f"{value:g}" if isinstance(value, float) else str(value)) in option.help

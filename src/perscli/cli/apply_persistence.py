@@ -7,7 +7,8 @@ import logging
 import click
 
 from .helpers import FILE, PerscliCommand, check_outputs, deprecated_option, file_or, progress_reporter, report_errors
-from ..detector.settings import COMBINES, MODES, PRESET_SETTINGS, PRESETS, SETTINGS, TIME_MODELS, ApplyOptions
+from ..detector.settings import (FERMI_PARAMETERS, MODES, SETTINGS, ApplyOptions, persistence_param,
+                                 preset_default_text)
 from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, key_values, no_checksum_opt, output_opt,
                       overwrite_opt, units_opt, verbosity_opts, workers_opt)
 
@@ -21,14 +22,21 @@ PROGRESS_LEAST = 32
 D = ApplyOptions()
 
 
-def _model_default(key: str) -> str:
-    """'[default: the model's KEY; VALUE, wfc3: VALUE]': the setting's default and the presets' own."""
-    def text(value):
-        return f"{value:g}" if isinstance(value, float) else str(value)
+def setting_option(flag: str, name: str, text: str, metavar: str | None = None):
+    """A click option of a persistence setting, typed and ranged by its entry in the table of parameters.
 
-    own = "".join(f", {name}: {text(PRESET_SETTINGS[name][key])}" for name in PRESETS
-                  if key in PRESET_SETTINGS.get(name, {}))
-    return f"[default: the law's {key}; {text(SETTINGS[key][2])}{own}]"
+    ``text`` says what the option means on this command's inputs; the allowed values and the defaults
+    (the default preset's and any other preset's own) come from the table.
+    """
+    param = persistence_param(name)
+    if param.kind == "choice":
+        kind = click.Choice(param.choices)
+    elif param.kind == "int":
+        kind = click.IntRange(min=param.lo, max=param.hi)
+    else:
+        kind = click.FloatRange(min=param.lo, max=param.hi, min_open=param.lo_open, max_open=param.hi_open)
+    return click.option(flag, name, type=kind, default=None, metavar=metavar,
+                        help=f"{text} {preset_default_text(name)}.")
 
 
 def _power_of_two(ctx, param, value):
@@ -54,28 +62,26 @@ def _power_of_two(ctx, param, value):
               "galsim-linear"), callback=deprecated_option("apply-persistence --model", "--law"))
 @click.option("--set", "settings", multiple=True, metavar="persistence.KEY=VALUE",
               callback=key_values(effect="persistence"),
-              help="Override a parameter of the law (A, x0, dx, alpha, gamma, half_well) or a setting (time_model, "
-                   "combine, max_previous, lookback), as render's --set does: persistence.gamma=1.1. "
-                   "Repeatable.")
+              help=f"Override a parameter of the law ({', '.join(FERMI_PARAMETERS)}) or a setting "
+                   f"({', '.join(SETTINGS)}), as render's --set does: persistence.gamma=1.1. Repeatable.")
 @click.option("--param", "params", multiple=True, hidden=True,
               callback=deprecated_option("apply-persistence --param KEY=VALUE", "--set persistence.KEY=VALUE"))
 @click.option("--mode", type=click.Choice(MODES), default=D.mode, show_default=True,
               help="Add persistence, subtract it (a correction), or write the persistence alone.")
-@click.option("--time-model", type=click.Choice(TIME_MODELS), default=None,
-              help="exact: integral of the rate over the exposure from the real timestamps; "
-                   "middle: the rate at the middle of the exposure (of each read's window for a ramp) times "
-                   "its length, as STScI's WFC3 pipeline; "
-                   "galsim: galsim.roman.applyPersistence(method='fermi')'s mid-exposure rate "
-                   f"{_model_default('time_model')}.")
-@click.option("--combine", type=click.Choice(COMBINES), default=None,
-              help="Sum over earlier exposures (the paper, GalSim) or per-pixel maximum (WFC3 pipeline) "
-                   f"{_model_default('combine')}.")
-@click.option("--max-previous", type=click.IntRange(min=0), default=None, metavar="N",
-              help="Only the N most recent earlier exposures count (0: all) "
-                   f"{_model_default('max_previous')}.")
-@click.option("--lookback", type=click.FloatRange(min=0), default=None, metavar="HOURS",
-              help="Ignore earlier exposures that ended more than HOURS before CURRENT starts (0: no limit; "
-                   f"-v names them) {_model_default('lookback')}.")
+# the settings of how the law is applied: type, range and default (per preset) from the one table of
+# persistence parameters (perscli.detector.settings.PERSISTENCE_PARAMETERS); None here = the law's own
+@setting_option("--time-model", "time_model",
+                "exact: integral of the rate over the exposure from the real timestamps; "
+                "middle: the rate at the middle of the exposure (of each read's window for a ramp) times "
+                "its length, as STScI's WFC3 pipeline; "
+                "galsim: galsim.roman.applyPersistence(method='fermi')'s mid-exposure rate")
+@setting_option("--combine", "combine",
+                "Sum over earlier exposures (the paper, GalSim) or per-pixel maximum (WFC3 pipeline)")
+@setting_option("--max-previous", "max_previous",
+                "Only the N most recent earlier exposures count (0: all)", metavar="N")
+@setting_option("--lookback", "lookback",
+                "Ignore earlier exposures that ended more than HOURS before CURRENT starts (0: no limit; "
+                "-v names them)", metavar="HOURS")
 @click.option("--model-error", type=click.FloatRange(min=0), default=D.model_error, show_default=True,
               metavar="FRACTION",
               help="Fractional uncertainty of the persistence. Where CURRENT has an ERR array (WFC3 flt/ima, "

@@ -227,7 +227,7 @@ def load_persistence_model(spec: str = "typical", overrides=()):
 def _persistence_from_yaml(path: str) -> tuple:
     """(step parameters, model name) of a YAML persistence model or detector model."""
     from ..io.config import load_yaml
-    from .settings import FERMI_PARAMETERS, PRESET_SETTINGS, SETTINGS
+    from .settings import FERMI_PARAMETERS, PRESETS, SETTINGS, preset_settings
 
     doc = load_yaml(path, "persistence model")
     if isinstance(doc, dict) and isinstance(doc.get("effects"), list):
@@ -259,7 +259,7 @@ def _persistence_from_yaml(path: str) -> tuple:
         raise PerscliError(f"{path}: missing {', '.join(missing)} (or give 'base: typical' to start from a preset)")
     settings = {k: v for k, v in params.items() if k in SETTINGS}
     plain_preset = base is not None and not law and kind == "fermi" and set(params) <= {"base", "kind", *settings} \
-        and all(PRESET_SETTINGS.get(base, {}).get(k, SETTINGS[k][2]) == v for k, v in settings.items())
+        and base in PRESETS and all(preset_settings(base)[k] == v for k, v in settings.items())
     return params, base if plain_preset else path
 
 

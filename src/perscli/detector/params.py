@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .. import PerscliError
 
@@ -42,6 +42,12 @@ class Param:
         'auto' for the sky level).
     derived : str
         For ``default=None``: where the value comes from (e.g. 'from base').
+    group : str
+        A family of parameters an effect treats together (persistence: 'law'
+        for the Fermi law's, 'setting' for how it is applied), or ''.
+    presets : dict, optional
+        A value that comes with a named preset: preset name -> value, one for
+        every preset (persistence's 'typical', 'pessimistic', 'wfc3').
     """
 
     name: str
@@ -55,6 +61,8 @@ class Param:
     hi_open: bool = False
     choices: tuple = ()
     derived: str = ""
+    group: str = ""
+    presets: dict | None = field(default=None, hash=False)
 
     def allowed(self, unit: bool = False) -> str:
         """The allowed values as text, e.g. '(0, inf)' or 'typical | pessimistic' (with the unit if asked)."""

@@ -14,7 +14,7 @@ pixel once per earlier frame, by a compiled loop that streams the frame.
 
 Three parameter sets are built in: the paper's Table 1 ('typical',
 'pessimistic') and 'wfc3', STScI's parameters for HST WFC3-IR, which also
-brings the WFC3 persistence pipeline's conventions (:data:`perscli.detector.settings.PRESET_SETTINGS`).
+brings the WFC3 persistence pipeline's conventions (:func:`perscli.detector.settings.preset_settings`).
 
 This module is the only place where persistence is computed: render,
 apply-persistence and diagnose all call it.
@@ -28,7 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError
-from .settings import COMBINES, FERMI_PARAMETERS, GALSIM_EXPTIME, GALSIM_LINEAR_COEFFICIENTS, PRESETS, ROUNDINGS, SETTINGS
+from .settings import (COMBINES, DEFAULT_PRESET, FERMI_PARAMETERS, GALSIM_EXPTIME, GALSIM_LINEAR_COEFFICIENTS, PRESETS,
+                       ROUNDINGS, SETTINGS, persistence_param, preset_settings)
 
 
 @dataclass(frozen=True)
@@ -60,20 +61,20 @@ class PersistenceModel:
         (:func:`round_charge`).
     """
 
-    name: str = "typical"
+    name: str = DEFAULT_PRESET
     kind: str = "fermi"
-    A: float = PRESETS["typical"]["A"]
-    x0: float = PRESETS["typical"]["x0"]
-    dx: float = PRESETS["typical"]["dx"]
-    alpha: float = PRESETS["typical"]["alpha"]
-    gamma: float = PRESETS["typical"]["gamma"]
-    half_well: float = PRESETS["typical"]["half_well"]
+    A: float = PRESETS[DEFAULT_PRESET]["A"]
+    x0: float = PRESETS[DEFAULT_PRESET]["x0"]
+    dx: float = PRESETS[DEFAULT_PRESET]["dx"]
+    alpha: float = PRESETS[DEFAULT_PRESET]["alpha"]
+    gamma: float = PRESETS[DEFAULT_PRESET]["gamma"]
+    half_well: float = PRESETS[DEFAULT_PRESET]["half_well"]
     coefficients: tuple = field(default=GALSIM_LINEAR_COEFFICIENTS)
-    time_model: str = SETTINGS["time_model"][2]
-    combine: str = SETTINGS["combine"][2]
-    max_previous: int = SETTINGS["max_previous"][2]
-    lookback: float = SETTINGS["lookback"][2]
-    rounding: str = "none"
+    time_model: str = preset_settings(DEFAULT_PRESET)["time_model"]
+    combine: str = preset_settings(DEFAULT_PRESET)["combine"]
+    max_previous: int = preset_settings(DEFAULT_PRESET)["max_previous"]
+    lookback: float = preset_settings(DEFAULT_PRESET)["lookback"]
+    rounding: str = persistence_param("rounding").default
 
     def __post_init__(self):
         # the one schema of a persistence model (perscli.detector.settings.PERSISTENCE_SCHEMA) checks a
