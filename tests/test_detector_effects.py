@@ -485,3 +485,42 @@ def test_persistence_model_of_the_default_chain_is_typical():
     assert pm.kind == "fermi"
     for key, value in PRESETS["typical"].items():
         assert getattr(pm, key) == value
+
+
+def test_ipc_kernel_is_ndimage_correlate_bit_for_bit():
+    """The compiled 3x3 correlation (perscli._kernels.correlate3x3) is scipy.ndimage.correlate's, bit for bit:
+    zero outside, weights of at most DBL_EPSILON left out, NaN carried, a stack of planes each on its own."""
+    from scipy import ndimage
+
+    from perscli.detector.effects import apply_ipc, roman_ipc_kernel
+
+    rng = np.random.default_rng(5)
+    kernels = [roman_ipc_kernel(), rng.normal(size=(3, 3)), np.array([[0, 0.01, 0], [0.01, 0.96, 0.01], [0, 0.01, 0]]),
+               np.array([[1e-17, 0.2, 0.0], [0.3, 0.5, 0.0], [0.0, 0.0, -0.1]])]
+    for kernel in kernels:
+        for shape in [(1, 1), (1, 5), (5, 1), (2, 2), (3, 3), (7, 11), (64, 130), (3, 6, 6)]:
+            x = rng.normal(size=shape) * 1e4
+            if x.size > 30:
+                x.flat[::17] = np.nan
+            ref = ndimage.correlate(x, kernel if x.ndim == 2 else kernel[None], mode="constant", cval=0.0)
+            np.testing.assert_array_equal(apply_ipc(x, kernel), ref)
+    # float32 in: correlated in float64, as the chain's images are
+    x = rng.normal(size=(9, 9)).astype(np.float32)
+    np.testing.assert_array_equal(apply_ipc(x, kernels[0]),
+                                  ndimage.correlate(x.astype(np.float64), kernels[0], mode="constant"))
+
+
+def test_reciprocity_moments_are_its_expectation_and_variance():
+    """forward's one-pass moments equal the effect's own expectation and variance (shared logarithm)."""
+    from perscli.detector.blocks import ChainContext
+    from perscli.detector.effects import REGISTRY
+
+    rng = np.random.default_rng(2)
+    mean = rng.normal(size=(40, 40)) * 1e3 + 200.0
+    mean[0, :5] = [0.0, -1.0, 1e-300, 1e6, np.inf]
+    var = rng.uniform(1, 10, size=mean.shape)
+    ctx = ChainContext(exptime=139.8, seed=0)
+    step = REGISTRY["reciprocity"]({"alpha": 0.0065, "base_flux": 1.0})
+    m, v = step.moments(mean.copy(), var.copy(), ctx)
+    np.testing.assert_array_equal(m, step.expectation(mean.copy(), ctx))
+    np.testing.assert_array_equal(v, step.variance(mean.copy(), var.copy(), ctx))

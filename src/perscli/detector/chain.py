@@ -209,8 +209,7 @@ def forward(sources: np.ndarray, model: DetectorModel, *, exptime: float,
         if not eff.enabled:
             continue
         step = eff.instance()
-        var = step.variance(mean, var, ctx)
-        mean = step.expectation(mean, ctx)
+        mean, var = step.moments(mean, var, ctx)
         unit = eff.cls.unit_out or unit
     if fluence is None:
         fluence = mean.copy()

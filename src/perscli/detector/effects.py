@@ -76,7 +76,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from .. import PerscliError
+from .. import PerscliError, _kernels
 from ..instrument import (ROMAN_DARK_CURRENT, ROMAN_DETECTOR_SIZE, ROMAN_FULL_WELL, ROMAN_GAIN,
                           ROMAN_NONLINEARITY_BETA, ROMAN_READ_NOISE, ROMAN_RECIPROCITY_ALPHA)
 from .blocks import NOISE_BLOCK, ChainContext, active_pixels, block_streams
@@ -98,13 +98,25 @@ def apply_ipc(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     ``kernel[j, i]`` is the fraction of the signal of the neighbour at offset
     (i - 1, j - 1) that appears in a pixel (GalSim's definition, so the
     asymmetric Roman kernel is applied as GalSim applies it); outside the
-    image there is no charge (zero padding).
-    """
-    from scipy import ndimage
+    image there is no charge (zero padding).  ``image`` may be a stack of
+    planes (..., ny, nx): each is correlated on its own.
 
-    # one compiled pass: a correlation (not a convolution) is GalSim's definition of the kernel
-    return ndimage.correlate(np.asarray(image, dtype=np.float64), np.asarray(kernel, dtype=np.float64),
-                             mode="constant", cval=0.0)
+    Returns
+    -------
+    numpy.ndarray
+        float64, the shape of ``image``: ``scipy.ndimage.correlate(image,
+        kernel, mode='constant')`` bit for bit, from one compiled pass that
+        releases the GIL (so diagnose's threads over exposures run at once;
+        ndimage holds the GIL and took most of a likelihood evaluation).
+    """
+    x = np.ascontiguousarray(image, dtype=np.float64)
+    k = np.ascontiguousarray(kernel, dtype=np.float64)
+    if k.shape != (3, 3) or x.ndim < 2:
+        raise ValueError(f"apply_ipc: a 3x3 kernel over planes (..., ny, nx), not {k.shape} over {x.shape}")
+    out = np.empty_like(x)
+    ny, nx = x.shape[-2:]
+    _kernels.correlate3x3(x, out, k, (x.size // max(ny * nx, 1), ny, nx))
+    return out
 
 
 # -- the effects ---------------------------------------------------------------------------------
@@ -177,6 +189,14 @@ class DetectorEffect:
         """The variance after this effect, for a signal of mean ``mean`` and variance ``var`` before it."""
         return var
 
+    def moments(self, mean: np.ndarray, var: np.ndarray, ctx: ChainContext) -> tuple:
+        """(:meth:`expectation`, :meth:`variance`) at once: what :func:`perscli.detector.chain.forward` calls.
+
+        An effect whose two share an expensive part (reciprocity's logarithm) computes it once here.
+        """
+        var = self.variance(mean, var, ctx)       # first: an expectation may work in place on ``mean``
+        return self.expectation(mean, ctx), var
+
     def streams(self, ctx: ChainContext, shape):
         """This effect's random streams over an image of ``shape``: :func:`block_streams`."""
         if ctx.blocks is not None:
@@ -243,13 +263,18 @@ class Reciprocity(DetectorEffect):
               Param("base_flux", "float", 1.0, "e-/s", "flux at which the response is unchanged", lo=0.0,
                     lo_open=True))
 
-    def _apply(self, img, t, out):
+    def _log_ratio(self, img, t):
+        """log10(x / (base_flux t)) where x > 0 (0 elsewhere), and the mask x > 0."""
+        pos = img > 0
+        ratio = np.log10(img, where=pos, out=np.zeros_like(img))
+        ratio -= np.log10(self.p["base_flux"] * t)
+        return ratio, pos
+
+    def _apply(self, img, t, out, ratio=None):
         # the empirical law itself, x (1 + alpha log10(x / (base_flux t))); GalSim's
         # Image.addReciprocityFailure uses its power-law approximation x (x/x0)^(alpha/ln 10),
         # 3e-4 apart at 1e6 e-.  Zero and negative pixels are left alone.
-        pos = img > 0
-        factor = np.log10(img, where=pos, out=np.zeros_like(img))
-        factor -= np.log10(self.p["base_flux"] * t)
+        factor, pos = self._log_ratio(img, t) if ratio is None else (ratio[0].copy(), ratio[1])
         factor *= self.p["alpha"]
         factor += 1.0
         np.multiply(img, factor, out=out, where=pos)
@@ -262,15 +287,22 @@ class Reciprocity(DetectorEffect):
         mean = np.asarray(mean, dtype=np.float64)
         return self._apply(mean, ctx.exptime, mean.copy())
 
-    def variance(self, mean, var, ctx):
-        mean = np.asarray(mean, dtype=np.float64)
-        pos = mean > 0
-        slope = np.log10(mean, where=pos, out=np.zeros_like(mean))
-        slope -= np.log10(self.p["base_flux"] * ctx.exptime)
+    def _variance(self, var, ratio):
+        slope, pos = ratio
         slope += 1.0 / math.log(10.0)
         slope *= self.p["alpha"]
         slope += 1.0
         return np.where(pos, var * slope * slope, var)
+
+    def variance(self, mean, var, ctx):
+        return self._variance(var, self._log_ratio(np.asarray(mean, dtype=np.float64), ctx.exptime))
+
+    def moments(self, mean, var, ctx):
+        # the logarithm once for both (it was a fifth of diagnose's likelihood evaluations)
+        mean = np.asarray(mean, dtype=np.float64)
+        ratio = self._log_ratio(mean, ctx.exptime)
+        out = self._apply(mean, ctx.exptime, mean.copy(), ratio)
+        return out, self._variance(var, ratio)
 
 
 @register
@@ -519,10 +551,7 @@ class IPC(DetectorEffect):
     def sample(self, image, ctx):
         if ctx.blocks is not None:
             # each block with its neighbours' edge pixels, correlated as the whole area would be
-            from scipy import ndimage
-
-            framed = ctx.blocks.edges(image)
-            out = ndimage.correlate(framed, self.kernel()[None, :, :], mode="constant", cval=0.0)
+            out = apply_ipc(ctx.blocks.edges(image), self.kernel())
             return ctx.blocks.blank(np.ascontiguousarray(out[:, 1:-1, 1:-1]))
         return apply_ipc(image, self.kernel())
 

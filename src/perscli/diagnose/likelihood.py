@@ -126,6 +126,9 @@ class Problem:
             pos += r.stop - (r.start or 0)
         self._charges = {}
         self._charge_sets = {}
+        #: (index, well) -> (FLUENCE less PERSIST, the pixels the simulation saturated) on the fit rows: the
+        #: part of a history no law changes, made once (it was a third of every history's time)
+        self._history_base = {}
         #: (persistence law, electrons): the fits leave out the pixels where that law leaves more (see
         #: :meth:`set_aside`); None: every pixel
         self.aside = None
@@ -223,10 +226,11 @@ class Problem:
         if have is not None:
             return have
         own = self.charge(index, pmodel, region, well)
-        now = base - exp.persist[rows].astype(np.float32) + own[0] * np.float32(own[1])
+        rest, saturated = self._history_rest(index, base, rows, region, well)
+        now = rest + own[0] * np.float32(own[1])
         if well:
-            now = np.where(base >= np.float32(well * (1.0 - 1e-6)), base, np.minimum(now, np.float32(well)))
-        have = np.maximum(now, 0.0).astype(np.float32)
+            now = np.where(saturated, base, np.minimum(now, np.float32(well)))
+        have = np.maximum(now, 0.0).astype(np.float32, copy=False)
         if region == "fit":
             # every pixel's histories would be frames more to hold: those are made again when asked (a few
             # elementwise passes each)
@@ -234,6 +238,22 @@ class Problem:
                 if params in self._charge_sets.get(region, []):
                     self._charges[key] = have
         return have
+
+    def _history_rest(self, index, base, rows, region, well):
+        """(FLUENCE less PERSIST, pixels at the well or None) of exposure ``index``: kept for the fit rows."""
+        key = (index, well)
+        if region == "fit":
+            with self._lock:
+                have = self._history_base.get(key)
+            if have is not None:
+                return have
+        exp = self.exposures[index]
+        rest = base - exp.persist[rows].astype(np.float32)
+        saturated = base >= np.float32(well * (1.0 - 1e-6)) if well else None
+        if region == "fit":
+            with self._lock:
+                self._history_base[key] = (rest, saturated)
+        return rest, saturated
 
     def set_aside(self, law, limit: float, well=None) -> int:
         """Leave out of every later fit (not of the gaps) the pixels where the persistence law ``law`` leaves more
