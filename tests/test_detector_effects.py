@@ -524,3 +524,64 @@ def test_reciprocity_moments_are_its_expectation_and_variance():
     m, v = step.moments(mean.copy(), var.copy(), ctx)
     np.testing.assert_array_equal(m, step.expectation(mean.copy(), ctx))
     np.testing.assert_array_equal(v, step.variance(mean.copy(), var.copy(), ctx))
+
+
+def test_forward_with_the_charge_stage_kept_is_the_same_bit_for_bit():
+    """diagnose keeps the chain's charge stage between evaluations that change only the readout: the result
+    must be that of a fresh forward whatever changes, and a changed charge-stage parameter must not hit."""
+    import dataclasses
+
+    from perscli.detector.chain import ChargeCache, forward
+    from perscli.detector.model import default_model
+    from perscli.diagnose.likelihood import with_effect
+
+    rng = np.random.default_rng(3)
+    ideal = rng.uniform(0, 2e5, size=(30, 40))
+    pers = rng.uniform(0, 50, size=ideal.shape)
+    base = with_effect(default_model(), "sky", enabled=False)
+    models = [base,
+              with_effect(base, "gain", {"gain": 1.7}),                     # readout only: a hit
+              with_effect(base, "nonlinearity", {"beta": -2e-6}),
+              with_effect(base, "reciprocity", {"alpha": 0.01}),           # charge stage: a miss
+              with_effect(base, "dark", {"current": 0.2}),
+              with_effect(base, "saturation", {"full_well": 1.5e5}),
+              base]
+    cache = ChargeCache(keep=2)
+    for model in models:
+        fresh = forward(ideal, model, exptime=139.8, persistence=pers)
+        kept = forward(ideal, model, exptime=139.8, persistence=pers, cache=cache, key="exposure 0")
+        for f in dataclasses.fields(fresh):
+            a, b = getattr(fresh, f.name), getattr(kept, f.name)
+            if isinstance(a, np.ndarray):
+                np.testing.assert_array_equal(a, b)
+            else:
+                assert a == b
+    # what the cache holds cannot be changed through a result
+    kept = forward(ideal, base, exptime=139.8, persistence=pers, cache=cache, key="exposure 0")
+    with pytest.raises(ValueError):
+        kept.fluence[0, 0] = 0.0
+    kept.mean[0, 0] = -1.0                                             # the caller's own copy
+    again = forward(ideal, base, exptime=139.8, persistence=pers, cache=cache, key="exposure 0")
+    assert again.mean[0, 0] != -1.0
+
+
+def test_a_readout_change_reuses_the_charge_stage(monkeypatch):
+    from perscli.detector.chain import ChargeCache, forward
+    from perscli.detector.effects import REGISTRY
+    from perscli.detector.model import default_model
+    from perscli.diagnose.likelihood import with_effect
+
+    ideal = np.full((8, 8), 1e4)
+    base = with_effect(default_model(), "sky", enabled=False)
+    cache = ChargeCache()
+    forward(ideal, base, exptime=139.8, cache=cache, key=0)
+
+    def fail(*a, **k):
+        raise AssertionError("the charge stage ran again")
+
+    monkeypatch.setattr(REGISTRY["reciprocity"], "moments", fail)
+    forward(ideal, with_effect(base, "gain", {"gain": 2.0}), exptime=139.8, cache=cache, key=0)
+    with pytest.raises(AssertionError, match="ran again"):
+        forward(ideal, with_effect(base, "dark", {"current": 1.0}), exptime=139.8, cache=cache, key=0)
+    with pytest.raises(AssertionError, match="ran again"):
+        forward(ideal, base, exptime=100.0, cache=cache, key=0)

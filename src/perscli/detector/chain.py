@@ -10,6 +10,7 @@ blocks in :mod:`perscli.detector.blocks`.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Callable
 
@@ -188,24 +189,91 @@ class Forward:
     sky_rate: float = 0.0
 
 
+def _frozen(value):
+    """A parameter value as a dictionary key (lists, e.g. a kernel, as tuples)."""
+    if isinstance(value, dict):
+        return tuple(sorted((k, _frozen(v)) for k, v in value.items()))
+    if isinstance(value, (list, tuple)):
+        return tuple(_frozen(v) for v in value)
+    return value
+
+
+class ChargeCache:
+    """The charge stage of :func:`forward` kept for the inputs a caller evaluates again and again.
+
+    A likelihood fit of a readout effect (gain, read noise, nonlinearity, IPC,
+    ...) evaluates the chain many times with the same charge stage (Poisson,
+    reciprocity, dark, persistence, brighter-fatter, saturation): its mean,
+    variance and fluence are kept here, keyed by the caller's name for the
+    input (``key``: e.g. exposure and rows, the same sources and persistence
+    charge each time) and every charge-stage effect's parameters, the last
+    ``keep`` of each input.  The readout stage then starts from copies, so the
+    result is the same bit for bit as without the cache.
+    """
+
+    def __init__(self, keep: int = 4):
+        self.keep = keep
+        self._entries = {}          # key -> {charge-stage parameters: (mean, var, fluence, unit, sky rate)}
+        self._lock = threading.Lock()
+
+    def get(self, key, params):
+        with self._lock:
+            have = self._entries.get(key, {})
+            hit = have.pop(params, None)
+            if hit is not None:
+                have[params] = hit                  # most recently used last
+            return hit
+
+    def put(self, key, params, value):
+        with self._lock:
+            have = self._entries.setdefault(key, {})
+            have[params] = value
+            while len(have) > self.keep:
+                del have[next(iter(have))]
+
+
 def forward(sources: np.ndarray, model: DetectorModel, *, exptime: float,
             sky_rate: Callable[[], float] | float = 0.0,
-            persistence: Callable[[], np.ndarray] | np.ndarray | None = None) -> Forward:
+            persistence: Callable[[], np.ndarray] | np.ndarray | None = None,
+            cache: ChargeCache | None = None, key=None) -> Forward:
     """Expectation and variance of a frame through the chain: what a likelihood of measured frames needs.
 
     Parameters are those of :func:`run_chain` (no seed: nothing is drawn).
     The mean is each effect's ``expectation`` of the previous mean; the
     variance is propagated with each effect's ``variance`` (first order in
-    the noise: e.g. nonlinearity scales it by (1 + 2 beta x)^2).
+    the noise: e.g. nonlinearity scales it by (1 + 2 beta x)^2).  With
+    ``cache`` (a :class:`ChargeCache`) and ``key`` (what names ``sources``,
+    ``persistence`` and ``sky_rate`` for the caller: the same key must mean
+    the same inputs), the charge stage is taken from the cache when its
+    effects' parameters are those of an earlier call.
     """
-    ctx = ChainContext(exptime=exptime, seed=0, sky_rate=sky_rate, persistence=persistence)
-    mean = np.array(sources, dtype=np.float64)
-    var = np.zeros_like(mean)
-    unit = "electron"
-    fluence = None
-    for eff in model.effects:
+    effects = list(model.effects)
+    first_readout = next((k for k, eff in enumerate(effects) if eff.cls.stage == "readout"), len(effects))
+    params = None
+    hit = None
+    if cache is not None and key is not None:
+        params = (float(exptime),) + tuple((eff.name, eff.enabled, _frozen(eff.params))
+                                           for eff in effects[:first_readout])
+        hit = cache.get(key, params)
+    if hit is not None:
+        mean, var, fluence, unit, used_sky = hit
+        mean, var = mean.copy(), var.copy()
+        ctx = ChainContext(exptime=exptime, seed=0, sky_rate=sky_rate, persistence=persistence)
+        rest = effects[first_readout:]
+    else:
+        ctx = ChainContext(exptime=exptime, seed=0, sky_rate=sky_rate, persistence=persistence)
+        mean = np.array(sources, dtype=np.float64)
+        var = np.zeros_like(mean)
+        unit = "electron"
+        fluence = None
+        rest = effects
+    for k, eff in enumerate(rest):
         if fluence is None and eff.cls.stage == "readout":
             fluence = mean.copy()
+            if params is not None:
+                kept = np.broadcast_to(var, mean.shape).copy()
+                fluence.flags.writeable = kept.flags.writeable = False     # shared: nobody may change them
+                cache.put(key, params, (fluence, kept, fluence, unit, ctx.used_sky_rate))
         if not eff.enabled:
             continue
         step = eff.instance()
@@ -213,6 +281,7 @@ def forward(sources: np.ndarray, model: DetectorModel, *, exptime: float,
         unit = eff.cls.unit_out or unit
     if fluence is None:
         fluence = mean.copy()
+    used_sky = hit[4] if hit is not None else ctx.used_sky_rate
     return Forward(mean=mean, variance=np.broadcast_to(var, mean.shape).copy(), unit=unit, fluence=fluence,
-                   sky_rate=ctx.used_sky_rate)
+                   sky_rate=used_sky)
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PerscliError
-from ..detector.chain import forward
+from ..detector.chain import ChargeCache, forward
 from ..detector.model import DetectorModel, Effect
 from ..io.frames import SECONDS_PER_DAY
 
@@ -129,6 +129,8 @@ class Problem:
         #: (index, well) -> (FLUENCE less PERSIST, the pixels the simulation saturated) on the fit rows: the
         #: part of a history no law changes, made once (it was a third of every history's time)
         self._history_base = {}
+        #: the chain's charge stage on the fit stripes, per exposure and stripe (perscli.detector.chain.forward)
+        self._charge_stage = ChargeCache()
         #: (persistence law, electrons): the fits leave out the pixels where that law leaves more (see
         #: :meth:`set_aside`); None: every pixel
         self.aside = None
@@ -362,7 +364,12 @@ class Problem:
                 at = self._stripe_start[(rows.start, rows.stop)]
                 add = extra[at:at + (rows.stop - (rows.start or 0))]
                 pers = add if pers is None else pers + add
-            fw = forward(ideal, m, exptime=exptime, persistence=pers)
+            # the fit stripes' charge stage is kept between evaluations that change only the readout (the
+            # sources and the persistence charge are this exposure's and this law's: with an extra charge
+            # nothing is kept)
+            cached = region == "fit" and extra is None
+            fw = forward(ideal, m, exptime=exptime, persistence=pers, cache=self._charge_stage if cached else None,
+                         key=(i, rows.start, rows.stop, keep0, keep1, well, share) if cached else None)
             sl = slice(keep0, keep1)
             mean, var = fw.mean[sl], fw.variance[sl]
             data = exp.data[-1][rows][sl]
