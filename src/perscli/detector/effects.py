@@ -70,25 +70,27 @@ of the detector model lives beside it: the parameter schema in
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import zlib
 from typing import ClassVar
 
+import galsim.roman
 import numpy as np
+from scipy import ndimage
 
 from .. import PerscliError
 from ..instrument import (ROMAN_DARK_CURRENT, ROMAN_DETECTOR_SIZE, ROMAN_FULL_WELL, ROMAN_GAIN,
                           ROMAN_NONLINEARITY_BETA, ROMAN_READ_NOISE, ROMAN_RECIPROCITY_ALPHA)
 from .blocks import NOISE_BLOCK, ChainContext, active_pixels, block_streams
 from .params import Param
+from .persistence import PersistenceModel
 from .settings import FERMI_PARAMETERS, PERSISTENCE_SCHEMA, PRESETS, preset_settings
 
 # -- interpixel capacitance ----------------------------------------------------------------------
 
 
 def roman_ipc_kernel() -> np.ndarray:
-    import galsim.roman
-
     return np.asarray(galsim.roman.ipc_kernel.array, dtype=np.float64)
 
 
@@ -100,8 +102,6 @@ def apply_ipc(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     asymmetric Roman kernel is applied as GalSim applies it); outside the
     image there is no charge (zero padding).
     """
-    from scipy import ndimage
-
     # one compiled pass: a correlation (not a convolution) is GalSim's definition of the kernel
     return ndimage.correlate(np.asarray(image, dtype=np.float64), np.asarray(kernel, dtype=np.float64),
                              mode="constant", cval=0.0)
@@ -323,10 +323,6 @@ class Persistence(DetectorEffect):
     @classmethod
     def model(cls, params: dict, name: str = "persistence"):
         """The :class:`~perscli.detector.persistence.PersistenceModel` of these parameters."""
-        import dataclasses
-
-        from .persistence import PersistenceModel
-
         p = cls.resolve(params)
         explicit = [k for k in FERMI_PARAMETERS if params.get(k) is not None] or p["kind"] != "fermi"
         fields = {f.name for f in dataclasses.fields(PersistenceModel)}
@@ -519,8 +515,6 @@ class IPC(DetectorEffect):
     def sample(self, image, ctx):
         if ctx.blocks is not None:
             # each block with its neighbours' edge pixels, correlated as the whole area would be
-            from scipy import ndimage
-
             framed = ctx.blocks.edges(image)
             out = ndimage.correlate(framed, self.kernel()[None, :, :], mode="constant", cval=0.0)
             return ctx.blocks.blank(np.ascontiguousarray(out[:, 1:-1, 1:-1]))
