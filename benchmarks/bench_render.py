@@ -450,8 +450,8 @@ def profile_render(cmd_args: list, workdir: Path):
     import pstats
 
     out = workdir / "render.prof"
-    code = _PROFILE.replace("PROFILE_OUT", repr(str(out)))
-    subprocess.run([sys.executable, "-c", code, "perscli", *cmd_args], check=True,
+    # _PROFILE takes the statistics file as its first argument, then perscli's
+    subprocess.run([sys.executable, "-c", _PROFILE, str(out), *cmd_args], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     stats = pstats.Stats(str(out))
     buf = io.StringIO()

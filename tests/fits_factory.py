@@ -168,13 +168,24 @@ def invoke(*args, **kw):
     return CliRunner().invoke(cli, [str(a) for a in args], **kw)
 
 
+def commands(group=None) -> dict:
+    """{name: command} of the perscli group (or of ``group``, e.g. pointings), each command loaded: the group
+    imports a command's module only when asked for it (perscli.cli.main.LazyGroup), so its ``commands`` dict,
+    click's store of commands added eagerly, holds none of them."""
+    import click
+
+    from perscli.cli.main import cli
+
+    group = cli if group is None else group
+    ctx = click.Context(group, info_name=group.name)
+    return {name: group.get_command(ctx, name) for name in group.list_commands(ctx)}
+
+
 def leaf_commands():
     """[(name, command)] of every command that runs: 'render', the subcommands of a group ('pointings plan'),
     and the flag form a group still runs as a deprecated alias (perscli.cli.pointings.FlagFormGroup.legacy,
     as 'pointings')."""
     import click
-
-    from perscli.cli.main import cli
 
     out = []
 
@@ -182,12 +193,12 @@ def leaf_commands():
         if isinstance(cmd, click.Group):
             if getattr(cmd, "legacy", None) is not None:
                 out.append((name, cmd.legacy))
-            for sub, child in sorted(cmd.commands.items()):
+            for sub, child in sorted(commands(cmd).items()):
                 walk(f"{name} {sub}", child)
         else:
             out.append((name, cmd))
 
-    for name, cmd in sorted(cli.commands.items()):
+    for name, cmd in sorted(commands().items()):
         walk(name, cmd)
     return out
 

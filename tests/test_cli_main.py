@@ -9,13 +9,11 @@ from importlib import metadata
 
 import numpy as np
 import pytest
-
-from perscli.cli.main import cli
 from astropy.io import fits
 
 import perscli
 
-from fits_factory import DAY, SHAPE, T0, frame_file, invoke, listing
+from fits_factory import DAY, SHAPE, T0, commands, frame_file, invoke, listing
 
 SCRIPT = os.path.join(os.path.dirname(sys.executable), "perscli")
 
@@ -51,10 +49,10 @@ def test_help_lists_the_registered_commands(flag):
     assert result.exit_code == 0
     text = result.stdout
     assert "Usage:" in text and "--version" in text and "--verbose" in text and "--quiet" in text
-    commands = text.split("Commands:", 1)[1]
+    listed = text.split("Commands:", 1)[1]
     # one command per line indented by two spaces; wrapped help lines are indented further
-    names = re.findall(r"^  (\S+)", commands, re.M)
-    assert names == sorted(cli.commands) == ["apply-persistence", "budget", "catalog", "completion", "correlate",
+    names = re.findall(r"^  (\S+)", listed, re.M)
+    assert names == sorted(commands()) == ["apply-persistence", "budget", "catalog", "completion", "correlate",
                                              "diagnose", "man", "measure", "pointings", "render", "study"]
 
 

@@ -6,9 +6,7 @@ import shutil
 import numpy as np
 import pytest
 
-from perscli.cli.main import cli
-
-from fits_factory import DAY, SHAPE, T0, frame_file, invoke, leaf_commands, listing, snapshot
+from fits_factory import DAY, SHAPE, T0, commands, frame_file, invoke, leaf_commands, listing, snapshot
 
 # -- one meaning per option ---------------------------------------------------------------------
 
@@ -106,7 +104,7 @@ def test_verbosity_before_and_after_add_up(tmp_path, frames):
 
 
 def test_verbosity_flags_on_every_command_help():
-    for name in cli.commands:
+    for name in commands():
         result = invoke(name, "--help")
         assert "-v, --verbose" in result.stdout and "-q, --quiet" in result.stdout, name
 

@@ -8,7 +8,7 @@ from astropy.io import fits
 from perscli.deprecation import REMOVED_IN
 
 from conftest import SAMPLE_DATA
-from fits_factory import expect_error, invoke, leaf_commands, raw_cards_masked
+from fits_factory import commands, expect_error, invoke, leaf_commands, raw_cards_masked
 
 EXP = [str(SAMPLE_DATA / f"exp{i}.fits") for i in (1, 2, 3, 4)]
 
@@ -69,8 +69,6 @@ def test_model_key_of_a_law_file_is_kind_with_a_warning(tmp_path):
 
 
 def test_the_documentation_names_only_the_current_spellings():
-    from perscli.cli.main import cli
-
     for name, cmd in leaf_commands():
         if name == "pointings":          # the flag form itself: its help says it is deprecated
             continue
@@ -81,7 +79,7 @@ def test_the_documentation_names_only_the_current_spellings():
             assert "--pointings" in shown and "--footprints" not in shown
     import re
 
-    text = cli.commands["apply-persistence"].help + cli.commands["catalog"].help
+    text = commands()["apply-persistence"].help + commands()["catalog"].help
     # (--model-error is another option: the law's fractional uncertainty)
     assert not re.search(r"--model(?![-\w])|--param\b|catalog --footprints", text)
 

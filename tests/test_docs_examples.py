@@ -18,6 +18,7 @@ import pytest
 
 from conftest import SHARED_DATA
 import docexamples as docs
+from fits_factory import commands
 
 HELP_ORDER = ("pointings", "catalog", "render", "apply-persistence", "measure", "correlate", "budget", "diagnose",
               "study", "man", "completion")
@@ -29,21 +30,16 @@ def _check(outcomes):
 
 
 def help_examples_of(name):
-    from perscli.cli.main import cli
-
-    return docs.help_examples(cli.commands[name])
+    return docs.help_examples(commands()[name])
 
 
 def _command_names():
-    from perscli.cli.main import cli
-
-    return [n for n in HELP_ORDER if n in cli.commands] + sorted(set(cli.commands) - set(HELP_ORDER))
+    names = commands()
+    return [n for n in HELP_ORDER if n in names] + sorted(set(names) - set(HELP_ORDER))
 
 
 def test_every_command_documents_examples():
-    from perscli.cli.main import cli
-
-    lacking = [name for name, cmd in cli.commands.items() if not docs.help_examples(cmd)]
+    lacking = [name for name, cmd in commands().items() if not docs.help_examples(cmd)]
     assert not lacking, f"commands whose --help has no Examples block: {lacking}"
 
 

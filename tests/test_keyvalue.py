@@ -4,9 +4,10 @@ import click
 import pytest
 
 from perscli import PerscliError
-from perscli.cli.main import cli
 from perscli.cli.options import key_values
 from perscli.io.config import DETECTOR_ITEM, STUDY_ITEM, parse_value, split_key_value
+
+from fits_factory import commands
 
 
 def test_split_at_the_first_equals_sign_both_sides_stripped():
@@ -52,8 +53,8 @@ def test_the_callback_passes_items_on_or_refuses_them():
 
 
 def test_every_set_option_reads_its_items_with_the_one_callback():
-    commands = [c for c in cli.commands.values() if any("--set" in p.opts for p in c.params)]
-    assert {c.name for c in commands} == {"render", "study", "apply-persistence"}
-    for command in commands:
+    setting = [c for c in commands().values() if any("--set" in p.opts for p in c.params)]
+    assert {c.name for c in setting} == {"render", "study", "apply-persistence"}
+    for command in setting:
         option = next(p for p in command.params if "--set" in p.opts)
         assert option.callback.__qualname__ == "key_values.<locals>.callback", command.name

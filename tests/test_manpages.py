@@ -8,14 +8,16 @@ import pytest
 from perscli.cli.main import cli
 from perscli.cli.manpages import render_all
 
+from fits_factory import commands
+
 MAN = Path(__file__).resolve().parents[1] / "man"
 
 
 def _commands():
     """(name, command) of every command and subcommand: ('render', ...), ('pointings plan', ...)."""
-    for name, command in cli.commands.items():
+    for name, command in commands().items():
         yield name, command
-        for sub, subcommand in getattr(command, "commands", {}).items():
+        for sub, subcommand in (commands(command) if isinstance(command, click.Group) else {}).items():
             yield f"{name} {sub}", subcommand
 
 

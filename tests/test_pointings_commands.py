@@ -15,7 +15,7 @@ from perscli.cli.main import cli
 from perscli.cli.pointings import FlagFormGroup, pointings, pointings_flags
 from perscli.scene.settings import PlanOptions, SelectOptions
 
-from fits_factory import invoke, listing, raw_cards_masked
+from fits_factory import commands, invoke, listing, raw_cards_masked
 from test_scene_pointings import DEC, RA, schedule_file, was  # noqa: F401  (was: a fixture)
 
 #: each subcommand and the flag form it stands for: (subcommand words, flag-form words), with S the schedule
@@ -195,7 +195,7 @@ def test_the_group_parses_its_own_options_and_runs_the_flag_form_as_its_legacy()
     # which tools that list every command's options reach through fits_factory.leaf_commands
     from fits_factory import leaf_commands
 
-    group = cli.commands["pointings"]
+    group = commands()["pointings"]
     assert isinstance(group, FlagFormGroup) and group.legacy is pointings_flags
     ctx = click.Context(group, info_name="pointings")
     params = group.get_params(ctx)

@@ -16,7 +16,7 @@ from perscli.cli.helpers import PathName
 from perscli.cli.main import cli
 from perscli.cli.helpers import PerscliGroup
 
-from fits_factory import DAY, SHAPE, T0, command_named, frame_file, invoke, leaf_commands, listing, usage_error
+from fits_factory import DAY, SHAPE, T0, command_named, commands, frame_file, invoke, leaf_commands, listing, usage_error
 
 BIN = os.path.dirname(sys.executable)
 SCRIPT = os.path.join(BIN, "perscli")
@@ -122,11 +122,11 @@ def test_other_click_programs_keep_clicks_display():
     assert result.exit_code == 2
     assert result.stderr.startswith("Usage: other [OPTIONS]\nTry 'other --help' for help.\n\nError: ")
     # a perscli command taken into another program's group is that program's too
-    group = click.Group("theirs", commands={"budget": cli.commands["budget"]})
+    group = click.Group("theirs", commands={"budget": command_named("budget")})
     result = click.testing.CliRunner().invoke(group, ["budget", "--frobnicate"])
     assert result.exit_code == 2 and result.stderr.startswith("Usage: theirs budget ")
     # a perscli command on its own (as a Python caller runs it) speaks perscli
-    result = click.testing.CliRunner().invoke(cli.commands["budget"], ["--frobnicate"])
+    result = click.testing.CliRunner().invoke(command_named("budget"), ["--frobnicate"])
     assert result.exit_code == 2 and result.stderr.startswith("budget: error: No such option '--frobnicate'")
     assert len(result.stderr.splitlines()) == 1
 
@@ -177,7 +177,7 @@ def test_man_in_a_pipe_is_plain_text_with_every_option():
         assert f"\n{heading}\n" in text, heading
     assert "\n       perscli-render - " in text
     assert "\\f" not in text and "\\-" not in text and ".TP" not in text          # no troff left
-    for param in cli.commands["render"].params:
+    for param in command_named("render").params:
         if isinstance(param, click.Option):
             assert f"       {param.opts[0]}" in text or f", {param.opts[-1]}" in text, param.opts
     assert text.rstrip().endswith("PERSCLI-RENDER(1)")
@@ -186,13 +186,13 @@ def test_man_in_a_pipe_is_plain_text_with_every_option():
 def test_man_of_the_group_lists_every_command():
     result = invoke("man")
     assert result.exit_code == 0
-    commands = "\n" + result.stdout.split("\nCOMMANDS\n", 1)[1]
-    for name in cli.commands:
-        assert f"\n       {name}\n" in commands and f"See perscli-{name}(1)." in " ".join(commands.split()), name
+    section = "\n" + result.stdout.split("\nCOMMANDS\n", 1)[1]
+    for name in commands():
+        assert f"\n       {name}\n" in section and f"See perscli-{name}(1)." in " ".join(section.split()), name
 
 
 def test_plain_text_wraps_at_the_width():
-    parts = manpages.page_parts(cli.commands["budget"], "perscli budget")
+    parts = manpages.page_parts(command_named("budget"), "perscli budget")
     text = manpages.to_text(parts, width=50)
     verbatim = {line for kind, block in parts["description"] if kind == "verbatim" for line in block.splitlines()}
     for line in text.splitlines():

@@ -41,12 +41,14 @@ temporary files and worker processes are ended.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import math
 import os
 import pickle
 import signal
 import sys
+import threading
 import traceback
 
 from . import PerscliError
@@ -94,8 +96,6 @@ def keep_freed_memory() -> None:
         return
     _ALLOCATOR_TUNED = True
     try:
-        import ctypes
-
         libc = ctypes.CDLL("libc.so.6")
         m_trim_threshold, m_mmap_threshold = -1, -3
         libc.mallopt(m_mmap_threshold, ctypes.c_int(1 << 30))
@@ -200,8 +200,6 @@ def _die_with_parent(parent_pid: int) -> None:
     """Have the kernel kill this process when its parent dies (Linux), and check it has not already."""
     if sys.platform.startswith("linux"):
         try:
-            import ctypes
-
             libc = ctypes.CDLL(None, use_errno=True)
             libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
         except (OSError, AttributeError):  # pragma: no cover - no libc prctl
@@ -227,6 +225,7 @@ def _error_payload(exc: BaseException) -> bytes:
 
 def _worker(conn, func, context, parent_pid: int, read: dict) -> None:
     """Serve chunks from ``conn`` until told to stop or the parent goes away, with the parent's read options."""
+    # lazy: every command imports this module (--workers, the signal handlers); io.checksum imports numpy
     from .io.checksum import read_options
 
     with read_options(**read):
@@ -269,7 +268,7 @@ def _serve(conn, func, context, parent_pid: int) -> None:
 
 
 def _mp_context():
-    import multiprocessing as mp
+    import multiprocessing as mp  # lazy: ~30 ms that --help and workers=1 need not pay
 
     # fork hands the parent's data to the workers without pickling it (and stdin was read by the parent)
     if "fork" in mp.get_all_start_methods():
@@ -294,9 +293,9 @@ def _died(proc) -> PerscliError:
 
 
 def _parallel(func, chunks, context, nworkers: int, total: int, progress):
-    from multiprocessing.connection import wait
+    from multiprocessing.connection import wait  # lazy: as in _mp_context
 
-    from .io.checksum import current_read_options
+    from .io.checksum import current_read_options  # lazy: as in _worker
 
     ctx = _mp_context()
     procs, conns = [], []
@@ -390,9 +389,9 @@ def thread_map(func, items, *, workers: int = 1, progress=None) -> list:
             if progress is not None:
                 progress(done, len(items))
         return results
-    from concurrent.futures import ThreadPoolExecutor
+    from concurrent.futures import ThreadPoolExecutor  # lazy: ~25 ms that --help and workers=1 need not pay
 
-    from .io.checksum import carrying_read_options
+    from .io.checksum import carrying_read_options  # lazy: as in _worker
 
     func = carrying_read_options(func)     # a new thread starts from an empty context
     pool = ThreadPoolExecutor(min(workers, len(items)), thread_name_prefix="perscli")
@@ -421,7 +420,7 @@ def dask_client(scheduler: str, workers: int):
     perscli starts a Dask cluster or client.
     """
     try:
-        from distributed import Client, LocalCluster
+        from distributed import Client, LocalCluster  # lazy: Dask only for a study's --scheduler
     except ImportError:  # pragma: no cover - a dependency
         raise PerscliError("dask.distributed is not installed: pip install distributed, "
                            "or run with --scheduler serial") from None
@@ -466,9 +465,6 @@ def _local_cluster(LocalCluster, workers: int):
     signal is inherited through exec) and this process's handler is put
     back at once.
     """
-    import signal
-    import threading
-
     # one thread per worker process: GalSim, fitsio and perscli's kernels are not all thread-safe, and each
     # task is a whole frame's work
     # the workers' own log lines stay quiet: a task's failure reaches perscli through the client and is said in
@@ -513,8 +509,6 @@ _HANDLED = tuple(s for s in (getattr(signal, "SIGTERM", None), getattr(signal, "
 
 def install_signal_handlers() -> None:
     """Turn SIGTERM and SIGHUP into :class:`Terminated` (main thread only; a no-op elsewhere)."""
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         return
     for sig in _HANDLED:

@@ -17,7 +17,7 @@ Why a module of its own: ``perscli render`` draws frames through this PSF and
 ``perscli measure --psf roman`` fits shapes through the same one, with the
 same drawing code; with the PSF built here once, a frame and its fits cannot
 drift apart, and measure does not reach into render.  It sits below render and
-measure and imports neither; GalSim is imported only when first used.
+measure and imports neither.
 
 Drawing: why not GalSim's ``Convolve(galaxy, psf).drawImage()`` per object: it
 recomputes the PSF's Fourier transform (an interpolated image, the expensive
@@ -40,10 +40,15 @@ from __future__ import annotations
 import functools
 import math
 
+import galsim
+import galsim.roman as roman
 import numpy as np
+import scipy.fft
+from galsim import fitswcs
 
-from . import PerscliError
+from . import PerscliError, _kernels
 from .instrument import ROMAN_SCA_SIZE
+from .scene.footprints import sca_wcs, sky_to_pixels
 
 # -- filters and the PSF --------------------------------------------------------------------------
 
@@ -51,8 +56,6 @@ from .instrument import ROMAN_SCA_SIZE
 @functools.lru_cache(maxsize=1)
 def bandpasses() -> dict:
     """GalSim's Roman bandpasses with AB zeropoints (read from GalSim's files: ~0.25 s, so once a process)."""
-    import galsim.roman as roman
-
     return roman.getBandpasses(AB_zeropoint=True)
 
 
@@ -72,8 +75,6 @@ def roman_psf(sca: int, filter_name: str):
     renders many exposures (a study's worker), or measures many frames,
     makes it once per SCA and filter.
     """
-    import galsim.roman as roman
-
     return roman.getPSF(int(sca), filter_name, wavelength=bandpasses()[filter_name].effective_wavelength)
 
 
@@ -84,16 +85,11 @@ def quick_roman_psf(sca: int, filter_name: str):
     Coarser and quicker to make; the demo and the documentation's frames were
     drawn with it, so it stays as it is (their pixels would change).
     """
-    import galsim.roman as roman
-
     return roman.getPSF(sca, filter_name, n_waves=5, pupil_bin=8, wavelength=bandpasses()[filter_name])
 
 
 def to_pixels(profile):
     """A profile in sky units (arcsec) in Roman pixel units (``galsim.roman.pixel_scale``)."""
-    import galsim
-    import galsim.roman as roman
-
     return galsim.PixelScale(roman.pixel_scale).toImage(profile)
 
 
@@ -191,10 +187,6 @@ class StampDrawer:
         -------
         ndarray, shape (B, n, n)
         """
-        import scipy.fft
-
-        from . import _kernels
-
         dx = np.atleast_1d(np.asarray(dx, dtype=np.float64))
         dy = np.atleast_1d(np.asarray(dy, dtype=np.float64))
         params = np.zeros((len(dx), 6))
@@ -283,9 +275,6 @@ def local_jacobians(wcs, x, y) -> np.ndarray:
     at once, by the same chain of Jacobians; u to the West, v to the North.
     Other WCS types go through GalSim one position at a time.
     """
-    import galsim
-    from galsim import fitswcs
-
     x = np.atleast_1d(np.asarray(x, dtype=np.float64))
     y = np.atleast_1d(np.asarray(y, dtype=np.float64))
     if type(wcs) is not fitswcs.GSFitsWCS or wcs.pv is not None:
@@ -418,11 +407,6 @@ class Optics:
     """
 
     def __init__(self, exposure):
-        import galsim
-        import galsim.roman as roman
-
-        from .scene.footprints import sca_wcs
-
         self.exposure = exposure
         self.bandpass = bandpasses()[exposure.filter]
         # getWCS, with a clear error for a position Roman cannot observe at that date
@@ -454,9 +438,6 @@ class Optics:
         PerscliError
             GalSim's sky table has no value there (too close to the Sun).
         """
-        import galsim
-        import galsim.roman as roman
-
         try:
             # the date places the Sun; without it GalSim puts the Sun at the vernal equinox
             zodi = roman.getSkyLevel(self.bandpass, world_pos=self.world_centre, exptime=1.0,
@@ -474,6 +455,4 @@ class Optics:
         NaN for positions too far from the SCA to land on it
         (:func:`perscli.scene.footprints.sky_to_pixels`).
         """
-        from .scene.footprints import sky_to_pixels
-
         return sky_to_pixels(self.wcs, ra_deg, dec_deg)

@@ -14,8 +14,12 @@ from __future__ import annotations
 import datetime as _dt
 import os
 
+import galsim
+import galsim.roman as roman
 import numpy as np
+from astropy.io import fits
 
+from . import __version__
 from .instrument import ROMAN_EXPTIME, ROMAN_WAS_CADENCE
 from .optics import bandpasses, quick_roman_psf
 
@@ -54,12 +58,6 @@ def make_sample_sequence(outdir: str, *, n: int = 4, size: int = 256, seed: int 
     list of str
         The paths written.
     """
-    import galsim
-    import galsim.roman as roman
-    from astropy.io import fits
-
-    from . import __version__
-
     rng = np.random.default_rng(seed)
     os.makedirs(outdir, exist_ok=True)
     bandpass = bandpasses()[filter_name]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 
 import click
+from click.core import ParameterSource
 
 from ..instrument import ROMAN_N_SCA, ROMAN_SCA_SIZE
 from ..scene.settings import CatalogOptions
@@ -131,8 +132,6 @@ def catalog(ctx, ra, dec, size, pointings_table, footprints, sca, margin, bounds
     catalog in LSST's format, the two that cover RA 10, Dec -44,
     downloaded into the current folder.)
     """
-    from click.core import ParameterSource
-
     from ..scene.catalog import DEFAULT_MARGIN_ARCSEC, make_truth_catalog_file
     from ..scene.starcounts import galactic_star_model
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 import os
 
 import click
+from click.shell_completion import get_completion_class
 
+from ..io.output import atomic_output, check_output, send_to_stdout
 from .helpers import FILE, PerscliCommand, report_errors
 from .options import overwrite_opt, verbosity_opts
 
@@ -25,8 +27,6 @@ def completion_script(group: click.Group, shell: str) -> str:
         import the group that imports it.
     shell : {'bash', 'zsh', 'fish'}
     """
-    from click.shell_completion import get_completion_class
-
     return get_completion_class(shell)(group, {}, "perscli", COMPLETE_VAR).source()
 
 
@@ -58,8 +58,6 @@ def completion(shell, dest, overwrite):
       perscli completion zsh -o ~/.zfunc/_perscli
       perscli completion fish -o ~/.config/fish/completions/perscli.fish
     """
-    from ..io.output import atomic_output, check_output, send_to_stdout
-
     script = completion_script(click.get_current_context().find_root().command, shell)
     if not script.endswith("\n"):
         script += "\n"

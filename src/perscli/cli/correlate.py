@@ -187,6 +187,7 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
     table's own columns, here g itself.)
     """
     from ..stats.correlate import correlate_files
+    from ..stats.pairs import read_pairs_file
 
     # a table that is not there is said first: the options that would go with it come after (--pairs and
     # --patch-centers are checked where they are read, naming the option)
@@ -217,8 +218,6 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
                                "radius > 0, in degrees", ctx)
     pairs = None
     if pooled:
-        from ..stats.pairs import read_pairs_file
-
         check_outputs(output, inputs=[pairs_file], plot=plot, overwrite=overwrite)
         pairs = [*pair_list, *(read_pairs_file(pairs_file) if pairs_file is not None else [])]
     inputs = [*shapes, *(name for pair in pairs or () for name in pair), pairs_file, patch_centers]

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import logging
+import os
 
 import click
 
-from .helpers import FILE, FOLDER, PerscliCommand, report_errors
+from .. import PerscliError
+from ..io.output import check_output_folder
+from .helpers import FILE, FOLDER, PerscliCommand, report_errors, verbosity
 from .options import FiniteRange, model_opt, no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
 
 log = logging.getLogger("perscli")
@@ -88,11 +91,7 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
     serves it (XO-1, a 138 x 138 subarray), downloaded into the current
     folder: a lone ramp is predicted from its own earliest reads.)
     """
-    import os
-
-    from .. import PerscliError
     from ..diagnose.report import diagnose as run, write_report
-    from ..io.output import check_output_folder
 
     inputs = list(measured) + list(simulated) + ([model_spec] if model_spec and os.path.exists(model_spec) else [])
     # diagnose writes its folder beside it and renames it into place: the folder it goes in must exist
@@ -100,9 +99,6 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
     if not os.path.isdir(parent):
         raise PerscliError(f"{parent}: folder does not exist; create it or choose another output")
     check_output_folder(outdir, overwrite=overwrite, inputs=inputs)
-
-    from .helpers import verbosity
-
     # a search takes tens of seconds to minutes: one line per step (each candidate fitted in each round, the
     # gaps) on stderr, at a terminal or in a log alike; none with -q
     quiet = verbosity() < 0

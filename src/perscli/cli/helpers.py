@@ -5,11 +5,15 @@ from __future__ import annotations
 import errno
 import functools
 import logging
+import os
 import signal
 
 import click
 
-from .. import PerscliError
+from .. import PerscliError, deprecation
+from ..executor import Terminated
+from ..io.output import STDOUT_LABEL, WRITE_ERRNOS, OutputGroup, check_output, declare_output, is_stdout, write_error
+from .progress import reporter
 
 
 class _StderrFormatter(logging.Formatter):
@@ -20,8 +24,6 @@ class _StderrFormatter(logging.Formatter):
 
 def configure_logging(verbosity: int) -> None:
     """WARNING by default; -v INFO, -vv DEBUG (with tracebacks); -q ERROR."""
-    from .. import deprecation
-
     deprecation._said.clear()           # a new command line: its deprecated spellings are said again
     level = max(10, logging.WARNING - 10 * verbosity)
     logger = logging.getLogger("perscli")
@@ -55,8 +57,6 @@ def check_fits_name(output: str, option: str = "-o") -> None:
     A usage error (exit status 2) in one line; '-' and names without such a suffix (.fits, .fits.gz, .fz,
     none at all) pass.
     """
-    import os
-
     if output is None or output == "-":
         return
     suffix = os.path.splitext(str(output).lower().removesuffix(".gz"))[1]
@@ -80,11 +80,6 @@ def check_outputs(output: str, *, inputs=(), plot: str | None = None, overwrite:
     output is a FITS file, and a name saying another format is a usage
     error (:func:`check_fits_name`).
     """
-    import os
-
-    from .. import PerscliError
-    from ..io.output import check_output, declare_output, is_stdout
-
     if fits:
         check_fits_name(output)
     inputs = [str(name) for name in inputs if name is not None]
@@ -105,13 +100,11 @@ def require_inputs(*names) -> None:
     For commands whose usage checks depend on what is given (one table or two): a missing file is the first
     thing to fix, not the options that would go with it.  '-' (standard input) and None are skipped.
     """
-    import os
+    from ..io.sources import split_selector     # io.sources imports numpy: only when a command runs
 
     for name in names:
         if name is None or name == "-":
             continue
-        from ..io.sources import split_selector
-
         path = split_selector(str(name))[0]
         if not os.path.lexists(path):
             raise PerscliError(f"{path}: no such file")
@@ -137,10 +130,6 @@ def describe_os_error(exc: OSError, outputs=()) -> str:
         (:func:`perscli.io.output.write_error`); anything else names the
         file and the system's reason.
     """
-    import os
-
-    from ..io.output import STDOUT_LABEL, WRITE_ERRNOS, is_stdout, write_error
-
     name = exc.filename
     ours = name is None or any(part.startswith(".perscli-") for part in str(name).split(os.sep))
     # permission denied on a file the user named may be an input being read: said as it is, below
@@ -180,9 +169,6 @@ def report_errors(func):
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
-        from ..executor import Terminated
-        from ..io.output import OutputGroup
-
         group = OutputGroup()
         try:
             try:
@@ -242,8 +228,6 @@ def progress_reporter(label: str, stream=None, *, least: int = 1):
     A bar at a terminal; elsewhere (a log, a pipe, a batch job) one line per
     tenth of the work, for work of at least ``least`` steps; nothing with -q.
     """
-    from .progress import reporter
-
     ctx = click.get_current_context(silent=True)
     command = ctx.command_path.replace("perscli ", "", 1) if ctx is not None else "perscli"
     return reporter(label, stream, quiet=verbosity() < 0, least=least, command=command)
@@ -259,9 +243,7 @@ def deprecated_option(old: str, new: str, *, check=None):
         if value not in (None, (), False) and not ctx.resilient_parsing:
             if check is not None:
                 check(ctx, value)
-            from ..deprecation import deprecated
-
-            deprecated(old, new)
+            deprecation.deprecated(old, new)
         return value
 
     return callback
@@ -396,8 +378,6 @@ class OutputName(PathName):
     """
 
     def convert(self, value, param, ctx):
-        from ..io.output import is_stdout
-
         return "-" if value is not None and is_stdout(value) else value
 
 

@@ -15,13 +15,19 @@ a pipeline or a system without man(1) gets).
 
 from __future__ import annotations
 
+import difflib
 import os
+import shutil
+import subprocess
 import sys
+import tempfile
 import textwrap
 
 import click
+from click.shell_completion import CompletionItem
 
-from .. import __version__
+from .. import PerscliError, __version__
+from ..io.output import atomic_output, check_output, send_to_stdout
 from .helpers import FILE, PerscliCommand, report_errors
 from .options import overwrite_opt, verbosity_opts
 
@@ -206,9 +212,6 @@ def write_pages(folder: str, cli: click.Group, *, overwrite: bool = False) -> li
     perscli.PerscliError
         ``folder`` is a file, or a page exists and ``overwrite`` is false.
     """
-    from .. import PerscliError
-    from ..io.output import atomic_output
-
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise PerscliError(f"{folder}: is not a folder; give the folder that receives the pages")
     pages = render_all(cli)
@@ -227,14 +230,12 @@ def write_pages(folder: str, cli: click.Group, *, overwrite: bool = False) -> li
 
 def _command_names(ctx, param, incomplete):
     """Complete COMMAND, then SUBCOMMAND when COMMAND has them (perscli man pointings <TAB>)."""
-    from click.shell_completion import CompletionItem
-
     group = ctx.find_root().command
     for word in ctx.params.get("command_name") or ():
-        group = group.commands.get(word) if isinstance(group, click.Group) else None
+        group = group.get_command(ctx, word) if isinstance(group, click.Group) else None
     if not isinstance(group, click.Group):
         return []
-    return [CompletionItem(name) for name in group.commands if name.startswith(incomplete)]
+    return [CompletionItem(name) for name in group.list_commands(ctx) if name.startswith(incomplete)]
 
 
 def _known_command(ctx, param, value):
@@ -245,14 +246,13 @@ def _known_command(ctx, param, value):
         if not isinstance(group, click.Group):
             raise click.BadParameter(f"'{path}' has no subcommands: give only '{path.split(' ', 1)[1]}'", ctx,
                                      param, param_hint="COMMAND")
-        if word not in group.commands:
-            import difflib
-
-            close = difflib.get_close_matches(word, group.commands, n=1)
-            hint = f"; did you mean '{close[0]}'?" if close else f": one of {', '.join(sorted(group.commands))}"
+        names = group.list_commands(ctx)
+        if word not in names:
+            close = difflib.get_close_matches(word, names, n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else f": one of {', '.join(sorted(names))}"
             what = "a perscli command" if group is cli else f"a subcommand of {path}"
             raise click.BadParameter(f"'{word}' is not {what}{hint}", ctx, param, param_hint="COMMAND")
-        group, path = group.commands[word], f"{path} {word}"
+        group, path = group.get_command(ctx, word), f"{path} {word}"
     return tuple(value or ())
 
 
@@ -270,10 +270,6 @@ def _man_width() -> int:
 
 def show_with_man(troff: str) -> bool:
     """Show a page through ``man -l`` (its pager, its formatting); False when man(1) could not."""
-    import shutil
-    import subprocess
-    import tempfile
-
     program = shutil.which("man")
     if program is None:
         return False
@@ -325,8 +321,6 @@ def man(command_name, troff, all_pages, dest, overwrite):
       perscli man apply-persistence -o perscli-apply-persistence.1
       perscli man --all -o ~/.local/share/man/man1
     """
-    from ..io.output import atomic_output, check_output, send_to_stdout
-
     # the group this command runs under: manpages is one of its commands, and does not import it
     cli = click.get_current_context().find_root().command
 

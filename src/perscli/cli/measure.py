@@ -7,7 +7,7 @@ import logging
 import click
 
 from ..measure.settings import MeasureOptions
-from .helpers import FILE, PerscliCommand, check_outputs, file_or, progress_reporter, report_errors
+from .helpers import FILE, PerscliCommand, check_fits_name, check_outputs, file_or, progress_reporter, report_errors
 from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, verbosity_opts, workers_opt
 
 log = logging.getLogger("perscli")
@@ -180,8 +180,6 @@ def measure(frames, catalog, psf, psf_pixel, psf_oversampling, allow_undersample
 
     check_outputs(output, inputs=[catalog, *frames, psf], overwrite=overwrite)
     if write_psf is not None:
-        from .helpers import check_fits_name
-
         check_fits_name(write_psf, "--write-psf")
         check_outputs(write_psf, inputs=[catalog, *frames, psf], overwrite=overwrite)
     options = MeasureOptions(

@@ -47,9 +47,12 @@ import math
 
 import click
 
+from .. import PerscliError
+from ..executor import MAX_WORKERS
 from ..instrument import ROMAN_FILTERS, ROMAN_N_SCA
+from ..io.config import split_key_value
 from ..scene import DEC_RANGE, MJD_RANGE, PA_RANGE, RA_RANGE
-from .helpers import FILE, OUTPUT, DataError, file_or
+from .helpers import FILE, OUTPUT, DataError, configure_logging, file_or
 
 output_opt = click.option(
     "-o", "--output", "output", required=True, metavar="PATH", type=OUTPUT,
@@ -86,8 +89,6 @@ exptime_opt = click.option(
 def workers_opt(what: str):
     """``--workers N``: cores to use, ``what`` saying for what (processes or threads; see perscli.executor),
     1 to :data:`perscli.executor.MAX_WORKERS` (a million threads crash TreeCorr's OpenMP pool)."""
-    from ..executor import MAX_WORKERS
-
     return click.option(
         "--workers", type=click.IntRange(min=1, max=MAX_WORKERS), metavar="N", default=1, show_default=True,
         help=f"Cores to use: {what}.")
@@ -196,8 +197,6 @@ required_seed_opt = click.option(
 def _add_verbosity(sign: int):
     def callback(ctx, param, value):
         if value:
-            from .helpers import configure_logging
-
             root = ctx.find_root()
             if root.obj is None:
                 root.obj = {}
@@ -232,7 +231,7 @@ sca_opt = click.option(
 
 def _no_checksum(ctx, param, value):
     if value:
-        from ..io.checksum import read_options
+        from ..io.checksum import read_options      # io.checksum imports numpy: only when the flag is given
 
         # in force until the command's context closes (passed down, like rasterio.Env; the executor
         # carries it to worker threads, processes and Dask tasks)
@@ -252,7 +251,7 @@ compress_opt = click.option(
 
 
 def _columns(ctx, param, value):
-    from ..io.tables import parse_column_mapping
+    from ..io.tables import parse_column_mapping    # io.tables imports fitsio: only when a command runs
 
     try:
         return parse_column_mapping(value)
@@ -297,9 +296,6 @@ def key_values(item: dict | None = None, *, effect: str | None = None):
         ``KEY=VALUE``; another effect, or no dotted path, is a usage error
         (exit status 2).
     """
-    from .. import PerscliError
-    from ..io.config import split_key_value
-
     def callback(ctx, param, value):
         out = []
         for text in value:

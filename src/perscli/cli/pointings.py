@@ -18,9 +18,10 @@ import logging
 import click
 from click.core import ParameterSource
 
+from ..deprecation import deprecated
 from ..instrument import ROMAN_EXPTIME, ROMAN_N_SCA, ROMAN_WAS_GAP
 from ..scene.settings import PLAN_REFERENCE_MJD, PlanOptions, SelectOptions
-from .helpers import FILE, PerscliCommand, PerscliGroup, check_outputs, report_errors
+from .helpers import FILE, PerscliCommand, PerscliGroup, check_outputs, file_or, progress_reporter, report_errors
 from .options import (columns_opt, dec_opt, filter_opt, mjd_opt, no_checksum_opt, output_opt, overwrite_opt, pa_opt,
                       ra_opt, seed_opt, verbosity_opts)
 
@@ -40,8 +41,6 @@ PROGRESS_LEAST = 300
 
 def schedule_opt(help: str, *, default: str | None = None):
     """``--schedule roman-was|FILE``: a survey schedule, '-' for standard input; ``default``: the bundled one."""
-    from .helpers import file_or
-
     if default is None:
         return click.option("--schedule", metavar="FILE", type=FILE, help=help)
     return click.option("--schedule", metavar=f"{default}|FILE", default=default, show_default=True,
@@ -173,24 +172,18 @@ def check_rows(ctx, sca, footprints, catalog) -> None:
 
 def plan_options(filter_name, **values) -> PlanOptions:
     """The settings of a plan from the command line's values (``filter_name``: --filter, None when not given)."""
-    from ..scene.settings import PlanOptions
-
     # --filter is options.filter_opt, without a default of its own (in select, none means any filter)
     return PlanOptions(filter=filter_name or PlanOptions().filter, **values)
 
 
 def select_options(filter_name, **values) -> SelectOptions:
     """The settings of a selection from the command line's values (``filter_name``: --filter, None for any)."""
-    from ..scene.settings import SelectOptions
-
     return SelectOptions(filter=filter_name, **values)
 
 
 def run_select(ctx, schedule, ra, dec, radius, options: SelectOptions, catalog, output, overwrite) -> None:
     """``perscli pointings select``: the exposures of a schedule that look at the field."""
     from ..scene.pointings import select_covering_file
-
-    from .helpers import progress_reporter
 
     check_outputs(output, inputs=[schedule, catalog], overwrite=overwrite)
     # with --sca, each exposure near the field has its footprint computed (~15 ms): a wide field takes minutes
@@ -359,8 +352,6 @@ def pointings_flags(ctx, schedule, plan, ra, dec, radius, filter_name, limit, af
             if name not in given:
                 raise click.UsageError(f"Missing option '--{name}': the field centre", ctx)
     check_rows(ctx, sca, footprints, catalog)
-    from ..deprecation import deprecated
-
     if plan:
         deprecated("perscli pointings --plan ...", "perscli pointings plan ...")
     elif before is not None:

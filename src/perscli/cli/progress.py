@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import sys
 
+import click
+
 from ..progress import lines
 
 
@@ -37,8 +39,6 @@ def bar(label: str, stream=None, *, quiet: bool = False):
     state = {"done": 0, "bar": None}
 
     def progress(done, total, name=None):
-        import click
-
         if state["bar"] is None:
             state["bar"] = click.progressbar(length=total, label=label, file=stream)
             state["bar"].__enter__()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import shutil
 
 import click
 
@@ -10,6 +11,7 @@ from .. import PerscliError
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
 from ..io.config import DETECTOR_ITEM
 from ..render.settings import DEFAULT_HDUS, HDU_NAMES, RenderOptions
+from ..scene import check_filter
 from .helpers import FILE, PerscliCommand, check_outputs, progress_reporter, report_errors
 from .options import (columns_opt, compress_opt, dec_opt, key_values, mjd_opt, model_opt, no_checksum_opt, output_opt,
                       overwrite_opt, pa_opt, plot_opt, ra_opt, required_seed_opt, verbosity_opts, workers_opt)
@@ -28,8 +30,6 @@ def _list_effects(ctx, param, value):
     """--list-effects: print the registry's schema and stop (no TRUTH.fits, --seed or -o needed)."""
     if not value or ctx.resilient_parsing:
         return
-    import shutil
-
     from ..detector.model import format_schema
 
     click.echo(format_schema(width=max(100, shutil.get_terminal_size((120, 24)).columns)), nl=False)
@@ -166,7 +166,8 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
       perscli render --list-effects
     """
     from ..detector.model import load_detector_model
-    from ..render.run import footprint_report, format_footprint, render_file, write_regions
+    from ..render.run import (footprint_report, format_footprint, no_objects_fix, no_objects_message, render_file,
+                              write_regions)
 
     if regions is not None and not dry_run:
         raise click.UsageError("--regions is written by --dry-run: add --dry-run (or drop --regions)")
@@ -183,13 +184,9 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
         load_detector_model(model_spec, settings)          # a dry run checks what the run would check
         report = footprint_report(truth, exposure, columns=columns)
         if len(report["drawn"]) == 0:
-            from ..render.run import no_objects_message
-
             message = no_objects_message(report, dry_run=True)
             if strict:
                 raise PerscliError("--strict: " + message)
-            from ..render.run import no_objects_fix
-
             log.warning("%s%s", message, no_objects_fix(dry_run=True))
         source = f"{pointings_file} row {row}" if pointings_file is not None else ""
         if regions is not None:
@@ -213,12 +210,10 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
 
 def _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds):
     from ..render.exposure import Exposure
-    from ..scene import check_filter
+    from ..scene.pointings import read_pointings
 
     explicit = {"--ra": ra, "--dec": dec, "--pa": pa, "--mjd": mjd, "--filter": filter_name}
     if pointings_file is not None:
-        from ..scene.pointings import read_pointings
-
         table = read_pointings(pointings_file)
         if row >= len(table):
             raise PerscliError(f"{pointings_file}: --row {row} is past the end ({len(table)} rows)")

@@ -2,10 +2,17 @@
 
 from __future__ import annotations
 
+import os
+import re
+import shutil
+import sys
+
 import click
 
-from .helpers import FILE, FOLDER, PerscliCommand, report_errors
 from ..io.config import STUDY_ITEM
+from ..io.output import check_output_folder, write_error
+from ..progress import lines
+from .helpers import FILE, FOLDER, PerscliCommand, report_errors
 from .options import key_values, no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
 
 
@@ -82,22 +89,16 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     measure.joint=false, catalog.star_model.thin_height=300.
     (The last example needs a Dask scheduler running at HOST.)
     """
-    import sys
-
     from ..study.config import dump, load_study
-    from ..study.plan import build
+    from ..study.plan import STATE, build
     from ..study.runner import run_study, task_dicts
+    from ..study.summary import load_cost, project_cost
 
     ctx = click.get_current_context(silent=True)
     verbosity = (ctx.find_root().obj or {}).get("verbosity", 0) if ctx else 0
-    from ..io.output import check_output_folder
-
     # before the description is even built: a study's folder may exist (it resumes), never be a file
     check_output_folder(outdir, resume=True, inputs=[description])
     s = load_study(description, preset=preset, overrides=settings)
-    from ..progress import lines
-    from ..study.summary import load_cost, project_cost
-
     # read before anything is planned or printed: a bad file is the only line
     measured = load_cost(cost_from) if dry_run and cost_from else None
     # planning from a schedule takes seconds per SCA (GalSim's WCS of every exposure near the field): a line each,
@@ -113,18 +114,10 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
                 click.echo(f"study: {cost_from} has no {', '.join(p['missing'])} tasks to project from: they are "
                            "not in these figures", err=True)
         return
-    import os
-
     os.makedirs(outdir, exist_ok=True)
     if overwrite:
         # forget what was made: every product is made again (and replaced)
-        import shutil
-
-        from ..study.plan import STATE
-
         shutil.rmtree(os.path.join(outdir, STATE), ignore_errors=True)
-    from ..io.output import write_error
-
     path = os.path.join(outdir, "study.yaml")
     try:
         # whole or not at all: a full disk must not leave a truncated description beside the products
@@ -146,8 +139,6 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
 
 def _scheduler(value: str) -> str:
     """'serial', 'local' or a Dask scheduler's address (tcp://host:port, tls://, ucx://, inproc://, or host:port)."""
-    import re
-
     if value in ("serial", "local") or re.fullmatch(r"(tcp|tls|ucx|inproc|ws|wss)://\S+|[\w.\-]+:\d{1,5}", value):
         return value
     raise click.BadParameter(f"{value!r} is not serial, local or a Dask scheduler address (tcp://HOST:8786)")

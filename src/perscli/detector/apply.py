@@ -31,6 +31,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,9 +41,10 @@ from ..executor import thread_map
 from ..io.cards import format_card
 from ..io.checksum import ones_complement_add
 from ..io.fitsfile import OutHDU
-from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, require_timing
-from ..io.output import add_provenance
-from .persistence import PersistenceModel, accumulate, round_charge
+from ..io.frames import SECONDS_PER_DAY, UNITS, Frame, assign_sequence_timing, open_frame, require_timing
+from ..io.output import add_provenance, check_output, write_hdus
+from .persistence import (PersistenceModel, accumulate, beyond_lookback, exposure_time_factors, order_earlier,
+                          round_charge)
 from .settings import DEFAULT_DQ_BIT, DEFAULT_MODEL_ERROR, MODES, ApplyOptions
 
 from .earlier import Overlap, _check_detector, _check_start, _detector, overlap
@@ -125,8 +127,6 @@ def plan(current: Frame, previous, model: PersistenceModel) -> PersistencePlan:
     -------
     PersistencePlan
     """
-    from .persistence import beyond_lookback, exposure_time_factors, order_earlier
-
     previous = list(previous)
     require_timing(current)
     if not current.is_ramp and previous and not current.end > current.start:
@@ -214,8 +214,6 @@ def map_blocks(the_plan: PersistencePlan, model: PersistenceModel, consume, *, b
     small buffer, then added or maxed in), and is checksummed whole at the
     end.  The current frame's reference pixels, if any, receive nothing.
     """
-    import threading
-
     current = the_plan.current
     ny, nx = current.shape
     nplanes = current.nreads
@@ -672,9 +670,6 @@ def apply_persistence_files(current: str, previous, dest: str, *, model: Persist
     -------
     PersistenceResult
     """
-    from ..io.frames import assign_sequence_timing, open_frame
-    from ..io.output import check_output, write_hdus
-
     o = options
     names = [current, *previous]
     if names.count("-") > 1:

@@ -70,10 +70,12 @@ of the detector model lives beside it: the parameter schema in
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import zlib
 from typing import ClassVar
 
+import galsim.roman
 import numpy as np
 
 from .. import PerscliError, _kernels
@@ -81,14 +83,13 @@ from ..instrument import (ROMAN_DARK_CURRENT, ROMAN_DETECTOR_SIZE, ROMAN_FULL_WE
                           ROMAN_NONLINEARITY_BETA, ROMAN_READ_NOISE, ROMAN_RECIPROCITY_ALPHA)
 from .blocks import NOISE_BLOCK, ChainContext, active_pixels, block_streams
 from .params import Param
+from .persistence import PersistenceModel
 from .settings import FERMI_PARAMETERS, PERSISTENCE_SCHEMA, PRESETS, preset_settings
 
 # -- interpixel capacitance ----------------------------------------------------------------------
 
 
 def roman_ipc_kernel() -> np.ndarray:
-    import galsim.roman
-
     return np.asarray(galsim.roman.ipc_kernel.array, dtype=np.float64)
 
 
@@ -355,10 +356,6 @@ class Persistence(DetectorEffect):
     @classmethod
     def model(cls, params: dict, name: str = "persistence"):
         """The :class:`~perscli.detector.persistence.PersistenceModel` of these parameters."""
-        import dataclasses
-
-        from .persistence import PersistenceModel
-
         p = cls.resolve(params)
         explicit = [k for k in FERMI_PARAMETERS if params.get(k) is not None] or p["kind"] != "fermi"
         fields = {f.name for f in dataclasses.fields(PersistenceModel)}

@@ -18,12 +18,18 @@ import copy
 import dataclasses
 import json
 import os
+import textwrap
 from dataclasses import dataclass, field
 
 import numpy as np
+import yaml
 
 from .. import PerscliError
+from ..deprecation import deprecated
+from ..io.config import DETECTOR_ITEM, PERSISTENCE_ITEM, load_yaml, parse_value, split_key_value
+from ..io.fitsreader import open_fits
 from .effects import DEFAULTS, ORDER, REGISTRY, DetectorEffect, Persistence
+from .settings import FERMI_PARAMETERS, PRESETS, SETTINGS, preset_settings
 
 # -- the model -----------------------------------------------------------------------------------
 
@@ -109,8 +115,6 @@ def model_to_yaml(model: DetectorModel, header: str = "") -> str:
     header : str
         Comment lines to put first (without '#').
     """
-    import yaml
-
     effects = []
     for name, enabled, params in model.describe():
         entry = {k: _plain(v) for k, v in params.items()}
@@ -157,8 +161,6 @@ def load_detector_model(spec: str | None = None, overrides=()) -> DetectorModel:
 def unknown_detector_model(spec: str) -> str:
     """The line for a detector model that is neither a name perscli knows nor a file: the valid names, and
     where a persistence law's name goes instead."""
-    from .settings import PRESETS
-
     laws = (*PRESETS, "galsim-linear")
     hint = ""
     if spec in laws:
@@ -197,8 +199,6 @@ def load_persistence_model(spec: str = "typical", overrides=()):
     -------
     perscli.detector.persistence.PersistenceModel
     """
-    from .settings import PRESETS
-
     if spec in PRESETS:
         params, name = {"base": spec}, spec
     elif spec == "galsim-linear":
@@ -226,9 +226,6 @@ def load_persistence_model(spec: str = "typical", overrides=()):
 
 def _persistence_from_yaml(path: str) -> tuple:
     """(step parameters, model name) of a YAML persistence model or detector model."""
-    from ..io.config import load_yaml
-    from .settings import FERMI_PARAMETERS, PRESETS, SETTINGS, preset_settings
-
     doc = load_yaml(path, "persistence model")
     if isinstance(doc, dict) and isinstance(doc.get("effects"), list):
         eff = _from_yaml(path).get("persistence")       # a detector model: its persistence step
@@ -239,8 +236,6 @@ def _persistence_from_yaml(path: str) -> tuple:
         raise PerscliError(f"{path}: expected a mapping of persistence parameters (A, x0, dx, alpha, gamma, "
                            "half_well)")
     if "model" in doc:
-        from ..deprecation import deprecated
-
         if "kind" in doc:
             raise PerscliError(f"{path}: 'model:' and 'kind:' both given; 'model:' is the older spelling of "
                                "'kind:': keep 'kind:'")
@@ -265,9 +260,6 @@ def _persistence_from_yaml(path: str) -> tuple:
 
 def _persistence_overrides(overrides, pmodel) -> dict:
     """{key: value} of 'KEY=VALUE' overrides (or a mapping) of a persistence model, checked."""
-    from ..io.config import PERSISTENCE_ITEM, parse_value, split_key_value
-    from .settings import FERMI_PARAMETERS, SETTINGS
-
     if isinstance(overrides, dict):
         items = list(overrides.items())
     else:
@@ -300,8 +292,6 @@ def _is_fits(spec: str) -> bool:
 
 
 def _from_yaml(path: str) -> DetectorModel:
-    from ..io.config import load_yaml
-
     doc = load_yaml(path, "detector model")
     if isinstance(doc, dict) and "effects" in doc:
         others = [str(k) for k in doc if k != "effects"]
@@ -352,8 +342,6 @@ def _build(items, where: str) -> DetectorModel:
 
 
 def _override(model: DetectorModel, text: str) -> None:
-    from ..io.config import DETECTOR_ITEM, parse_value, split_key_value
-
     key, value = split_key_value(text, **DETECTOR_ITEM)
     name, _, param = key.partition(".")
     if name not in REGISTRY:
@@ -402,8 +390,6 @@ def schema_rows() -> list:
 
 def format_schema(width: int = 120) -> str:
     """The schema as a plain-text table, in physical order (``perscli render --list-effects``)."""
-    import textwrap
-
     head = ("EFFECT", "PARAMETER", "TYPE", "UNIT", "DEFAULT", "ALLOWED", "DESCRIPTION")
     rows = schema_rows()
     widths = [max(len(r[i]) for r in rows + [head]) for i in range(6)]
@@ -485,8 +471,6 @@ def model_from_table(columns: dict, where: str) -> DetectorModel:
 
 
 def _from_fits(path: str) -> DetectorModel:
-    from ..io.fitsreader import open_fits
-
     with open_fits(path) as f:
         tables = [h for h in f.hdus if h.name == "MODEL" and h.kind == "table"]
         if not tables:

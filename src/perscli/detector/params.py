@@ -111,7 +111,7 @@ class Param:
         if self.kind == "kernel":
             if value == "roman":
                 return value
-            import numpy as np      # here only: the schemas are read by --help, which must not wait for numpy
+            import numpy as np  # lazy: --help reads the schemas (light module), numpy is not needed to list them
 
             arr = np.asarray(value, dtype=float) if isinstance(value, (list, tuple)) and _numbers(value) else None
             if arr is None or arr.shape != (3, 3) or not np.all(np.isfinite(arr)):

@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import PerscliError
-from .settings import (COMBINES, DEFAULT_PRESET, FERMI_PARAMETERS, GALSIM_EXPTIME, GALSIM_LINEAR_COEFFICIENTS, PRESETS,
-                       ROUNDINGS, SETTINGS, persistence_param, preset_settings)
+from .. import PerscliError, _kernels
+from .settings import (COMBINES, DEFAULT_PRESET, FERMI_PARAMETERS, GALSIM_EXPTIME, GALSIM_LINEAR_COEFFICIENTS,
+                       PERSISTENCE_SCHEMA, PRESETS, ROUNDINGS, SETTINGS, persistence_param, preset_settings)
 
 
 @dataclass(frozen=True)
@@ -79,8 +79,6 @@ class PersistenceModel:
     def __post_init__(self):
         # the one schema of a persistence model (perscli.detector.settings.PERSISTENCE_SCHEMA) checks a
         # model built here directly as it checks a model file or a --set
-        from .settings import PERSISTENCE_SCHEMA
-
         where = f"persistence model {self.name!r}"
         for param in PERSISTENCE_SCHEMA:
             if hasattr(self, param.name):
@@ -253,8 +251,6 @@ def accumulate(fluence, acc, time_factors, model: PersistenceModel, *, scale: fl
         Number of non-finite fluence pixels (counted as zero), and the FITS
         DATASUM of ``fluence``'s values written big-endian.
     """
-    from .. import _kernels
-
     fluence = np.asarray(fluence)
     if fluence.dtype.kind != "f" or fluence.dtype.itemsize not in (4, 8):
         fluence = fluence.astype(np.float64)

@@ -16,8 +16,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import minimize_scalar
+from scipy.stats import chi2
 
-from .candidates import Candidate
+from .candidates import Candidate, by_name
+from .joint import directions, joint_fit
+from .likelihood import with_effect
 from .noise import significance
 
 log = logging.getLogger(__name__)
@@ -34,8 +38,6 @@ MIN_DELTA_CHI2 = 10.83
 def threshold(nparams: int = 1) -> float:
     """The improvement of -2 ln L a candidate with ``nparams`` free parameters needs: the same p-value
     (1e-3) as :data:`MIN_DELTA_CHI2` for one."""
-    from scipy.stats import chi2
-
     if nparams <= 1:
         return MIN_DELTA_CHI2
     return float(chi2.isf(chi2.sf(MIN_DELTA_CHI2, 1), nparams))
@@ -98,8 +100,6 @@ def fit_candidate(problem, model, candidate: Candidate, m2lnl_base: float, npix:
     it.  ``fit.evaluation`` holds the evaluation at the value fitted when
     one was made.
     """
-    from scipy.optimize import minimize_scalar
-
     start = candidate.get(model, problem.exposures)
     if candidate.fit is None and direction is not None:
         g, f = direction
@@ -199,9 +199,6 @@ def _free_persistence_shape(problem, best: Fit, npix: int, progress=None) -> Fit
     exact improvement of -2 ln L exceeds ln n + :data:`MIN_DELTA_BIC`, its
     value is inside its range and x0 is below the full well.  Then the next.
     """
-    from .candidates import by_name
-    from .joint import directions, joint_fit
-
     need = math.log(max(npix, 2)) + MIN_DELTA_BIC
     amp = by_name("persistence")
     shapes = {name: _shape_candidate(name) for name, _, _ in PERSISTENCE_SHAPE}
@@ -315,8 +312,6 @@ def _mean_only_delta(problem, base, fitted_model, after=None) -> float:
 
 def _reset(model, original, name: str):
     """``model`` with effect ``name`` as ``original`` has it (its parameters and switch): the effect un-named."""
-    from .likelihood import with_effect
-
     eff = original.get(name)
     if eff is None:
         return with_effect(model, name, enabled=False)
@@ -328,9 +323,6 @@ def _reset(model, original, name: str):
 def _shape_candidate(name: str):
     """One parameter of the persistence law's shape as a candidate of its own (for the joint fit of a named
     persistence whose shape was freed): A is fitted beside it, not profiled."""
-    from .candidates import Candidate
-    from .likelihood import with_effect
-
     bounds, scale = next((b, sc) for n, b, sc in PERSISTENCE_SHAPE if n == name)
 
     def get(m, exposures):

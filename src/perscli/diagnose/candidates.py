@@ -15,6 +15,7 @@ from typing import Callable
 
 import numpy as np
 
+from .checks import line_means, line_variance_fit
 from .likelihood import with_effect
 
 
@@ -211,8 +212,6 @@ def _fit_correlated(problem, model):
     """The row and column components of the read noise, each the variance the lines' mean residuals have
     beyond white noise (maximum likelihood; the diagonal likelihood cannot see them, so the improvement is
     that of the lines' likelihood, two parameters)."""
-    from .checks import line_means, line_variance_fit
-
     base = with_effect(model, "correlated_read_noise", {"row": 0.0, "column": 0.0})
     lines = line_means(problem, problem.evaluate(base), base)
     g = float(np.mean(lines["gain"])) if lines["gain"] else 1.0

@@ -47,9 +47,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
+from scipy import ndimage
+from scipy.optimize import minimize_scalar
+from scipy.stats import norm, poisson
 
+from ..stats.de_stats import chi2_sf
 from .noise import counts_gain, dispersion, noise_correlation, significance
 
 #: a check fires below this p-value: 8 checks at 1e-4 each keep the false alarms of a null case well
@@ -85,8 +90,6 @@ class Check:
     def sigma(self) -> float:
         """The p-value as a two-sided Gaussian significance (for a chi^2 statistic on the log scale, so that
         strong signals are not all cut at the 37 sigma of p = 1e-300)."""
-        from scipy.stats import norm
-
         if self.name != "outliers" and self.dof and self.dof >= 1 and self.p_value < 1e-200:
             return significance(self.statistic, int(round(self.dof)))
         p = max(self.p_value, 1e-300)
@@ -99,8 +102,6 @@ class Check:
 
 
 def _chi2_p(chi2: float, dof: float) -> float:
-    from ..stats.de_stats import chi2_sf
-
     # the one chi^2 survival function (exact for whole degrees of freedom); dof here are whole numbers
     return chi2_sf(chi2, int(round(max(dof, 1)))) if dof > 0 else 1.0
 
@@ -200,8 +201,6 @@ def line_variance_fit(means: list) -> tuple:
         The extra variance in counts^2 (>= 0), the improvement of -2 ln L
         over none, and the error of its square root (from the curvature).
     """
-    from scipy.optimize import minimize_scalar
-
     m = np.concatenate([x[1] for x in means]) if means else np.zeros(0)
     w = np.concatenate([x[2] for x in means]) if means else np.zeros(0)
     if m.size < 8:
@@ -269,8 +268,6 @@ def line_correlation(problem, evaluation, model=None, lags=(2, 3, 4)) -> Check:
 
 
 def outliers(problem, evaluation) -> Check:
-    from scipy.stats import norm, poisson
-
     n, count, repeated = 0, 0, 0
     per_exposure = {}
     for i, r0, r, _, mask in _planes(problem, evaluation):
@@ -376,8 +373,6 @@ def _sources(problem, evaluation):
     """Per source: (design columns, normalised residuals) of its pixels, columns the expectation's x and y
     gradients and its Laplacian over sigma (a shift moves light along the gradient, a wider or narrower PSF
     along the Laplacian)."""
-    from scipy import ndimage
-
     for _, _, r, m, mask, v in _planes(problem, evaluation, variance=True):
         if r.ndim != 2 or min(r.shape) < 5:
             continue
@@ -539,8 +534,6 @@ def persistence_law(problem, evaluation, model) -> list:
     if not keys:
         return []
     # the noise neighbouring pixels share, along the law's whole direction
-    from types import SimpleNamespace
-
     whole = SimpleNamespace(mean=[e + sum(c[p] for c in cols) * max(pm.A, 0.01) for p, e in
                                   enumerate(evaluation.mean)])
     disp = dispersion(noise_correlation(problem, model), evaluation, whole)

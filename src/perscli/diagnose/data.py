@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError
+from ..detector.model import model_of_frame
 from ..io.frames import SECONDS_PER_DAY, UNITS, open_frame, require_timing
 
 log = logging.getLogger(__name__)
@@ -187,8 +188,6 @@ def attach_simulations(exposures, sims) -> list:
     list of DetectorModel or None
         The model stored in each simulated frame (None where it has none).
     """
-    from ..detector.model import model_of_frame
-
     opened = []
     for name in sims:
         frame = open_frame(name)

@@ -13,6 +13,7 @@ noise are independent: the simulation's SCI is never used.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import threading
 from dataclasses import dataclass
@@ -21,14 +22,17 @@ import numpy as np
 
 from .. import PerscliError
 from ..detector.chain import ChargeCache, forward
+from ..detector.effects import DEFAULTS, ORDER, REGISTRY
 from ..detector.model import DetectorModel, Effect
+from ..detector.persistence import persistence_charge
+from ..executor import thread_map
 from ..io.frames import SECONDS_PER_DAY
+from .data import measured_fluence
+from .probes import _neighbours
 
 
 def with_effect(model: DetectorModel, name: str, params: dict | None = None, enabled: bool = True) -> DetectorModel:
     """A copy of ``model`` with effect ``name`` present, switched as given, its parameters updated."""
-    from ..detector.effects import DEFAULTS, ORDER, REGISTRY
-
     out = DetectorModel([copy.deepcopy(e) for e in model.effects], source=model.source)
     eff = out.get(name)
     if eff is None:
@@ -157,8 +161,6 @@ class Problem:
         law's shape recomputes a few per cent of each frame; 'full': every
         row.  ``well``: the model's full well (the histories are clipped there).
         """
-        from ..detector.persistence import persistence_charge
-
         if index == 0:
             return None
         feedback = self._feedback and pmodel.kind == "fermi"
@@ -169,8 +171,6 @@ class Problem:
         with self._lock:
             have = self._charges.get(key)
         if have is None:
-            import dataclasses
-
             # without feedback the law is proportional to A: computed once for A = 1 and scaled
             unit = dataclasses.replace(pmodel, A=1.0) if pmodel.kind == "fermi" and not feedback else pmodel
             cur = self.exposures[index]
@@ -210,8 +210,6 @@ class Problem:
         wrong).  Without PERSIST (or from the measured frames) the history is
         FLUENCE as it is.
         """
-        from .data import measured_fluence
-
         exp = self.exposures[index]
         base = exp.fluence if exp.fluence is not None else measured_fluence(exp)
         rows = self.fit_rows if region == "fit" else slice(None)
@@ -285,10 +283,6 @@ class Problem:
         up the earlier exposures (``combine: sum``) for the parts to add up to
         the whole.
         """
-        import dataclasses
-
-        from ..detector.persistence import persistence_charge
-
         pm = model.persistence_model()
         unit = dataclasses.replace(pm, A=1.0)
         well = model.value("saturation", "full_well", off=None)
@@ -407,8 +401,6 @@ class Problem:
         ``extra``: {exposure index: electrons on the fit rows} added to the
         persistence charge (the fit stripes only): how the chain passes a
         change of the persistence on to the measured counts."""
-        from ..executor import thread_map
-
         out = Evaluation([], [], [], [], [])
         out.pieces = []
         pieces = [(slice(0, self.shape[0]), 0, self.shape[0])] if full else self.stripes
@@ -442,7 +434,6 @@ class Problem:
             r1 = min(ny, r0 + block_rows)
             a, b = max(0, r0 - 1), min(ny, r1 + 1)     # a row of margin each side for IPC
             blocks.append((slice(a, b), r0 - a, r0 - a + (r1 - r0)))
-        from ..executor import thread_map
 
         prepared = self._prepared(model)
 
@@ -464,9 +455,6 @@ class Problem:
 
 def covariates_2d(problem, evaluation) -> list:
     """Per piece of ``evaluation``: the probes' covariates (see :mod:`perscli.diagnose.probes`)."""
-    from .data import measured_fluence
-    from .probes import _neighbours
-
     out = []
     ny, nx = problem.shape
     for (i, rows), mean in zip(evaluation.pieces, evaluation.mean):

@@ -14,13 +14,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import ndimage, signal as sps
+from scipy.special import gammaln, ndtri_exp
+from scipy.stats import chi2
 
 
 def significance(delta_chi2: float, dof: int = 1) -> float:
     """The significance of a likelihood-ratio improvement, as a two-sided Gaussian number of sigma."""
-    from scipy.special import ndtri_exp
-    from scipy.stats import chi2
-
     if not delta_chi2 > 0:
         return 0.0
     if dof == 1:
@@ -30,8 +30,6 @@ def significance(delta_chi2: float, dof: int = 1) -> float:
     if not math.isfinite(log_p):
         # scipy's logsf underflows too: the upper incomplete gamma's asymptotic series, Q(a, h) ~
         # h^(a-1) e^-h / Gamma(a) (1 + (a-1)/h + (a-1)(a-2)/h^2), h = delta/2 >> a = dof/2
-        from scipy.special import gammaln
-
         a, h = 0.5 * dof, 0.5 * delta_chi2
         log_p = (a - 1.0) * math.log(h) - h - float(gammaln(a)) + math.log1p((a - 1.0) / h
                                                                              + (a - 1.0) * (a - 2.0) / h ** 2)
@@ -60,8 +58,6 @@ def noise_correlation(problem, model):
     likelihood takes pixels as independent; :func:`dispersion` uses this to
     correct its improvements.
     """
-    from scipy import signal as sps
-
     ipc = model.enabled("ipc")
     row = float(model.value("correlated_read_noise", "row", off=0.0)) ** 2
     col = float(model.value("correlated_read_noise", "column", off=0.0)) ** 2
@@ -96,8 +92,6 @@ def dispersion(shared, base, after) -> float:
     directions in Roman frames, whose charge noise neighbours share; much more
     for a level (dark, offset) when row and column read noise move whole lines.
     """
-    from scipy import ndimage
-
     if shared is None:
         return 1.0
     auto, shares, lines, which = shared

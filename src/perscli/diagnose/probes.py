@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..stats.de_stats import chi2_sf
+
 #: a probe flags a disagreement below this p-value
 FLAG_P = 1e-4
 
@@ -52,8 +54,6 @@ class Probe:
 
     @property
     def p_value(self) -> float:
-        from ..stats.de_stats import chi2_sf
-
         return chi2_sf(self.chi2, int(max(self.dof, 1))) if self.dof else 1.0
 
     @property

@@ -32,12 +32,20 @@ fit and gap (their number is reported), as a pipeline's jump step would.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+from scipy import ndimage
+from scipy.stats import chi2
 
 from .. import PerscliError
 from ..detector.effects import REGISTRY
 from ..detector.model import DetectorModel, Effect
+from ..detector.persistence import persistence_charge
+from ..io.frames import SECONDS_PER_DAY
+from .data import measured_fluence
 from .likelihood import Evaluation
+from .probes import _neighbours
 
 #: a read this many sigma from its self-prediction marks the pixel's ramp as jumping
 JUMP_SIGMA = 10.0
@@ -186,8 +194,6 @@ def _ptc_points(exposures, gain=None):
         # first and last reads with its second differences, and grouping by it would pick pixels whose reads
         # are extreme (the faintest group's variance too high, the line too flat); the group's signal is still
         # the mean of its pixels' own, and the curve, a line, is unchanged by mixing rates in a group
-        from scipy import ndimage
-
         around = (ndimage.uniform_filter(np.where(valid, own, 0.0), 3, mode="constant") * 9.0 - np.where(valid, own, 0.0))
         count = ndimage.uniform_filter(valid.astype(float), 3, mode="constant") * 9.0 - valid
         key = np.broadcast_to(np.where(count > 0, around / np.maximum(count, 1), own), dd.shape)
@@ -250,8 +256,6 @@ def photon_transfer(exposures, header_gain=None) -> dict:
         ``points``, ``reason`` (why not, empty when trusted) and a
         one-line ``verdict``.
     """
-    from scipy.stats import chi2
-
     points, method, weight, info = _ptc_points(exposures, header_gain)
     out = {"method": method, "trusted": False, "gain": None, "gain_error": None, "read_noise": None,
            "points": [list(p) for p in points], **info}
@@ -399,12 +403,6 @@ class RampProblem:
     def persistence(self, index: int, model: DetectorModel):
         """Electrons of persistence in each read (minus the first) of ramp ``index`` that the earlier ramps'
         fluence leaves, shape (reads, ny, nx); None for the first ramp or without persistence in ``model``."""
-        import dataclasses
-
-        from ..detector.persistence import persistence_charge
-        from ..io.frames import SECONDS_PER_DAY
-        from .data import measured_fluence
-
         if index == 0 or not model.enabled("persistence"):
             return None
         pm = model.persistence_model()
@@ -464,7 +462,6 @@ class RampProblem:
         ny, nx = self.shape
         yy, xx = np.mgrid[0:ny, 0:nx]
         block = (yy * 8 // ny) * 8 + (xx * 8 // nx)
-        from .probes import _neighbours
 
         for i, exp in enumerate(self.exposures):
             j = self._ref(exp)

@@ -9,14 +9,21 @@ import math
 import os
 import shutil
 import tempfile
+import textwrap
 
 import numpy as np
 
 from .. import PerscliError, __version__
+from ..detector.model import load_detector_model, model_to_yaml
+from ..io.tempfiles import make_temp_folder
 from .candidates import by_name
 from .checks import ALPHA as CHECK_ALPHA
 from .probes import PROBES, run_probes
-from .candidate_fit import MIN_DELTA_CHI2
+from .candidate_fit import MIN_DELTA_CHI2, _reset
+from .data import attach_simulations, read_measured
+from .likelihood import Problem
+from .ramp import RampProblem, ramp_model
+from .search import search
 
 log = logging.getLogger(__name__)
 
@@ -65,12 +72,6 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
     dict
         The report (see :func:`write_report`), plus the objects the figures need.
     """
-    from ..detector.model import load_detector_model
-    from .data import attach_simulations, read_measured
-    from .likelihood import Problem
-    from .ramp import RampProblem, ramp_model
-    from .search import search
-
     say = progress or (lambda text: None)
     exposures = read_measured(measured, gain=gain, exptime=exptime)
     if simulated:
@@ -112,8 +113,6 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         # seldom put it, is not written into model.yaml: its likelihood gain on the fit pixels comes from
         # absorbing what the model lacks.  (Beyond that the gap is no test: two models of the same data differ in
         # it by what they fit, and a right effect moves a gap that noise put below 1 further down.)
-        from .candidate_fit import _reset
-
         final = result.model
         for e in worse:
             final = _reset(final, model, e["effect"])
@@ -193,8 +192,6 @@ def _effect_gaps(problem, original, result, gap_after: float, gap_before: float,
     the change exceed the noise: a share of noise is no share) and
     ``gap_note`` are set in each entry.
     """
-    from .candidate_fit import _reset
-
     found = result.found
     for entry in found:
         if len(found) == 1 and not result.withdrawn:
@@ -244,15 +241,12 @@ def _verdict(found, unexplained) -> str:
 def write_report(outcome: dict, outdir: str, *, overwrite: bool = False) -> None:
     """Write OUTDIR (model.yaml, report.json, report.md, PNG figures) atomically: a temporary folder
     beside it renamed into place, so that a failure leaves no half-written OUTDIR."""
-    from ..detector.model import model_to_yaml
-
     outdir = os.path.abspath(outdir)
     if os.path.exists(outdir) and not overwrite:
         raise PerscliError(f"{outdir}: already exists; use --overwrite to replace it")
     parent = os.path.dirname(outdir)
     if not os.path.isdir(parent):
         raise PerscliError(f"{parent}: folder does not exist; create it or choose another output")
-    from ..io.tempfiles import make_temp_folder
 
     # a new folder's permissions (0777 less the umask); the files in it get a new file's
     tmp = make_temp_folder(parent, prefix=".perscli-diagnose-")
@@ -283,10 +277,10 @@ def write_report(outcome: dict, outdir: str, *, overwrite: bool = False) -> None
 
 def _figures(outcome, folder) -> list:
     """A PNG per flagged probe (before and after) and an overview of the gaps."""
-    import matplotlib
+    import matplotlib  # lazy: figures only when a report is written; matplotlib.use is process-wide
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: after the backend is chosen
 
     before, after = outcome["probes_before"], outcome["probes_after"]
     report = outcome["report"]
@@ -318,7 +312,6 @@ def _figures(outcome, folder) -> list:
         names.append(name)
     # overview: the gap overall and per probe, before and after
     keys = [k for k in before if before[k].gap == before[k].gap]
-    import textwrap
 
     # the whole verdict, wrapped (cut short it would drop the effects named last)
     title = textwrap.fill(report["verdict"], 72)
@@ -337,7 +330,7 @@ def _figures(outcome, folder) -> list:
     ax.set_xticks(xs)
     ax.set_xticklabels(["all"] + keys, rotation=30, ha="right", fontsize=8)
     ax.set_yscale("log")
-    from matplotlib.ticker import FormatStrFormatter
+    from matplotlib.ticker import FormatStrFormatter  # lazy: matplotlib, as above
 
     # plain numbers on the log axis (gaps are near 1: 1.05, not 1.05 x 10^0)
     ax.yaxis.set_major_formatter(FormatStrFormatter("%.4g"))

@@ -31,15 +31,21 @@ tests/test_diagnose_calibrated.py.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
+from itertools import combinations
 
 import numpy as np
+from scipy.stats import chi2
 
 from .candidate_fit import (FIDELITY, MEAN_EFFECTS, MEAN_SHARE, MIN_DELTA_BIC, Fit, _free_persistence_shape,
                             _mean_only_delta, _reset, _shape_candidate, _unphysical, fit_candidate, threshold)
-from .candidates import CANDIDATES
+from .candidates import CANDIDATES, ipc_free_shape
+from .checks import persistence_law, run_checks
+from .joint import correlations as corr, directions, joint_fit, shared_information
+from .likelihood import with_effect
 from .noise import dispersion, noise_correlation, significance
 
 log = logging.getLogger(__name__)
@@ -78,8 +84,6 @@ def _joint(problem, model, named, progress=None):
     with the shape parameters a named persistence freed; each entry's values and marginal errors (scaled by
     its noise-correlation dispersion) updated in place.  Returns (model, -2 ln L, covariance, the candidates
     fitted: the named ones first, in order, then the shape parameters)."""
-    from .joint import joint_fit
-
     cands = [c for _, c in named if c.fit is None]
     owners = [next(e for e, cc in named if cc is c) for c in cands]
     for entry, cand in named:
@@ -118,8 +122,6 @@ def _retest(problem, model, original, named, entry, cand, m2, npix):
 def _confirm(problem, current, named, fit, base, progress=None):
     """``fit``'s candidate refitted together with the named effects: (model, improvement over ``base``
     divided by its dispersion, its value, -2 ln L)."""
-    from .joint import joint_fit
-
     cands = [c for _, c in named if c.fit is None] + [fit.candidate]
     model, values, cov, m2 = joint_fit(problem, fit.model, cands)
     return model, (base - m2) / getattr(fit, "dispersion", 1.0), float(values[-1]), m2
@@ -159,9 +161,6 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
     again.  Evidence is never dropped: a check that fired before a withdrawal
     stays in ``unexplained`` whether or not it fires after.
     """
-    from .checks import run_checks
-    from .joint import directions, shared_information
-
     say = progress or (lambda text: None)
     usable = [c for c in candidates if c.applies(problem.exposures) and problem.allows(c.name)]
     named, rounds = [], []            # named: (entry, candidate)
@@ -270,8 +269,6 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
             if hasattr(problem, "set_aside") and problem.aside is None:
                 # the law's shape checked at once: a persistence it cannot describe leaves residuals that every
                 # later round would try to explain with something else
-                from .checks import persistence_law
-
                 law = [c for c in persistence_law(problem, problem.evaluate(best.model), best.model) if c.fired]
                 if law:
                     entry = best.as_dict()
@@ -364,8 +361,6 @@ def search(problem, model, *, candidates=CANDIDATES, progress=None, max_rounds: 
     found = [e for e, _ in named]
     correlations = {}
     if len(cands) > 1:
-        from .joint import correlations as corr
-
         rho = corr(cov)
         for a in range(len(cands)):
             for b in range(a + 1, len(cands)):
@@ -418,10 +413,6 @@ def _best_pair(problem, current, named, fits, dirs, evaluation, shared, base, np
     replace that member (pairs with the other member scored within
     :data:`~perscli.diagnose.candidate_fit.MIN_DELTA_BIC` of the best), or None.
     """
-    from scipy.stats import chi2
-
-    from .joint import joint_fit
-
     need = float(chi2.isf(PAIR_P, 2)) + FIDELITY * sum(max(e.get("forward_delta_chi2", 0.0), 0.0) for e, _ in named)
     by_name = {f.candidate.name: f for f in fits}
     names = [c.name for c in dirs.candidates]
@@ -489,8 +480,6 @@ def _set_values(dirs, offsets, disp, pen):
     """For every subset T of the candidates of ``dirs``: the change of -2 ln L (from the model the directions
     were taken at) of fitting T with the others at the original model's values, by the quadratic likelihood,
     divided by the largest dispersion of the set's members, plus ``pen`` per member.  {frozenset: value}."""
-    from itertools import combinations
-
     g, f = dirs.score, dirs.fisher
     n = len(g)
     out = {}
@@ -527,8 +516,6 @@ def _best_set(problem, current, original, named, usable, variance_only, disp_of,
     from it ([[names], delta]); the members each alternative replaces are
     listed as degenerate with the named ones they replace.
     """
-    from .joint import directions, joint_fit
-
     fixed_named = [(e, c) for e, c in named if c.fit is not None]
     pool = [c for c in usable if c.fit is None and c.name not in variance_only]
     if len(pool) > SET_SIZE or not pool:
@@ -625,8 +612,6 @@ def _hints(dirs, named, disp_of, floor: float = 0.0) -> list:
     """Candidates below the naming threshold (plus ``floor``, :data:`FIDELITY`'s) whose improvement beside the
     named effects (the score test at the final model) still passes :data:`HINT_P`: where more data would look
     first."""
-    from scipy.stats import chi2
-
     low, high = float(chi2.isf(HINT_P, 1)), threshold(1) + floor
     names = [c.name for c in dirs.candidates]
     held = [names.index(c.name) for _, c in named if c.fit is None and c.name in names]
@@ -665,8 +650,6 @@ def _without_persistence(problem, model, candidates, law, withdrawn, current, pr
     and the withdrawn persistence fit go to ``unexplained`` before what the
     second search finds.
     """
-    import dataclasses
-
     amplitude = max(max(c.detail.get("amplitude", [0.0]) + [0.0]) for c in law)
     pm = current.persistence_model()
     if pm.kind != "fermi" or not amplitude > 0:
@@ -711,8 +694,6 @@ def _because(checks) -> str:
 
 def _put_entry(model, entry, cand, problem):
     """``model`` with a found effect put in at its reported values (all its parameters)."""
-    from .likelihood import with_effect
-
     if cand.fit is not None:
         return cand.fit(problem, model)[2]
     if cand.name == "ipc" and "kernel" in entry.get("shape", {}):
@@ -744,8 +725,6 @@ def _final_significance(entry, cand):
 def _ipc_shape(problem, best: Fit, progress=None):
     """A named IPC: its kernel's 8 couplings freed when the data ask for another shape than the model's
     (:func:`perscli.diagnose.candidates.ipc_free_shape`), and the free kernel physical; (fit, note)."""
-    from .candidates import ipc_free_shape
-
     shape = ipc_free_shape(problem, best.model)
     delta = shape["delta_chi2"] / best.dispersion
     if delta <= threshold(7):

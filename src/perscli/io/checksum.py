@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 
-from .. import PerscliError
+from .. import PerscliError, _kernels
 from .cards import CARD, _parse_value
 
 
@@ -109,7 +109,6 @@ def _verify_header_bytes(raw: bytes, where: str) -> None:
     """Check a header's bytes against its CHECKSUM, with the DATASUM it states (no data read)."""
     if not checksums_enabled():
         return
-    from .. import _kernels
 
     stored = _stored_cards(raw)
     stated = str(stored.get("DATASUM", "")).strip()

@@ -42,13 +42,15 @@ rest is in :mod:`perscli.io.sources` (paths, stdin, FIFOs, gzip),
 from __future__ import annotations
 
 import errno
+import gzip
 import os
 import re
 from dataclasses import dataclass
 
+import fitsio
 import numpy as np
 
-from .. import PerscliError
+from .. import PerscliError, _kernels
 
 # tests monkeypatch ``fitsfile._ascii_checksum``, which the writer below looks up here, as it does
 # ``_header_cards`` and ``_plain_image``, defined here
@@ -285,10 +287,6 @@ def _finish_checksums(path: str) -> None:
     CFITSIO's own checksum cards carry the time of writing in their comments;
     these carry fixed comments, so the same content gives the same bytes.
     """
-    import fitsio
-
-    from .. import _kernels
-
     with fitsio.FITS(path) as f:
         offsets = [h.get_offsets() for h in f]
     fd = os.open(path, os.O_RDWR)
@@ -339,8 +337,6 @@ def write_fits_path(hdus, path: str, *, compress: str = "none") -> None:
         quantisation (lossless for every data type); 'rice' is lossless for
         integer images only.
     """
-    import fitsio
-
     if compress not in COMPRESSIONS:
         raise PerscliError(f"--compress must be one of {', '.join(COMPRESSIONS)}, not {compress!r}")
     if compress == "none" and all(_plain_image(h.data) for h in hdus):
@@ -363,8 +359,6 @@ def write_fits_path(hdus, path: str, *, compress: str = "none") -> None:
 def _check_complete(path: str, nhdus: int) -> None:
     """Raise the OSError of a write CFITSIO lost: fitsio may close a file cut short by a full disk or
     a file-size limit (ENOSPC, EFBIG) without an error, leaving fewer bytes than its headers declare."""
-    import fitsio
-
     size = os.path.getsize(path)
     try:
         with fitsio.FITS(path) as f:
@@ -417,8 +411,6 @@ def _write_plain(hdus, path: str) -> None:
     The bytes are what the fitsio path writes, apart from CFITSIO's own
     comment cards (tests/test_fits_io.py compares the two).
     """
-    from .. import _kernels
-
     with open(path, "wb") as fh:
         for i, hdu in enumerate(hdus):
             data = hdu.data
@@ -478,8 +470,6 @@ def _header_bytes(cards) -> bytes:
 
 def gzip_file(src: str, dest_fd: int) -> None:
     """gzip ``src`` into ``dest_fd`` with no name or time stamp, so that equal content gives equal bytes."""
-    import gzip
-
     with open(src, "rb") as fin, os.fdopen(os.dup(dest_fd), "wb") as raw, \
             gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0, compresslevel=6) as gz:
         while True:

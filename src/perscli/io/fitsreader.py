@@ -17,9 +17,10 @@ import math
 import re
 from dataclasses import dataclass, field
 
+import fitsio
 import numpy as np
 
-from .. import PerscliError
+from .. import PerscliError, _kernels
 from .cards import BLOCK, CARD, Header, _check_cards, _is_structural, format_card, padded
 from .checksum import CHECKSUM_HINT, _stored_cards, _verify_header_bytes, checksums_enabled, ones_complement_add
 from .sources import _CHUNK, Source, open_source, split_selector
@@ -118,8 +119,6 @@ class HDU:
     # -- checks ----------------------------------------------------------------------------------
     def datasum(self) -> int:
         """FITS DATASUM of the data as stored (with their padding), computed in chunks."""
-        from .. import _kernels
-
         total, offset, end = 0, self.data_offset, padded(self.data_end - self.data_offset) + self.data_offset
         while offset < end:
             n = min(_CHUNK, end - offset)
@@ -150,8 +149,6 @@ class HDU:
             size = self.data_end - self.data_offset
             pad = padded(size) - size
             if pad:
-                from .. import _kernels
-
                 tail = bytes(self.source.pread(self.data_end, pad))
                 if size % 4:
                     tail = bytes(size % 4) + tail  # keep the 32-bit words aligned to the data's start
@@ -160,7 +157,6 @@ class HDU:
         if not checksums_enabled():
             self.verified = True
             return datasum
-        from .. import _kernels
 
         raw = bytes(self.source.pread(self.header_offset, self.data_offset - self.header_offset))
         stored = _stored_cards(raw)
@@ -517,8 +513,6 @@ class FitsFile:
     """
 
     def __init__(self, name: str, *, stdin=None):
-        import fitsio
-
         path, ext, sec = split_selector(name) if name != "-" else (name, None, None)
         self.name = name
         self.label = "stdin" if name == "-" else name

@@ -38,6 +38,7 @@ import errno
 import io
 import os
 import secrets
+import stat
 import sys
 import tempfile
 
@@ -263,7 +264,7 @@ def check_output(dest: str, *, overwrite: bool = False, inputs=()) -> None:
             continue
         name = str(name)
         if not os.path.exists(name):
-            from .sources import split_selector
+            from .sources import split_selector  # lazy: the entry point imports this module; io.sources imports numpy
 
             name = split_selector(name)[0]
         if os.path.exists(name) and os.path.exists(dest) and os.path.samefile(name, dest):
@@ -283,8 +284,6 @@ def _refuse_special(dest: str) -> None:
     An output is a new file renamed over the old name: done to /dev/null by
     root, it would replace the device with a file.
     """
-    import stat
-
     try:
         mode = os.stat(dest).st_mode
     except OSError:
@@ -700,7 +699,7 @@ def write_hdus(hdus, dest: str, *, overwrite: bool = False, stdout=None, compres
         The output exists (without ``overwrite``) or cannot be written
         (:func:`write_error`); nothing is left behind.
     """
-    from .fitsfile import gzip_file, write_fits_path
+    from .fitsfile import gzip_file, write_fits_path  # lazy: as in check_output (fitsio, numpy)
 
     if is_stdout(dest):
         if stdout is None:

@@ -14,14 +14,17 @@ Part of the FITS layer whose writer is :mod:`perscli.io.fitsfile`.
 from __future__ import annotations
 
 import errno
+import gzip
 import math
 import os
 import re
 import select
 import stat
 import sys
+import tempfile
 import threading
 import time
+import zlib
 
 from .. import PerscliError
 from .cards import BLOCK, CARD, _parse_value, padded
@@ -40,7 +43,6 @@ def _anonymous_file(label: str) -> int:
     """A file descriptor of an anonymous in-memory file (nothing on disk to clean up)."""
     if hasattr(os, "memfd_create"):
         return os.memfd_create("perscli-input", os.MFD_CLOEXEC)
-    import tempfile
 
     fh = tempfile.TemporaryFile()
     return os.dup(fh.fileno())
@@ -225,8 +227,6 @@ def _maybe_gunzip(source: Source) -> Source:
     """The decompressed bytes of a gzip source, in an anonymous file (the source itself if not gzip)."""
     if bytes(source.pread(0, min(2, source.size))) != _GZIP_MAGIC:
         return source
-    import gzip
-    import zlib
 
     out = _anonymous_file(source.label)
     try:

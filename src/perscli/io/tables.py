@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import PerscliError
+from .fitsreader import open_fits
 
 
 @dataclass
@@ -228,8 +229,6 @@ def read_table(name: str, *, what: str, stdin=None, columns=None, known=None, op
         Unreadable, not FITS, truncated, corrupt (CHECKSUM/DATASUM), without a
         binary table, or a mapping naming a column the file lacks.
     """
-    from .fitsreader import open_fits
-
     fits = open_fits(name, stdin=stdin)
     try:
         if fits.selected is not None:

@@ -41,6 +41,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
+from .. import _kernels
+from ..optics import StampDrawer
+
 #: Hogg & Lang (2013) exponential, M=6: amplitudes and sqrt(variances) in units of r_e.
 HL_AMPLITUDES = np.array([0.00735, 0.09481, 0.63572, 2.60077, 5.42848, 3.16445])
 HL_SIGMAS = np.array([0.05072, 0.13756, 0.28781, 0.53195, 0.91209, 1.50157])
@@ -157,8 +160,6 @@ class ExpModel:
     """
 
     def __init__(self, psf, n: int, pad: int = 8, pixel: bool = True):
-        from ..optics import StampDrawer
-
         self.n = int(n)
         self.pad = int(pad)
         self.size = self.n + 2 * self.pad
@@ -204,8 +205,6 @@ class ExpModel:
         hsums : ndarray (21,) or None
             Sums for :func:`hessian_term`.
         """
-        from .. import _kernels
-
         L, half = self.size, self.size // 2 + 1
         # centre relative to the FFT grid's origin: stamp pixel 0 is grid index pad
         phase_x = np.exp(-1j * self.k * (float(centre[0]) + self.pad))
@@ -384,8 +383,6 @@ class _Problem:
 
     def _evaluate_batch(self, maps, resid_spectra, jts):
         """:meth:`evaluate` of stamps of one grid, together."""
-        from .. import _kernels
-
         m0 = self.stamps[0].model
         L, n, pad, half = m0.size, m0.n, m0.pad, m0.size // 2 + 1
         ns = len(maps)

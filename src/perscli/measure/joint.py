@@ -17,13 +17,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PerscliError
+from ..executor import run
 from ..instrument import ROMAN_PIXEL_SCALE
-from .fit import FLAG_EDGE, ExpModel, JointStamp, fit_joint
+from ..io.frames import open_frame
+from .fit import FLAG_EDGE, ExpModel, JointStamp, covariance_map, fit_joint, shape_covariance
 from .noise import (_check_min_snr, _ivar_at, _noise_and_weights, _snr_table, _start_size, catalogue_rate,
                     frame_units_per_rate, predicted_snr)
 from .perframe import (FLAG_BELOW_CUT, FLAG_BLEND, FLAG_LOW_SN, FLAG_MOVED, FLAG_OFF_FRAME, MAX_MOVE, MIN_S2N,
                        Windows, _FrameFacts, _gather, _psf_exp_model, cut_stamp, stamp_ladder, stamp_side,
                        stamp_window)
+from .response import CHANGE_METHODS, fit_joint_changes
 from .selection import _pixel_scale, blended_on_sky, frame_wcs, frame_xy, on_frame, select_kinds
 from .settings import MeasureOptions
 
@@ -100,8 +103,6 @@ _JOINT_INT = ("nframes", "nfev", "flags")
 
 def _joint_linear_flux(stamps, T0) -> float:
     """Least-squares joint flux (e-/s) of the start profile, for galaxies without a catalogue magnitude."""
-    from .fit import covariance_map, shape_covariance
-
     cov, dcov, _ = shape_covariance(0.0, 0.0, T0)
     num = den = 0.0
     for s in stamps:
@@ -190,8 +191,6 @@ def measure_joint_changes_object(ctx: ChangesContext, j: int) -> dict:
         'ref': the reference's columns; 'variants': per variant its columns
         (with 'method', 'bound' and, with ``cold``, 'g1_cold', 'g2_cold').
     """
-    from .response import CHANGE_METHODS, fit_joint_changes
-
     jc = ctx.joint
     stamps, used, edge, nframes = _joint_stamps(jc, j)
     n = int(jc.sizes[j])
@@ -269,8 +268,6 @@ def measure_joint(frames, cat, *, options: MeasureOptions | None = None, progres
     with ``all_rows``), '_noise' (per frame), '_counts' and '_todo' (the
     catalogue rows selected for a fit).
     """
-    from ..executor import run
-
     o = options if options is not None else MeasureOptions()
     setup = joint_setup(frames, cat, o, inputs=inputs, psf_options=psf_options, psf_used=psf_used, data=data,
                         only=only)
@@ -304,8 +301,6 @@ class JointSetup:
 
     def keep_windows(self, frames, data=None) -> None:
         """Each frame's pixels (its own, or ``data``'s) read once and kept only in its galaxies' windows."""
-        from ..io.frames import open_frame
-
         for k, f in enumerate(self.ctx.frames):
             given = data[k] if data is not None else None
             pixels = f.data if given is None else (given() if callable(given) else given)
@@ -349,8 +344,6 @@ def joint_setup(frames, cat, o: MeasureOptions, *, inputs=None, psf_options=None
     among a catalogue of 0.4M objects and 169 frames would otherwise hold
     ~6 GB of them).  ``only`` limits the ones fitted.
     """
-    from ..io.frames import open_frame
-
     psf, stamp = o.psf, o.stamp
     psf_options = psf_options if psf_options is not None else o.psf_options()
     min_snr = _check_min_snr(o.min_snr)

@@ -14,9 +14,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import galsim.roman as roman
 import numpy as np
 
 from .. import PerscliError
+from ..detector.model import default_model, model_of_frame
 from .fit import P_EXP, ExpModel
 # the default cut (and why 5) lives with the other settings, in a module light enough for --help
 from .settings import MIN_SNR_DEFAULT
@@ -38,8 +40,6 @@ class NoiseModel:
 def frame_detector_model(frame):
     """The detector model that made ``frame`` (its MODEL table, written by ``perscli render``),
     else the default Roman model: ``(DetectorModel, 'MODEL' or 'roman')``."""
-    from ..detector.model import default_model, model_of_frame
-
     model = model_of_frame(frame)
     return (model, "MODEL") if model is not None else (default_model(), "roman")
 
@@ -148,7 +148,6 @@ def catalogue_rate(cat, i, frame) -> float:
     mag_col = f"mag_{str(filt).strip().lower()}" if filt else None
     if zpt is None or mag_col not in cat:
         return float("nan")
-    import galsim.roman as roman
 
     rate = 10 ** (-0.4 * (float(cat[mag_col][i]) - float(zpt))) * roman.collecting_area
     return float(rate) if np.isfinite(rate) else float("nan")

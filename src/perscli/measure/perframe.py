@@ -15,13 +15,16 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+import galsim
 import numpy as np
 
 from .. import PerscliError
+from ..executor import run
 from .fit import FLAG_EDGE, ExpModel, fit_exp
 from .noise import (_check_min_snr, _ivar_at, _noise_and_weights, _snr_table, _start_size, catalogue_rate,
                     frame_units_per_rate, predicted_snr)
 from .psf import psf_model
+from .response import CHANGE_METHODS, fit_exp_changes
 from .selection import _frame_positions, _pixel_scale, blended, frame_wcs, on_frame, select_kinds
 from .settings import MeasureOptions
 
@@ -301,8 +304,6 @@ class ChangesFrameContext(FrameContext):
 
 def measure_object_changes(ctx: ChangesFrameContext, i: int) -> dict:
     """Object ``i`` fitted on the reference and on every variant (:func:`perscli.measure.response.fit_exp_changes`)."""
-    from .response import CHANGE_METHODS, fit_exp_changes
-
     xi, yi = float(ctx.x[i]) - 1.0, float(ctx.y[i]) - 1.0
     n = int(ctx.sizes[i])
     img, wt, x0, y0, off_edge = cut_stamp(ctx.data, ctx.weights, ctx.ivar, ctx.background, n, xi, yi)
@@ -391,8 +392,6 @@ def measure_frame(frame, cat, *, options: MeasureOptions | None = None, progress
     '_counts' the numbers selected, on the frame, cut and fitted, and
     '_todo' the catalogue rows selected for a fit (on the frame, above the cut).
     """
-    from ..executor import run
-
     setup = frame_setup(frame, cat, options=options, models=models, psf_options=psf_options, psf_used=psf_used,
                         data=data, only=only)
     results = run(measure_object, setup.todo, context=setup.ctx, workers=workers, progress=progress)
@@ -476,8 +475,6 @@ def frame_setup(frame, cat, *, options: MeasureOptions | None = None, models=Non
     todo = selected if only is None else selected[np.asarray(only, dtype=bool)[selected]]
     psf_image = None
     if method == "hsm":
-        import galsim
-
         # HSM takes the PSF as it appears in pixel values: with the pixel response, once
         drawer = model.drawer
         with_pixel = galsim.Convolve(drawer.psf, galsim.Pixel(1.0)) if drawer.pixel else drawer.psf
@@ -512,8 +509,6 @@ def _psf_exp_model(psf, frame, pixel_scale, stamp, psf_options, psf_used) -> Exp
 
 
 def _hsm(img, wt, psf_image, cols, i, x0, y0, edge):
-    import galsim
-
     try:
         res = galsim.hsm.EstimateShear(galsim.Image(img, scale=1.0), psf_image,
                                        weight=galsim.Image((wt > 0).astype(np.int32), scale=1.0),

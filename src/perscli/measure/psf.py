@@ -63,10 +63,15 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+import galsim
+import galsim.roman as roman
 import numpy as np
+from scipy.signal.windows import tukey
 
 from .. import PerscliError
 from ..instrument import ROMAN_PIXEL_SCALE
+from ..io.fitsfile import OutHDU
+from ..io.fitsreader import open_fits
 # GalSim's Roman PSF and filters: the ones render draws with
 from ..optics import roman_psf, roman_wavelength, to_pixels
 
@@ -194,8 +199,6 @@ class PsfModel:
         """
         if self.image is not None:
             return self.image, self.oversampling, self.pixel_included
-        import galsim
-        import galsim.roman as roman
 
         scale = roman.pixel_scale / WRITE_OVERSAMPLING
         drawn = galsim.Convolve(self.arcsec_profile, galsim.DeltaFunction()).drawImage(
@@ -206,8 +209,6 @@ class PsfModel:
 def frame_roman_psf(frame) -> PsfModel:
     """galsim.roman.getPSF for the frame's SCA and FILTER, at the SCA centre and the filter's effective
     wavelength (:func:`perscli.optics.roman_psf`, what ``perscli render`` draws with), in Roman pixels (0.11")."""
-    import galsim.roman as roman
-
     sca, filt = frame.keyword("SCA"), frame.keyword("FILTER")
     if sca is None or filt is None:
         raise PerscliError(f"{frame.label}: --psf roman needs SCA and FILTER in the header; give --psf PSF.fits")
@@ -237,8 +238,6 @@ def aliased_power(image) -> float:
     window, cosine over the outer quarter of each side) so that a PSF cut
     off at the image's edge does not count as high frequencies.
     """
-    from scipy.signal.windows import tukey
-
     data = np.asarray(image, dtype=np.float64)
     data = data / data.sum()
     ny, nx = data.shape
@@ -257,8 +256,6 @@ def required_oversampling(filt, pixel_scale: float) -> float | None:
     the image's Nyquist frequency at least NYQUIST_FRACTION of the cutoff
     D/lambda at the filter's effective wavelength.
     """
-    import galsim.roman as roman
-
     wavelength = roman_wavelength(filt)
     if wavelength is None:
         return None
@@ -383,8 +380,6 @@ def read_psf_image(spec: str, frame, warn=log.warning):
     the one whose SCA and FILTER keywords match the frame's.  ``warn(message)``
     takes the warning for an image whose SCA or FILTER is not the frame's.
     """
-    from ..io.fitsreader import open_fits
-
     try:
         source = open_fits(spec)
     except PerscliError as exc:
@@ -512,8 +507,6 @@ def psf_model(spec: str, frame, *, pixel_scale: float, options: PsfOptions | Non
         No sampling keyword, an unreadable or empty image, or an undersampled
         one (:func:`check_sampling`).
     """
-    import galsim
-
     options = options if options is not None else PsfOptions()
     if spec == "roman":
         return frame_roman_psf(frame)
@@ -539,8 +532,6 @@ def psf_model(spec: str, frame, *, pixel_scale: float, options: PsfOptions | Non
 
 def psf_hdus(models) -> list:
     """--write-psf: one image HDU per PSF (EXTNAME PSF, EXTVER 1, 2, ...) with the keywords that read it back."""
-    from ..io.fitsfile import OutHDU
-
     hdus = []
     for k, model in enumerate(models, 1):
         image, oversampling, pixel_included = model.written_image()

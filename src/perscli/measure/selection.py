@@ -11,10 +11,18 @@ S/N is in :mod:`perscli.measure.noise`.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+from astropy.io import fits
+from astropy.wcs import WCS
+from astropy.wcs.utils import proj_plane_pixel_scales
+from scipy.spatial import cKDTree
 
 from .. import PerscliError
 from ..instrument import ROMAN_PIXEL_SCALE
+from ..io.tables import read_table
+from ..scene import check_catalog, separation
 
 #: the catalogue's kinds fitted by default (perscli catalog writes 'galaxy' and 'star')
 DEFAULT_KINDS = ("galaxy",)
@@ -55,9 +63,6 @@ def read_positions(path: str, *, columns=None):
         does not read, or values no object can have (repeated ids, positions
         off the sky, hlr < 0, |e| >= 1, ...).
     """
-    from ..io.tables import read_table
-    from ..scene import check_catalog
-
     table = read_table(path, what="catalogue (id and ra/dec or x/y)", columns=columns, known=CATALOG_READS)
     names = {n.lower() for n in table.names}
     out = {"id": table.column("id", kind="integer", needed=("id", "ra", "dec"))}
@@ -142,14 +147,10 @@ def frame_wcs(frame):
     cached = getattr(frame, "_measure_wcs", False)
     if cached is not False:
         return cached
-    from astropy.io import fits
-    from astropy.wcs import WCS
 
     header = fits.Header.fromstring("".join(frame.header.cards))
     wcs = None
     if "CTYPE1" in header:
-        import warnings
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             wcs = WCS(header)
@@ -171,8 +172,6 @@ def frame_xy(wcs, shape, ra, dec):
     NaN for positions more than :data:`NEAR_FRAME_DEG` beyond the frame's
     half-diagonal from its centre.
     """
-    from ..scene import separation
-
     ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
     x, y = np.full(ra.shape, np.nan), np.full(ra.shape, np.nan)
     ny, nx = shape
@@ -205,7 +204,6 @@ def _frame_positions(frame, cat, wcs):
 def _pixel_scale(wcs) -> float:
     if wcs is None:
         return ROMAN_PIXEL_SCALE
-    from astropy.wcs.utils import proj_plane_pixel_scales
 
     return float(np.mean(proj_plane_pixel_scales(wcs.celestial)) * 3600.0)
 
@@ -227,8 +225,6 @@ def blended(x, y, radius: float, shape=None) -> np.ndarray:
     million objects around a frame costs seconds otherwise, and only the
     objects on the frame are fitted.
     """
-    from scipy.spatial import cKDTree
-
     pts = np.column_stack([x, y])
     ok = np.all(np.isfinite(pts), axis=1)
     if shape is not None:
@@ -248,7 +244,6 @@ def blended_on_sky(ra, dec, radius_arcsec: float) -> np.ndarray:
     """True for objects with another within ``radius_arcsec`` (chord distance on the unit sphere)."""
     ra_r, dec_r = np.radians(ra), np.radians(dec)
     xyz = np.column_stack([np.cos(dec_r) * np.cos(ra_r), np.cos(dec_r) * np.sin(ra_r), np.sin(dec_r)])
-    from scipy.spatial import cKDTree
 
     out = np.zeros(len(ra), dtype=bool)
     if len(ra) > 1 and radius_arcsec > 0:

@@ -97,7 +97,7 @@ class MeasureOptions:
         New on each call because a PsfOptions records the warnings it has
         given: one per run, shared by its frames, says each once.
         """
-        from .psf import PsfOptions
+        from .psf import PsfOptions  # lazy: --help reads MeasureOptions; measure.psf imports galsim
 
         return PsfOptions(pixel=self.psf_pixel, oversampling=self.psf_oversampling,
                           allow_undersampled=self.allow_undersampled_psf)

@@ -33,10 +33,14 @@ from __future__ import annotations
 import logging
 import math
 import os
+import textwrap
 
 import numpy as np
 
 from .. import PerscliError
+from ..io.fitsfile import OutHDU, table_hdu
+from ..io.frames import open_frame
+from ..io.output import add_provenance, check_output, write_hdus
 from .joint import measure_joint
 from .noise import _check_min_snr
 from .perframe import FLAGS, STAMP_HLR, STAMP_MARGIN, STAMP_MIN, measure_frame
@@ -99,10 +103,6 @@ def measure_files(frames, catalog: str, dest: str, *, options: MeasureOptions | 
         Summary: rows, good (= unflagged: rows with flags 0), frames, and the
         numbers selected, fitted and cut.
     """
-    from ..io.fitsfile import OutHDU, table_hdu
-    from ..io.frames import open_frame
-    from ..io.output import add_provenance, check_output, write_hdus
-
     o = options if options is not None else MeasureOptions()
     psf, method, stamp, joint, psf_pixel = o.psf, o.method, o.stamp, o.joint, o.psf_pixel
     if method not in ("exp", "hsm"):
@@ -234,9 +234,6 @@ def measure_files(frames, catalog: str, dest: str, *, options: MeasureOptions | 
 
 def _write_psf(psf_used, dest, psf, inputs, overwrite):
     """--write-psf: the PSF images of the fits, one HDU per PSF, with the keywords that read them back."""
-    from ..io.fitsfile import OutHDU
-    from ..io.output import add_provenance, write_hdus
-
     # one image per SCA and FILTER, which is how --psf picks them again (frames of one SCA whose WCS
     # scales differ by 1e-6 have models of their own, of the same PSF)
     distinct = {}
@@ -254,8 +251,6 @@ def _write_psf(psf_used, dest, psf, inputs, overwrite):
 
 def _document(header, joint: bool):
     """COMMENT cards (72 characters each): what the rows are and the axes of g."""
-    import textwrap
-
     text = ("Rows: the objects of KINDS whose position falls on the frame and whose S/N predicted from the "
             "catalogue (magnitude through ZPT_AB, hlr, PSF, sky + dark + read noise; never the pixels) is at "
             "least MINSNR; with ALLROWS also the others, without a fit (flag 256 off the frame, 4096 below "
@@ -273,8 +268,6 @@ def _document(header, joint: bool):
 
 def _combined(shapes):
     """Per object: inverse-variance weighted mean g over frames whose fit has no flag."""
-    from ..io.fitsfile import table_hdu
-
     ids = np.unique(np.asarray(shapes["id"]))
     good = (np.asarray(shapes["flags"]) == 0) & np.isfinite(np.asarray(shapes["g1_err"]))
     out = {"id": ids, "nframes": np.zeros(len(ids), dtype=np.int16)}

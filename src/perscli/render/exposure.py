@@ -23,12 +23,16 @@ import logging
 import math
 from dataclasses import dataclass
 
+import galsim.roman as roman
 import numpy as np
 
 from .. import PerscliError
 from ..executor import imap
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
-from ..optics import Optics, StampDrawer, galaxy_stamp_size, stamp_drawer, star_stamp_size
+from ..io.tables import read_table
+from ..optics import (Optics, StampDrawer, exponential_forms, galaxy_stamp_size, local_jacobians, stamp_drawer,
+                      star_stamp_size)
+from ..scene import check_catalog, check_filter, check_mjd, check_pa, check_position
 
 log = logging.getLogger(__name__)
 
@@ -72,8 +76,6 @@ class Exposure:
     expid: int = -1
 
     def __post_init__(self):
-        from ..scene import check_mjd, check_pa, check_position
-
         if self.filter not in FILTERS:
             raise PerscliError(f"unknown filter {self.filter!r}: use one of {', '.join(FILTERS)}")
         if not 1 <= int(self.sca) <= ROMAN_N_SCA:
@@ -106,8 +108,6 @@ class Exposure:
         bounds : (xmin, xmax, ymin, ymax), optional
             A cutout, as :attr:`bounds`.
         """
-        from ..scene import check_filter
-
         sca = sca or pointing.sca
         if not sca:
             raise PerscliError("the pointing names no SCA: give sca (1-18)")
@@ -154,8 +154,6 @@ def read_truth(path: str, filter_name: str, *, columns=None):
         unknown kind, or values no object can have
         (:func:`perscli.scene.check_catalog`).
     """
-    from ..io.tables import read_table
-
     table = read_table(path, what="truth catalogue (perscli catalog)", columns=columns or {}, known=TRUTH_READS)
     mag = f"mag_{filter_name}"
     needed = REQUIRED + (mag,)
@@ -175,7 +173,6 @@ def read_truth(path: str, filter_name: str, *, columns=None):
     unknown = set(np.unique(cols["kind"]).tolist()) - {"star", "galaxy"}
     if unknown:
         raise PerscliError(f"{label}: column kind has {sorted(unknown)}; expected 'star' or 'galaxy'")
-    from ..scene import check_catalog
 
     # the catalogue check measure makes too: ids, positions, sizes and ellipticities that GalSim can draw
     # (hlr = 0 divided by zero, |e| >= 1 raised GalSim's range error)
@@ -188,8 +185,6 @@ def read_truth(path: str, filter_name: str, *, columns=None):
 
 def plan_objects(cols, optics: Optics, bounds):
     """Which objects touch the image, with their positions, fluxes and stamp sizes."""
-    import galsim.roman as roman
-
     x, y = optics.positions(cols["ra"], cols["dec"])
     flux = optics.electrons(cols["mag"])
     is_star = cols["kind"] == "star"
@@ -310,8 +305,6 @@ def draw_sources(cols, exposure: Exposure, *, workers: int = 1, progress=None, s
     image = np.zeros(shape) if image else None
     ndrawn = len(todo)
     if ndrawn:
-        from ..optics import exponential_forms, local_jacobians
-
         forms = np.full((len(x), 3), np.nan)
         gal = todo[cols["kind"][todo] == "galaxy"]
         if len(gal):

@@ -22,10 +22,10 @@ def frame_figure(sci: np.ndarray, png: str, *, persist: np.ndarray | None = None
     unit : str
         Units of ``sci`` for the colour bar.
     """
-    import matplotlib
+    import matplotlib  # lazy: figures only for --plot; matplotlib.use is process-wide
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: after the backend is chosen
 
     panels = 2 if persist is not None else 1
     fig, axes = plt.subplots(1, panels, figsize=(6.2 * panels, 5.6), squeeze=False)

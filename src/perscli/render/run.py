@@ -27,19 +27,33 @@ frame and the catalogue are, and refuses it with ``strict``.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import datetime as _dt
 import logging
 import os
 
+import galsim
 import numpy as np
 
 from .. import PerscliError
+from ..detector.blocks import NOISE_BLOCK
 from ..detector.chain import run_chain
+from ..detector.earlier import check_earlier
+from ..detector.effects import Persistence
 from ..detector.model import DetectorModel, model_table
+from ..detector.persistence import order_earlier, persistence_charge
 from ..io.cards import format_card
 from ..io.fitsfile import OutHDU
-from ..io.output import add_provenance, check_output, write_hdus
+from ..io.fitsreader import open_fits
+from ..io.frames import SECONDS_PER_DAY, normalize_unit, open_frame
+from ..io.output import add_provenance, atomic_output, atomic_path, check_output, write_hdus
+from ..io.sources import split_selector
 from ..optics import Optics
+from ..scene import separation, sky_extent
+from ..scene.footprints import objects_on_sca
 from .exposure import SCA_SIZE, Exposure, draw_sources, plan_objects, read_truth
+from .plots import frame_figure
 from .settings import DEFAULT_HDUS, HDU_NAMES, LIGHT_HDUS, SOURCE_HDU, RenderOptions
 
 log = logging.getLogger(__name__)
@@ -47,8 +61,6 @@ log = logging.getLogger(__name__)
 
 def _wcs_cards(optics, bounds) -> list:
     """FITS WCS cards of the exposure's SCA for an image with these bounds."""
-    import galsim
-
     xmin, xmax, ymin, ymax = bounds
     header = {}
     optics.wcs.writeToFitsHeader(header, galsim.BoundsI(xmin, xmax, ymin, ymax))
@@ -66,8 +78,6 @@ def _wcs_cards(optics, bounds) -> list:
 
 
 def _exposure_cards(exposure: Exposure, optics, seed: int, bunit: str, gain: float) -> list:
-    import datetime as _dt
-
     xmin, _, ymin, _ = exposure.full_bounds
     date_obs = (_dt.datetime(1858, 11, 17) + _dt.timedelta(days=exposure.mjd)).isoformat(timespec="milliseconds")
     return [
@@ -136,10 +146,6 @@ def with_persistence_source(model: DetectorModel, source) -> DetectorModel:
     PerscliError
         Not one of those (one line naming persistence.source).
     """
-    import copy
-
-    from ..detector.effects import Persistence
-
     if source is None:
         return model
     if isinstance(source, str):
@@ -179,10 +185,6 @@ def open_history(name: str, source: str):
         The frame has no such extension (one line saying how to render it
         with one), or cannot be read.
     """
-    from ..io.fitsreader import open_fits
-    from ..io.sources import split_selector
-    from ..io.frames import open_frame
-
     want = SOURCE_HDU[source]
     why = {"DRAWN": "the persistence source is the light drawn on it (the default; --persistence-source drawn): "
                     "render it with DRAWN in --hdus (the default), or choose another --persistence-source",
@@ -207,7 +209,6 @@ def open_history(name: str, source: str):
         if not found:
             frame.close()
             raise missing("stdin", frame.hdus)
-        from ..io.frames import normalize_unit
 
         frame.sci, frame.fluence_hdu = found[:1], None
         frame.unit = normalize_unit(frame.hdus[found[0]].header.get("BUNIT", "electron"), f"stdin: {want} BUNIT")
@@ -306,11 +307,6 @@ def footprint_report(truth: str, exposure: Exposure, *, cols=None, optics: Optic
         objects whose stamps reach the frame (what render draws, NOBJ);
         ``separation``: degrees from the frame's centre to the catalogue's.
     """
-    import galsim
-
-    from ..scene import separation, sky_extent
-    from ..scene.footprints import objects_on_sca
-
     cols = cols if cols is not None else read_truth(truth, exposure.filter, columns=columns)
     optics = optics if optics is not None else Optics(exposure)
     xmin, xmax, ymin, ymax = exposure.full_bounds
@@ -388,8 +384,6 @@ def write_regions(report: dict, dest: str, *, overwrite: bool = False, stdout=No
     stamp reaches the frame is a circle of its half-light radius (galaxies)
     or a cross (stars), tagged with its kind.  Returns the number of objects.
     """
-    from ..io.output import atomic_output
-
     e, cols = report["exposure"], report["cols"]
     xmin, xmax, ymin, ymax = report["bounds"]
     corners = ",".join(f"{ra:.8f},{dec:+.8f}" for _, _, ra, dec in report["corners"])
@@ -445,8 +439,6 @@ def simulation_area(bounds) -> tuple:
     exactly that part of the whole detector's frame (but for the persistence
     of pixels outside it, which its earlier frames do not hold).
     """
-    from ..detector.blocks import NOISE_BLOCK
-
     b = NOISE_BLOCK
     xmin, xmax, ymin, ymax = (int(v) for v in bounds)
 
@@ -474,8 +466,6 @@ def pad_to(image: np.ndarray | None, bounds, area) -> np.ndarray | None:
 
 def crop_result(result, area, bounds):
     """A :class:`~perscli.detector.chain.ChainResult` over ``area`` cut to ``bounds``."""
-    import dataclasses
-
     if tuple(area) == tuple(bounds):
         return result
     cut = {f: crop(getattr(result, f), area, bounds) for f in ("sci", "ideal", "fluence")}
@@ -558,10 +548,6 @@ def history_persistences(opened, exposure: Exposure, laws: dict):
         Name -> electrons per pixel, and the delays (s) after the earlier
         exposures the first law uses.
     """
-    from ..detector.earlier import check_earlier
-    from ..detector.persistence import order_earlier, persistence_charge
-    from ..io.frames import SECONDS_PER_DAY
-
     xmin, xmax, ymin, ymax = exposure.full_bounds
     shape = (ymax - ymin + 1, xmax - xmin + 1)
     for frame in opened:
@@ -631,8 +617,6 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
         Bad inputs, an exposure GalSim cannot make (one line naming the fix),
         or with ``strict`` a frame without objects.  Nothing is written.
     """
-    from ..detector.effects import Persistence
-
     o = options if options is not None else RenderOptions()
     hdus, compress, persistence_source, strict, columns = o.hdus, o.compress, o.persistence_source, o.strict, o.columns
     check_output(dest, overwrite=overwrite, inputs=[truth, *previous])
@@ -736,9 +720,6 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
                     source_params if opened else {}, sky_rate, nobj, hdus)
         write_hdus(out, dest, overwrite=overwrite, compress=compress)
         if plot:
-            from ..io.output import atomic_path
-            from .plots import frame_figure
-
             with atomic_path(plot, overwrite=overwrite, suffix=".part.png") as tmp:
                 frame_figure(result.sci, tmp, persist=result.persistence, unit=result.unit,
                              title=f"SCA {exposure.sca} {exposure.filter} MJD {exposure.mjd:.5f} seed {seed}")

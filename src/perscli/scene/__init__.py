@@ -23,10 +23,11 @@ often a typo than a wish for RA 10.
 
 from __future__ import annotations
 
+import datetime as _dt
 import math
 
-# numpy is imported inside the functions that need it: the commands' option defaults live in
-# perscli.scene.settings, below this package, and ``--help`` must not wait for numpy
+# lazy: numpy is imported inside the functions that need it: the commands' options import this package (the
+# coordinate ranges; perscli.scene.settings sits below it), and ``--help`` must not wait for numpy
 
 from .. import PerscliError
 from ..instrument import ROMAN_FILTERS
@@ -100,7 +101,7 @@ def check_positions(label: str, ra, dec) -> None:
     PerscliError
         One line naming ``label``, how many rows and the first.
     """
-    import numpy as np
+    import numpy as np  # lazy: see the note above the imports
 
     ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
     with np.errstate(invalid="ignore"):
@@ -198,7 +199,7 @@ def check_catalog(label: str, cols: dict, *, header=None, names=None) -> None:
     PerscliError
         One line naming the file, the column, how many rows and the first.
     """
-    import numpy as np
+    import numpy as np  # lazy: see the note above the imports
 
     if header is not None:
         check_column_scaling(label, header)
@@ -296,8 +297,6 @@ def check_mjd(mjd, what: str = "date") -> float:
 
 def mjd_datetime(mjd: float):
     """The UTC ``datetime.datetime`` of an MJD (what GalSim's Roman module takes as a date)."""
-    import datetime as _dt
-
     return _dt.datetime(1858, 11, 17) + _dt.timedelta(days=float(mjd))
 
 
@@ -315,7 +314,7 @@ def sky_extent(ra, dec) -> tuple:
         The direction of the mean unit vector (degrees; RA in [0, 360)) and the
         largest great-circle distance from it (degrees); NaNs for no positions.
     """
-    import numpy as np
+    import numpy as np  # lazy: see the note above the imports
 
     ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
     if ra.size == 0:
@@ -338,7 +337,7 @@ def sky_extent(ra, dec) -> tuple:
 
 def unit_vector(ra, dec) -> np.ndarray:
     """Unit vectors (..., 3) of positions in degrees."""
-    import numpy as np
+    import numpy as np  # lazy: see the note above the imports
 
     ra, dec = np.radians(ra), np.radians(dec)
     return np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], axis=-1)
@@ -346,7 +345,7 @@ def unit_vector(ra, dec) -> np.ndarray:
 
 def tangent_basis(ra: float, dec: float) -> tuple:
     """The centre, east and north unit vectors of the tangent plane at (ra, dec) in degrees."""
-    import numpy as np
+    import numpy as np  # lazy: see the note above the imports
 
     a, d = np.radians(ra), np.radians(dec)
     centre = np.array([np.cos(d) * np.cos(a), np.cos(d) * np.sin(a), np.sin(d)])
@@ -371,7 +370,7 @@ def deproject(ra0: float, dec0: float, xi, eta) -> tuple:
     ra, dec : ndarray
         Degrees, RA in [0, 360).
     """
-    import numpy as np
+    import numpy as np  # lazy: see the note above the imports
 
     centre, east, north = tangent_basis(ra0, dec0)
     xi, eta = np.asarray(xi, dtype=np.float64), np.asarray(eta, dtype=np.float64)
@@ -391,7 +390,7 @@ def project(ra0: float, dec0: float, ra, dec) -> tuple:
         Radians; NaN for points 90 degrees or more from the tangent point,
         which have no gnomonic projection.
     """
-    import numpy as np
+    import numpy as np  # lazy: see the note above the imports
 
     centre, east, north = tangent_basis(ra0, dec0)
     v = unit_vector(ra, dec)
@@ -405,7 +404,7 @@ def project(ra0: float, dec0: float, ra, dec) -> tuple:
 
 def separation(ra1, dec1, ra2, dec2) -> np.ndarray:
     """Great-circle distance in degrees (Vincenty's formula: accurate at all distances)."""
-    import numpy as np
+    import numpy as np  # lazy: see the note above the imports
 
     a1, d1, a2, d2 = (np.radians(np.asarray(x, dtype=np.float64)) for x in (ra1, dec1, ra2, dec2))
     da = a2 - a1

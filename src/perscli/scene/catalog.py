@@ -103,14 +103,18 @@ import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from astropy.table import Table
 
 from .. import PerscliError
 from ..instrument import ROMAN_FILTERS
+from ..io.output import check_output
 from ..io.tables import read_table
-from . import EFFECTIVE_WAVELENGTH_UM, deproject, project
+from . import EFFECTIVE_WAVELENGTH_UM, check_position, deproject, project
 from .photometry import DEFAULT_BP_RP, gaia_roman_jh
+from .pointings import pointings_footprints
+from .regions import FootprintUnion
 from .settings import CatalogOptions
-from .starcounts import GalacticStarModel
+from .starcounts import GalacticStarModel, draw_galactic_stars, star_density as model_density
 from .truthtable import _COLUMN_INFO, write_truth_catalog
 
 #: arcmin^2 per steradian
@@ -176,8 +180,6 @@ class Field:
     size: float = CatalogOptions.size
 
     def __post_init__(self):
-        from . import check_position
-
         check_position(self.ra, self.dec, "field centre")
         if not (0.0 < self.size < 3600.0):
             raise PerscliError(f"field size {self.size} arcmin: must be more than 0 and less than 3600 "
@@ -465,10 +467,6 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         A negative density or seed, a bad field or footprint, an unreadable
         Gaia file, or a star density with a Galactic star model.
     """
-    from astropy.table import Table
-
-    from .regions import FootprintUnion
-
     for label, value in (("galaxy density", galaxy_density), ("star density", star_density)):
         if value is not None and not (math.isfinite(value) and value >= 0):
             raise PerscliError(f"{label} {value} per arcmin^2: must be a number >= 0")
@@ -492,8 +490,6 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         if (ra is None) != (dec is None):
             raise PerscliError("with footprints, give both ra and dec (the tangent point) or neither")
         if ra is not None:
-            from . import check_position
-
             ra, dec = check_position(ra, dec, "tangent point")
         fld = FootprintUnion(footprints, margin_arcsec, centre=None if ra is None else (ra, dec))
         meta = {"REGION": "footprints", "FIELDRA": fld.ra, "FIELDDEC": fld.dec, "NFOOT": len(fld),
@@ -528,8 +524,6 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         meta.update({"STARSRC": "model", "STARMOD": "powerlaw", "STARDENS": float(star_density),
                      "NSTAR": len(stars["ra"])})
     else:
-        from .starcounts import draw_galactic_stars, star_density as model_density
-
         gaia_stars = None
         stars = draw_galactic_stars(np.random.Generator(np.random.PCG64(star_seq)), fld, star_model)
         meta.update({"STARSRC": "model", **star_model.meta(),
@@ -615,15 +609,11 @@ def make_truth_catalog_file(dest: str, ra: float | None = None, dec: float | Non
     astropy.table.Table
         The catalog written.
     """
-    from ..io.output import check_output
-
     galaxy_rows = kw.pop("galaxy_rows", None)
     table_path = footprints if isinstance(footprints, (str, bytes)) else None
     check_output(dest, overwrite=overwrite, inputs=list(kw.get("gaia") or ()) + ([table_path] if table_path else []))
     inputs = []
     if table_path is not None:
-        from .pointings import pointings_footprints
-
         footprints, datasum = pointings_footprints(table_path, sca=sca, bounds=bounds, stdin=stdin)
         inputs.append(("PTGS", table_path, datasum))
     elif sca or bounds is not None:

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import math
 
+import galsim
+import galsim.roman as roman
 import numpy as np
 
 from .. import PerscliError
@@ -55,9 +57,6 @@ def sca_wcs(pointing, sca: int):
         observe at that date (GalSim allows positions 54 to 126 degrees from
         the Sun): one line with the first date after it when Roman can.
     """
-    import galsim
-    import galsim.roman as roman
-
     if not 1 <= int(sca) <= ROMAN_N_SCA:
         raise PerscliError(f"SCA {sca}: Roman has detectors 1 to {ROMAN_N_SCA}")
     ra, dec = check_position(getattr(pointing, "ra"), getattr(pointing, "dec"), "pointing")
@@ -92,8 +91,6 @@ def sky_to_pixels(wcs, ra, dec) -> tuple:
         SCA's centre, which cannot land on it (and which a TAN-SIP WCS
         would fold onto it or fail to invert).
     """
-    import galsim
-
     ra = np.atleast_1d(np.asarray(ra, dtype=np.float64))
     dec = np.atleast_1d(np.asarray(dec, dtype=np.float64))
     x, y = np.full(ra.shape, np.nan), np.full(ra.shape, np.nan)

@@ -18,6 +18,9 @@ from __future__ import annotations
 
 import math
 
+import coord
+import galsim
+import galsim.roman as roman
 import numpy as np
 
 from . import check_mjd, check_position, mjd_datetime
@@ -38,16 +41,11 @@ def _when(mjd: float) -> str:
 
 def sun_limits() -> tuple:
     """GalSim's limits on the angle between a Roman pointing and the Sun, degrees: (54, 126)."""
-    import galsim.roman as roman
-
     return 90.0 - roman.max_sun_angle, 90.0 + roman.max_sun_angle
 
 
 def sun_angle(ra: float, dec: float, mjd: float) -> float:
     """Degrees between (ra, dec) and the Sun at ``mjd``, computed as ``galsim.roman.allowedPos`` does."""
-    import coord
-    import galsim
-
     date = mjd_datetime(mjd)
     lam = coord.util.sun_position_ecliptic(date)
     sun = coord.CelestialCoord.from_ecliptic(lam, 0 * coord.radians, date.year)
@@ -63,9 +61,6 @@ def observable(ra: float, dec: float, mjd: float) -> bool:
     PerscliError
         A position or date out of range.
     """
-    import galsim
-    import galsim.roman as roman
-
     ra, dec = check_position(ra, dec, "pointing")
     mjd = check_mjd(mjd)
     return bool(roman.allowedPos(galsim.CelestialCoord(ra * galsim.degrees, dec * galsim.degrees),
@@ -78,9 +73,6 @@ def best_pa(ra: float, dec: float, mjd: float) -> float | None:
     ``galsim.roman.bestPA``: the solar panels face the Sun as directly as
     possible.  None when Roman cannot point there then.
     """
-    import galsim
-    import galsim.roman as roman
-
     ra, dec = check_position(ra, dec, "pointing")
     pa = roman.bestPA(galsim.CelestialCoord(ra * galsim.degrees, dec * galsim.degrees), mjd_datetime(check_mjd(mjd)))
     return None if pa is None else float(pa / galsim.degrees) % 360.0

@@ -68,6 +68,9 @@ import numpy as np
 
 from .. import PerscliError
 from ..instrument import ROMAN_SCA_SIZE
+from ..io.cards import format_card
+from ..io.fitsfile import OutHDU, table_hdu
+from ..io.output import add_provenance, check_output, write_hdus
 from ..io.tables import read_table
 from . import check_filter, check_positions
 
@@ -116,10 +119,6 @@ def pointings_hdulist(pointings, *, step: str, params: dict | None = None, input
     corners (:func:`sca_footprint` of its ``sca``, which must be 1-18);
     with ``counts`` (:func:`count_on_sca`) those of :data:`COUNT_COLUMNS`.
     """
-    from ..io.cards import format_card
-    from ..io.fitsfile import OutHDU, table_hdu
-    from ..io.output import add_provenance
-
     values = {
         "expid": np.array([p.expid for p in pointings], dtype=np.int64),
         "mjd": np.array([p.mjd for p in pointings], dtype=np.float64),
@@ -153,8 +152,6 @@ def pointings_hdulist(pointings, *, step: str, params: dict | None = None, input
 def write_pointings(pointings, dest: str, *, overwrite: bool = False, stdout=None, **provenance) -> None:
     """Write ``pointings`` atomically (or to standard output for '-'); ``provenance`` (and ``footprints``,
     ``counts``) as :func:`pointings_hdulist`."""
-    from ..io.output import write_hdus
-
     write_hdus(pointings_hdulist(pointings, **provenance), dest, overwrite=overwrite, stdout=stdout)
 
 
@@ -303,8 +300,6 @@ def select_covering_file(dest: str, schedule: str, ra: float, dec: float, radius
     list of Pointing
         The exposures selected, in time order.
     """
-    from ..io.output import check_output
-
     o = options if options is not None else SelectOptions()
     filter, after, limit, sca = o.filter, o.after, o.limit, o.sca
     check_output(dest, overwrite=overwrite, inputs=[schedule, catalog])
@@ -342,8 +337,6 @@ def previous_exposures_file(dest: str, schedule: str, row: int, n: int, *, sca: 
     """Check ``dest``, take the ``n`` exposures before ``row`` of the schedule file
     (:func:`previous_exposures`) and write them (with their SCA corners when ``footprints``, and the
     objects of ``catalog`` on each, as :func:`select_covering_file`)."""
-    from ..io.output import check_output
-
     check_output(dest, overwrite=overwrite, inputs=[schedule, catalog])
     sched = read_schedule(schedule, stdin=stdin, columns=schedule_columns)
     chosen = previous_exposures(sched, row, n, sca=sca)
@@ -395,8 +388,6 @@ def plan_dithers_file(dest: str, ra: float, dec: float, n: int, options: PlanOpt
     list of Pointing
         The plan, ``expid`` 0 to n-1.
     """
-    from ..io.output import check_output
-
     o = options if options is not None else PlanOptions()
     dither, filter, start, exptime, gap, pa, sca, seed = (o.dither, o.filter, o.start, o.exptime, o.gap, o.pa,
                                                           o.sca, o.seed)

@@ -35,7 +35,7 @@ import math
 import numpy as np
 
 from .. import PerscliError
-from . import deproject, project, unit_vector
+from . import deproject, project, separation, unit_vector
 
 #: arcmin^2 per steradian
 ARCMIN2_PER_SR = (180.0 * 60.0 / math.pi) ** 2
@@ -128,15 +128,11 @@ def polygon_meets_circle(ra, dec, ra0: float, dec0: float, radius: float) -> boo
     """
     ra, dec = _check_corners(ra, dec)
     if radius >= 90.0:
-        from . import separation
-
         return bool(np.any(separation(ra0, dec0, ra, dec) <= radius))
     x, y = project(ra0, dec0, ra, dec)
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
         # a corner 90 degrees or more away: the polygon reaches round the sphere from this centre;
         # footprints are far smaller than that, so only a polygon far from a small cap gets here
-        from . import separation
-
         return bool(np.any(separation(ra0, dec0, ra, dec) <= radius))
     x, y = _ccw(x, y)
     r = math.tan(math.radians(radius))

@@ -22,6 +22,7 @@ columns).
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +31,7 @@ from .. import PerscliError
 from ..io.tables import read_table
 from . import check_filter, check_position, separation
 from .footprints import sca_footprint
+from .regions import polygon_meets_circle
 
 DAY = 86400.0
 
@@ -52,7 +54,6 @@ def schedule_path(name: str) -> str:
     """The file a schedule name stands for: :data:`BUNDLED_SCHEDULE` is the bundled one, anything else a path."""
     if name != BUNDLED_SCHEDULE:
         return name
-    import os
 
     return os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "data", BUNDLED_SCHEDULE_FILE)
 
@@ -271,7 +272,6 @@ def select_covering(schedule: Schedule, ra: float, dec: float, radius: float, *,
         if limit is not None:
             rows = rows[:limit]
         return [schedule_pointing(schedule, i) for i in rows]
-    from .regions import polygon_meets_circle
 
     chosen = []
     for k, i in enumerate(rows):

@@ -104,11 +104,17 @@ from __future__ import annotations
 
 import functools
 import math
+import os
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
+from astropy.io import fits
 
 from .. import PerscliError
+from ..io.config import STAR_ITEM, split_key_value
+from . import deproject, project, unit_vector
+from .photometry import gaia_roman_jh
 
 #: deg^2 per steradian
 DEG2_PER_SR = (180.0 / math.pi) ** 2
@@ -275,16 +281,12 @@ class GalacticStarModel:
             An unknown name (the message lists the valid ones), a value that
             is not a number, or a value out of range.
         """
-        from collections.abc import Mapping
-
         base = cls() if base is None else base
         if isinstance(overrides, Mapping):
             items = list(overrides.items())
         elif isinstance(overrides, str):
             raise PerscliError(f"star-model parameters {overrides!r}: give a mapping or a list of KEY=VALUE")
         else:
-            from ..io.config import STAR_ITEM, split_key_value
-
             # the values stay text: each is read as a number below, with a message naming its parameter
             items = [split_key_value(text, **STAR_ITEM) for text in overrides]
         valid = cls.parameter_names()
@@ -526,8 +528,6 @@ def draw_galactic_stars(rng: np.random.Generator, fld, model: GalacticStarModel 
         (ra, dec) of the nodes the model was evaluated at) and
         ``max_density`` (per arcmin^2, the largest at a node).
     """
-    from . import deproject, project
-
     model = GalacticStarModel() if model is None else model
     lf = luminosity_function(model)
     x1, x2, y1, y2 = _plane_box(fld)
@@ -630,8 +630,6 @@ def trixel_area(index: int) -> float:
 
 def trixel_contains(index: int, ra, dec) -> np.ndarray:
     """Which positions (degrees) lie in an HTM trixel (edges included)."""
-    from . import unit_vector
-
     a, b, c = htm_trixel(index)
     v = unit_vector(np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64))
     return (v @ np.cross(a, b) >= 0) & (v @ np.cross(b, c) >= 0) & (v @ np.cross(c, a) >= 0)
@@ -655,12 +653,6 @@ def read_gaia_chunk(path: str) -> dict:
 
     The chunk's file name is its trixel id (LSST convention, e.g. 145649.fits).
     """
-    import os
-
-    from astropy.io import fits
-
-    from .photometry import gaia_roman_jh
-
     stem = os.path.basename(path).split(".")[0]
     if not stem.isdigit():
         raise PerscliError(f"{path}: a Gaia chunk is named by its HTM trixel id (e.g. 145649.fits)")

@@ -15,6 +15,9 @@ import re
 import numpy as np
 
 from ..instrument import ROMAN_FILTERS
+from ..io.cards import format_card
+from ..io.fitsfile import OutHDU, table_hdu
+from ..io.output import add_provenance, write_hdus
 from .starcounts import META_KEYWORDS as _STAR_META
 
 #: header keyword -> comment, for the keywords :func:`make_truth_catalog` puts in ``meta``
@@ -101,10 +104,6 @@ def truth_hdulist(table):
     -------
     list of perscli.io.fitsfile.OutHDU
     """
-    from ..io.cards import format_card
-    from ..io.fitsfile import OutHDU, table_hdu
-    from ..io.output import add_provenance
-
     columns = {name: np.asarray(table[name]) for name in table.colnames}
     units = {name: str(table[name].unit) for name in table.colnames if table[name].unit is not None}
     cards = [format_card(f"TCOMM{k}", _COLUMN_INFO[name][1]) for k, name in enumerate(table.colnames, 1)]
@@ -137,6 +136,4 @@ def truth_hdulist(table):
 
 def write_truth_catalog(table, dest: str, *, overwrite: bool = False, stdout=None) -> None:
     """Write a catalog from :func:`make_truth_catalog` atomically (or to standard output for '-')."""
-    from ..io.output import write_hdus
-
     write_hdus(truth_hdulist(table), dest, overwrite=overwrite, stdout=stdout)

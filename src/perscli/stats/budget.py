@@ -38,12 +38,17 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import textwrap
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.special import j0
 
 from .. import PerscliError
+from ..io.fitsfile import OutHDU, table_hdu
+from ..io.output import add_provenance, atomic_output, check_output, write_hdus
+from ..io.tables import read_table
 from .settings import BudgetOptions
 
 #: multipole bands of the HLIS requirement, inclusive
@@ -164,8 +169,6 @@ def xi_plus(theta, bands=BudgetOptions.bands, modes: str = BudgetOptions.modes) 
     ndarray
         xi+ at each theta (same shape as ``theta``).
     """
-    from scipy.special import j0
-
     factor = _modes_factor(modes)
     ell, cl = power_spectrum(bands)
     keep = cl > 0
@@ -270,8 +273,6 @@ def read_xi(path: str, *, stdin=None, columns=None) -> XiTable:
         unknown separation unit, or a NaN, infinite or negative value where a
         bin has pairs.
     """
-    from ..io.tables import read_table
-
     what = "correlation table (perscli correlate output)"
     table = read_table(path, what=what, stdin=stdin, columns=columns or {}, known=XI_READS)
     where = f"{table.label}: HDU {table.index}"
@@ -596,9 +597,6 @@ def budget_hdulist(result: Comparison, *, inputs=()):
     Columns: theta (unit), xip_budget; with a measurement also xip, sigma_xip,
     ratio, sigma_ratio and exceeds (logical).
     """
-    from ..io.fitsfile import OutHDU, table_hdu
-    from ..io.output import add_provenance
-
     cols = {"theta": result.theta, "xip_budget": result.budget}
     if result.xip is not None:
         cols.update({"xip": result.xip, "sigma_xip": result.sigma_xip, "ratio": result.ratio,
@@ -667,10 +665,10 @@ def budget_figure(result: Comparison, *, linthresh: float | None = None) -> byte
     bytes
         A PNG image.
     """
-    import matplotlib
+    import matplotlib  # lazy: figures only for --plot; matplotlib.use is process-wide
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: after the backend is chosen
 
     measured = result.xip is not None
     used = ~result.empty if measured else np.zeros(0, bool)
@@ -741,8 +739,6 @@ def budget_file(dest: str, xi_path: str | None = None, *, bands: str = BudgetOpt
     Comparison
         What was written.  Nothing is written when an error is raised.
     """
-    from ..io.output import atomic_output, check_output, write_hdus
-
     inputs = [xi_path] if xi_path else []
     check_output(dest, overwrite=overwrite, inputs=inputs)
     if plot is not None:
@@ -771,6 +767,4 @@ def budget_file(dest: str, xi_path: str | None = None, *, bands: str = BudgetOpt
 
 
 def _same_path(a: str, b: str) -> bool:
-    import os
-
     return os.path.abspath(a) == os.path.abspath(b)

@@ -57,6 +57,10 @@ import math
 import os
 
 from .. import PerscliError
+from ..io.output import check_output, write_hdus
+from ..io.tempfiles import make_temp_file
+from ..scene import separation
+from . import plots
 from .settings import CorrelateOptions
 
 from .correlate_hdus import build_hdus, xi_table
@@ -99,8 +103,6 @@ def _png_targets(plot, plots_dir, overwrite):
 
 def _within(sc, ra, dec, radius):
     """The objects of ``sc`` within ``radius`` degrees of (ra, dec) (a study's field)."""
-    from ..scene import separation
-
     if sc.coords != "radec":
         raise PerscliError("a circle on the sky needs ra/dec positions, not x/y")
     keep = separation(ra, dec, sc.pos1, sc.pos2) <= radius
@@ -152,9 +154,6 @@ def correlate_files(catalogs, dest: str, options: CorrelateOptions | None = None
         |De| bin: de_lo, de_hi, n, n_eff, chi2, dof, p, p_method), figures
         and source.
     """
-    from ..io.output import check_output, write_hdus
-    from ..io.tempfiles import make_temp_file
-
     o = options if options is not None else CorrelateOptions()
     de_columns, common_ids, positions, pixel_scale, columns = (o.de_columns, o.common_ids, o.positions,
                                                                o.pixel_scale, o.columns)
@@ -225,8 +224,6 @@ def correlate_files(catalogs, dest: str, options: CorrelateOptions | None = None
     temps, made_dir = {}, None
     try:
         if pngs:
-            from . import plots
-
             if plots_dir is not None and not os.path.isdir(plots_dir):
                 os.mkdir(plots_dir)
                 made_dir = plots_dir

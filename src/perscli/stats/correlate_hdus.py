@@ -3,15 +3,19 @@
 :func:`build_hdus` lays out the file: the primary HDU with the provenance and
 settings, XI (:func:`xi_table`), COV, STATS, HIST_DE, THETA_DE, PATCHES and,
 for pooled pairs, PAIRS (:func:`_pairs_hdu`) or, for pooled De columns,
-INPUTS.  FITS writing and TreeCorr are imported inside the functions.
+INPUTS.
 """
 
 from __future__ import annotations
 
 import os
+import textwrap
 
 import numpy as np
+import treecorr
 
+from ..io.fitsfile import OutHDU, table_hdu
+from ..io.output import add_provenance
 from .de_stats import MIN_EXPECTED, N_ANGLE, NULL_DRAWS
 from .shape_changes import ShapeChanges
 from .xi import Errors
@@ -42,15 +46,11 @@ def xi_table(gg, cov=None) -> dict:
 
 def _comment(hdu, text: str) -> None:
     """COMMENT cards holding ``text``, wrapped at 72 characters (a card holds no more)."""
-    import textwrap
-
     for line in textwrap.wrap(text, 72):
         hdu.header.add_comment(line)
 
 
 def _table_hdu(columns: dict, name: str, units: dict | None = None):
-    from ..io.fitsfile import table_hdu
-
     return table_hdu(columns, name, units=units)
 
 
@@ -66,11 +66,6 @@ _AXES_COMMENTS = {
 def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, *, settings: dict, seed: int,
                patch_source: str, errors: Errors | None = None):
     """The output file: provenance, XI, COV, STATS, HIST_DE, THETA_DE, PATCHES and, for pooled pairs, PAIRS."""
-    import treecorr
-
-    from ..io.fitsfile import OutHDU
-    from ..io.output import add_provenance
-
     if errors is None:
         errors = Errors(str(gg.var_method), npatch=int(cat.npatch) if gg.var_method == "jackknife" else 0)
     jackknife = errors.method == "jackknife"
@@ -208,8 +203,6 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     if sc.pairs:
         hdus.append(_pairs_hdu(sc.pairs, sc.g_axes))
     if sc.tables:
-        from ..io.fitsfile import table_hdu
-
         hdus.append(table_hdu({"name": np.array([os.path.basename(r["name"]) for r in sc.tables]),
                                "datasum": np.array([r["datasum"] for r in sc.tables], dtype=np.int64),
                                "rows": np.array([r["rows"] for r in sc.tables], dtype=np.int64),
@@ -231,7 +224,6 @@ def _pairs_hdu(records: list, g_axes: str):
         cols[key] = np.array([r[key] for r in records], dtype=np.float64)
     descriptions = {"pair": "1-based, as listed", "a": "SHAPES table with persistence", "b": "reference",
                     "used": "objects pooled from this pair"}
-    from ..io.fitsfile import table_hdu
 
     hdu = table_hdu(cols, "PAIRS", descriptions=descriptions)
     hdu.header["NPAIRS"] = (len(records), "pairs pooled")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import shlex
 
 import numpy as np
 
@@ -55,8 +56,6 @@ def read_pairs_file(path: str) -> list:
         The file is missing, not text, a FITS file, has a line without
         exactly two names, or lists no pair.
     """
-    import shlex
-
     if not os.path.isfile(path):
         raise PerscliError(f"{path}: no such file (--pairs: a text file with two SHAPES tables per line)")
     try:

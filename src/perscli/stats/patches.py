@@ -10,11 +10,17 @@ before anything is read.
 
 from __future__ import annotations
 
+import io
 import os
+import stat
+import warnings
 
 import numpy as np
 
 from .. import PerscliError
+from ..io.fitsreader import open_fits
+from ..io.sources import stat_input
+from ..scene import DEC_RANGE, RA_RANGE
 
 #: the largest text file of patch centres read (bytes): TreeCorr's text file of 10,000 centres is ~0.7 MB
 MAX_PATCH_TEXT = 16 << 20
@@ -41,10 +47,6 @@ def check_patch_centers_file(path: str) -> None:
     PerscliError
         One line naming the file and what to give instead.
     """
-    import stat
-
-    from ..io.sources import stat_input
-
     st = stat_input(path, kind=_PATCH_FILE, hint=f"; give {_PATCH_FILE}")
     if stat.S_ISDIR(st.st_mode):
         raise PerscliError(f"{path}: is a directory, not a file of patch centres; give {_PATCH_FILE}")
@@ -93,8 +95,6 @@ def read_patch_center_columns(path: str) -> dict:
     except OSError as exc:
         raise PerscliError(f"{path}: cannot be read ({exc.strerror}); give {_PATCH_FILE}") from None
     if is_fits:
-        from ..io.fitsreader import open_fits
-
         with open_fits(path) as fitsin:
             tables = [h for h in fitsin.hdus if h.kind == "table"]
             named = [h for h in tables if h.name == "PATCHES"]
@@ -105,7 +105,6 @@ def read_patch_center_columns(path: str) -> dict:
                 return {n.lower(): np.asarray(hdu.read_column(n), dtype=np.float64) for n in hdu.colnames}
             except (TypeError, ValueError) as exc:
                 raise PerscliError(f"{path}: not a readable FITS table of patch centres ({exc})") from None
-    import io
 
     try:
         with open(path, "rb") as fh:
@@ -121,7 +120,6 @@ def read_patch_center_columns(path: str) -> dict:
     except UnicodeDecodeError:
         raise PerscliError(f"{path}: neither FITS nor text: not a file of patch centres; give {_PATCH_FILE}") \
             from None
-    import warnings
 
     try:
         with warnings.catch_warnings():
@@ -162,8 +160,6 @@ def patch_center_vectors(data: dict, coords: str, path: str) -> np.ndarray:
         if {"x", "y", "z"} <= set(data):
             centers = np.column_stack([data["x"], data["y"], data["z"]])
         elif {"ra", "dec"} <= set(data):
-            from ..scene import DEC_RANGE, RA_RANGE
-
             # the ranges of every position perscli reads: refused, never wrapped (Dec 100 would fold over the
             # pole into another centre without a word)
             with np.errstate(invalid="ignore"):

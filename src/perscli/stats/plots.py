@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from .de_stats import MIN_EXPECTED
+
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # lazy: figures only for --plot; matplotlib.use is process-wide
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: after the backend is chosen
 
     return plt
 
@@ -126,8 +128,6 @@ def theta_figure(theta: dict, png: str) -> None:
     flattening every other bin.  When no bin has enough objects, all of them
     set it.
     """
-    from .de_stats import MIN_EXPECTED
-
     plt = _pyplot()
     lo, hi, n = (np.asarray(theta[k]) for k in ("de_lo", "de_hi", "n"))
     t0, t1 = np.asarray(theta["theta_lo"]), np.asarray(theta["theta_hi"])

@@ -13,6 +13,7 @@ of :mod:`perscli.stats.correlate` for what they mean for xi+/-.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -23,6 +24,7 @@ import numpy as np
 from .. import PerscliError
 from ..instrument import ROMAN_PIXEL_SCALE
 from ..io.tables import open_table
+from ..scene import DEC_RANGE, RA_RANGE
 
 log = logging.getLogger("perscli")
 
@@ -125,8 +127,6 @@ class ShapeChanges:
 
         ``why`` names the cut in the counts (``counts[why]``: the objects it left out).
         """
-        import dataclasses
-
         keep = np.asarray(keep, dtype=bool)
         per = {}
         for f in dataclasses.fields(self):
@@ -221,8 +221,6 @@ def _check_sky(table, rows, ra, dec) -> None:
     infinite values are left to :func:`_finite_rows` (dropped with a
     warning, as for any column).
     """
-    from ..scene import DEC_RANGE, RA_RANGE
-
     with np.errstate(invalid="ignore"):
         bad = np.isfinite(ra) & ~((ra >= RA_RANGE[0]) & (ra <= RA_RANGE[1]))
         bad |= np.isfinite(dec) & ~((dec >= DEC_RANGE[0]) & (dec <= DEC_RANGE[1]))

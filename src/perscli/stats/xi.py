@@ -4,8 +4,7 @@ The shear-shear correlation function of De (TreeCorr's ``GGCorrelation``),
 with a jackknife covariance over k-means patches (or given patch centres,
 :mod:`perscli.stats.patches`), or shot-noise errors when a jackknife is
 impossible; separation bins whose jackknife variance is zero to rounding get
-their shot noise instead.  TreeCorr is imported inside the functions, so
-importing this module does not import it.
+their shot noise instead.
 """
 
 from __future__ import annotations
@@ -15,6 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import treecorr
 
 from .. import PerscliError
 from ..executor import threads
@@ -136,8 +136,6 @@ def correlate_de(sc: ShapeChanges, *, min_sep=1.0, max_sep=100.0, nbins=20, sep_
     PerscliError
         Bad settings, the jackknife asked for and impossible, or TreeCorr failing.
     """
-    import treecorr
-
     if not 0 < min_sep < max_sep:
         raise PerscliError(f"--min-sep {min_sep} and --max-sep {max_sep}: need 0 < min-sep < max-sep")
     if sep_units not in SEP_UNITS:

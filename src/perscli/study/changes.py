@@ -18,11 +18,22 @@ the paper does ("all galaxies are used").
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from .. import PerscliError
+from ..executor import run
+from ..io.fitsfile import OutHDU, table_hdu
+from ..io.frames import open_frame
+from ..io.output import add_provenance, check_output, write_hdus
+from ..io.tables import read_table
+from ..measure.joint import ChangesContext, joint_setup, measure_joint_changes_object
+from ..measure.perframe import Windows, frame_setup, measure_object_changes, stamp_window
+from ..measure.response import CHANGE_METHODS
 from ..measure.selection import read_positions
 from ..measure.settings import MIN_SNR_DEFAULT, MeasureOptions
+from ..scene import project, separation
 from .differential import read_stamps, stamp_windows, variant_extname
 
 #: |De| of a galaxy fitted on both: De = g(variant) - g(reference); Delta|e| = |g(variant)| - |g(reference)|
@@ -33,8 +44,6 @@ COLD_COLUMNS = ("de1_cold", "de2_cold")
 
 
 def _truth_shapes(catalog: str, n: int):
-    from ..io.tables import read_table
-
     table = read_table(catalog, what="truth catalogue")
     names = {c.lower(): c for c in table.names}
     if "e1" in names and "e2" in names:
@@ -47,8 +56,6 @@ _CATALOGUES: dict = {}
 
 def _catalogue(path: str):
     """The catalogue's positions and true shapes, read once per process and file (a study's finals share it)."""
-    import os
-
     st = os.stat(path)
     key = (os.path.realpath(path), st.st_size, st.st_mtime_ns)
     if key not in _CATALOGUES:
@@ -119,16 +126,12 @@ def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions =
     index = {int(i): k for k, i in enumerate(cat["id"])}
     subset = np.ones(len(cat["id"]), dtype=bool)
     if part is not None:
-        from ..scene import project
-
         xi, _ = project(part["ra0"], part["dec0"], cat["ra"], cat["dec"])
         if part.get("xi_lo") is not None:
             subset &= xi >= part["xi_lo"]
         if part.get("xi_hi") is not None:
             subset &= xi < part["xi_hi"]
     if field is not None:
-        from ..scene import separation
-
         subset &= separation(field["ra"], field["dec"], cat["ra"], cat["dec"]) <= field["radius"]
 
     changed = {v: [] for v in variants}
@@ -156,8 +159,6 @@ def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions =
         for v in variants:
             parts[v].append(_assemble(cat, ref, var[v], subset, -1, e1_true, e2_true))
     else:
-        from ..io.frames import open_frame
-
         for k, path in enumerate(finals):
             expid = int(expids[k]) if expids is not None else k
             mine = pixels[k] if pixels is not None else None
@@ -176,7 +177,6 @@ def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions =
         columns = COLUMNS + (COLD_COLUMNS if cold else ())
         cols = {c: np.concatenate([p[c] for p in parts[v]]) for c in columns}
         fitted = cols["fitted"].astype(bool)
-        from ..measure.response import CHANGE_METHODS
 
         cols["_counts"] = {"sample": len(cols["id"]), "fitted": int(fitted.sum()),
                            "flagged": int(np.count_nonzero(fitted & (cols["flags"] != 0))),
@@ -202,10 +202,6 @@ def _joint_changes(refs, variants, cat, per_variant, options, *, workers=1, cold
     The finals' pixels come from ``pixels`` (whole frames in memory) or
     ``stored`` (their windows, :func:`perscli.study.differential.read_stamps`).
     """
-    from ..executor import run
-    from ..measure.joint import ChangesContext, joint_setup, measure_joint_changes_object
-    from ..measure.perframe import Windows, stamp_window
-
     only = np.logical_or.reduce(per_variant) if per_variant else None
     setup = joint_setup(refs, cat, options, only=only, within=within)
     jc, todo, rows = setup.ctx, setup.todo, setup.rows
@@ -282,9 +278,6 @@ def frame_changes(frame, cat, names, changed, views, options, *, data=None, work
     data : ndarray, optional
         The reference's pixels, when already in memory.
     """
-    from ..executor import run
-    from ..measure.perframe import frame_setup, measure_object_changes
-
     changed = [np.asarray(c, dtype=bool) for c in changed]
     only = np.logical_or.reduce(changed) if changed else None
     setup = frame_setup(frame, cat, options=options, data=data, only=only)
@@ -380,9 +373,6 @@ def write_changes(finals, variants, catalog: str, dest: str, *, options: Measure
     dict
         Variant -> the counts of :func:`measure_changes`, and 'sample', 'fitted' summed.
     """
-    from ..io.fitsfile import OutHDU, table_hdu
-    from ..io.output import add_provenance, check_output, write_hdus
-
     variants = [variants] if isinstance(variants, str) else list(variants)
     check_output(dest, overwrite=overwrite, inputs=[catalog, *finals])
     descriptions = {
@@ -402,7 +392,6 @@ def write_changes(finals, variants, catalog: str, dest: str, *, options: Measure
     joint, min_snr = options.joint, options.min_snr
     measured = measure_changes(finals, variants, catalog, options=options, expids=expids, part=part, field=field,
                                workers=workers, pixels=pixels, cold=cold)
-    from ..measure.response import CHANGE_METHODS
 
     for variant in variants:
         cols = measured[variant]

@@ -8,6 +8,7 @@ every key is checked (a typo is an error naming the closest valid key).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
 import hashlib
 import json
@@ -17,21 +18,22 @@ import os
 import yaml
 
 from .. import PerscliError
-from ..instrument import ROMAN_SCA_SIZE
+from ..detector.model import load_detector_model
+from ..instrument import ROMAN_FILTERS as FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
 from ..io.config import STUDY_ITEM, parse_value, split_key_value, yaml_problem
 from ..measure.settings import MeasureOptions
+from ..scene.schedule import BUNDLED_SCHEDULE
 from ..scene.settings import CatalogOptions
+from ..scene.starcounts import GalacticStarModel, galactic_star_model
+from ..stats.budget import _modes_factor, amplitudes
 from ..stats.settings import BudgetOptions, CorrelateOptions
+from .plan import model_settings
 
 #: the public Roman WAS schedule shipped with perscli (perscli.scene.schedule.BUNDLED_SCHEDULE)
 DEFAULT_SCHEDULE = "roman-was"
 
 def _galactic_defaults() -> dict:
     """The Galactic star model's parameters with their defaults (written once, in the model's dataclass)."""
-    import dataclasses
-
-    from ..scene.starcounts import GalacticStarModel
-
     return {f.name: f.default for f in dataclasses.fields(GalacticStarModel)}
 
 
@@ -285,8 +287,6 @@ def load_study(path: str | None, *, preset: str | None = None, overrides=()) -> 
 
 def _check_files(s: dict) -> None:
     """Files named in the settings that do not exist: one line naming the key to set (before anything is read)."""
-    from ..scene.schedule import BUNDLED_SCHEDULE
-
     e = s["exposures"]
     schedule = e["schedule"]
     if e["source"] == "schedule" and isinstance(schedule, str) and schedule != BUNDLED_SCHEDULE \
@@ -317,8 +317,6 @@ def _resolve_paths(settings: dict, base: str, given: dict) -> None:
 
 def check(s: dict) -> None:
     """Refuse settings that cannot make a study (one line naming the setting)."""
-    from ..instrument import ROMAN_FILTERS as FILTERS, ROMAN_N_SCA
-
     if not (isinstance(s["seed"], int) and 0 <= s["seed"] <= 1000):
         raise PerscliError(f"seed {s['seed']!r}: an integer from 0 to 1000 (frame seeds derive from it)")
     r = s["realisations"]
@@ -355,9 +353,6 @@ def check(s: dict) -> None:
     if not p["models"]:
         raise PerscliError("persistence.models is empty: give typical, pessimistic or model files")
     # every model and detector setting is checked now, not hours later in a render
-    from ..detector.model import load_detector_model
-    from .plan import model_settings
-
     for m in p["models"]:
         load_detector_model("roman", [*model_settings(str(m)), *s["render"]["set"]])
     if not p["sources"]:
@@ -389,8 +384,6 @@ def check(s: dict) -> None:
             raise PerscliError(f"catalog.star_density {cat['star_density']!r}: a number >= 0 per arcmin^2 (power-law "
                                "stars), or leave it out for the Galactic model")
     else:
-        from ..scene.starcounts import galactic_star_model
-
         galactic_star_model(cat["star_model"])     # checked now, not when the catalogue is drawn
     for key, least in (("parts", 0), ("chunk", 1)):
         value = s["measure"][key]
@@ -432,7 +425,6 @@ def _check_values(s: dict) -> None:
         raise PerscliError(f"correlate.npatch {c['npatch']!r}: a whole number >= 1 (1: no jackknife)")
     if not c["thresholds"] or not all(_positive(t) for t in c["thresholds"]):
         raise PerscliError(f"correlate.thresholds {c['thresholds']!r}: a list of numbers > 0 (|De| thresholds)")
-    from ..stats.budget import _modes_factor, amplitudes
 
     amplitudes(s["budget"]["bands"])
     _modes_factor(s["budget"]["modes"])

@@ -27,10 +27,13 @@ which variant; :func:`perscli.study.changes.measure_changes` fits those.
 from __future__ import annotations
 
 import functools
+import hashlib
 
 import logging
+import os
 from dataclasses import dataclass, field
 
+import fitsio
 import numpy as np
 
 from .. import PerscliError
@@ -38,9 +41,17 @@ from ..detector.blocks import NOISE_BLOCK, BlockStack
 from ..detector.chain import iter_chains
 from ..detector.effects import Persistence
 from ..detector.model import DetectorModel
+from ..detector.persistence import order_earlier, persistence_charge
+from ..io.cards import format_card
+from ..io.fitsfile import OutHDU, table_hdu
+from ..io.frames import SECONDS_PER_DAY
+from ..io.output import check_output, write_hdus
+from ..io.tables import read_table
 from ..measure.settings import MeasureOptions
 from ..optics import Optics
 from ..render.exposure import Exposure, draw_sources, plan_objects, read_truth
+from ..render.run import (_exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, pad_to, persisting_fluence,
+                          simulation_area)
 from .reach import (IPC_REACH, WINDOW_MARGIN, _active_blocks, _clip_keep, _objects_reaching, galaxy_positions,
                     persisting_stars, stamp_sides, touches, window_boxes)
 
@@ -59,8 +70,6 @@ LIGHT_SOURCES = {"drawn": "DRAWN", "stars": "STARFLU"}
 
 def _truth_columns(truth: str, filter_name: str) -> dict:
     """The catalogue's columns for a filter, read once per process and file (size and time keyed)."""
-    import os
-
     st = os.stat(truth)
     key = (os.path.realpath(truth), st.st_size, st.st_mtime_ns, filter_name)
     if key not in _TRUTH:
@@ -71,9 +80,6 @@ def _truth_columns(truth: str, filter_name: str) -> dict:
 
 
 def _light_key(truth: str, exposure: Exposure, source: str, floor: float, region=None):
-    import hashlib
-    import os
-
     st = os.stat(truth)
     where = None if region is None else (region.area, hashlib.sha1(region.blocks.tobytes()).hexdigest())
     return (os.path.realpath(truth), st.st_size, st.st_mtime_ns, exposure.sca, exposure.expid, exposure.mjd,
@@ -92,8 +98,6 @@ class Region:
 
 def final_blocks(cols: dict, exposure: Exposure, rows, stamp: int):
     """The noise blocks a final's simulation needs: (simulation area, active blocks of it, windows, galaxies)."""
-    from ..render.run import simulation_area
-
     optics = Optics(exposure)
     bounds = exposure.full_bounds
     area = simulation_area(bounds)
@@ -212,10 +216,6 @@ def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=N
         ``blocks``), or None when no earlier exposure counts for that law;
         with ``lazy``, a function returning it.
     """
-    from ..detector.persistence import order_earlier, persistence_charge
-    from ..io.frames import SECONDS_PER_DAY
-    from ..render.run import pad_to, persisting_fluence
-
     histories = list(histories)
     for h in histories:
         if h.full_bounds != final.full_bounds or h.sca != final.sca:
@@ -340,11 +340,6 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         rows simulated, objects drawn, active blocks and their fraction, and
         per variant the galaxies changed.
     """
-    from ..io.cards import format_card
-    from ..io.fitsfile import OutHDU, table_hdu
-    from ..io.output import check_output, write_hdus
-    from ..render.run import _exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, pad_to
-
     check_output(dest, overwrite=overwrite, inputs=[truth])
     cols = _truth_columns(truth, exposure.filter)
     for name, vm in variants.items():
@@ -497,7 +492,6 @@ def read_stamps(path: str, variants=(), pixels: bool = True) -> dict:
     dict
         'table' (column arrays of STAMPS), 'ref' (1-D), 'deltas' (variant -> 1-D), as stored; 'path'.
     """
-    from ..io.tables import read_table
     table = read_table(f"{path}[{STAMPS_EXTNAME}]", what="the windows of a study's final")
     names = {n.upper(): n for n in table.names}
     cols = {k: table.column(k, kind="integer") for k in ("id", "x0", "y0", "nx", "ny", "offset")}
@@ -508,7 +502,6 @@ def read_stamps(path: str, variants=(), pixels: bool = True) -> dict:
     out = {"table": cols, "deltas": {}, "path": path}
     if not pixels:
         return out
-    import fitsio
 
     with fitsio.FITS(path) as f:
         out["ref"] = f[REF_EXTNAME].read() if len(cols["id"]) else np.zeros(0, dtype=np.float32)

@@ -10,9 +10,14 @@ from __future__ import annotations
 
 import io
 
+import galsim
 import numpy as np
 
+from ..detector.model import load_persistence_model
+from ..detector.persistence import persistence_charge
 from ..instrument import ROMAN_EXPTIME, ROMAN_FULL_WELL, ROMAN_WAS_GAP
+from ..optics import Optics, StampDrawer, to_pixels
+from ..render.exposure import Exposure
 
 STAR_MAGS = (7, 11, 15, 17, 19, 21)
 GALAXY_MAGS = (22, 24)
@@ -20,16 +25,11 @@ STAMP = 256
 
 
 def _optics():
-    from ..optics import Optics
-    from ..render.exposure import Exposure
-
     # SCA 1 at the field of the bundled examples; the PSF and zeropoint are what matter here
     return Optics(Exposure(ra=10.0, dec=-44.0, pa=30.0, sca=1, filter="J129", mjd=61541.97))
 
 
 def _drawer(optics):
-    from ..optics import StampDrawer
-
     return StampDrawer(optics.psf_pixels)
 
 
@@ -45,28 +45,21 @@ def ghost(fluence: np.ndarray, *, model: str = "typical", gap: float = ROMAN_WAS
     The fluence is capped at the full well, as a saturated pixel's is in the
     study's frames.
     """
-    from ..detector.model import load_persistence_model
-    from ..detector.persistence import persistence_charge
-
     x = np.minimum(fluence, full_well)
     return persistence_charge([x], [0.0], gap, [exptime], load_persistence_model(model))[0]
 
 
 def galaxy(optics, drawer, mag: float, hlr: float = 0.3, g1: float = 0.2, n: int = STAMP) -> np.ndarray:
-    import galsim
-
-    from ..optics import to_pixels
-
     prof = galsim.Exponential(half_light_radius=hlr, flux=1.0).shear(g1=g1, g2=0.0)
     prof = to_pixels(prof)
     return drawer.stamp(n, 0.0, 0.0, float(optics.electrons(mag)), prof)
 
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # lazy: figures only in a study's summary; matplotlib.use is process-wide
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: after the backend is chosen
 
     return plt
 
@@ -80,11 +73,8 @@ def _png(fig) -> bytes:
 
 def ghost_stamps() -> bytes:
     """Fig. 1 as PNG bytes."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import LogNorm
+    plt = _pyplot()
+    from matplotlib.colors import LogNorm  # lazy: matplotlib (_pyplot)
 
     optics = _optics()
     drawer = _drawer(optics)
@@ -109,10 +99,7 @@ def ghost_stamps() -> bytes:
 
 def galaxy_beside_ghost() -> bytes:
     """Fig. 2 as PNG bytes: a J=22 galaxy 51 pixels from the ghost of a J=7 star."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     optics = _optics()
     drawer = _drawer(optics)
@@ -168,7 +155,7 @@ def xi_against_budget(combined: list, nreal: int) -> bytes:
         ax.plot(*budget, "k-", lw=1.5, label="Roman additive budget")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
+    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter  # lazy: matplotlib (_pyplot)
 
     ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
     ax.xaxis.set_major_formatter(ScalarFormatter())

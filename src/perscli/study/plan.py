@@ -22,11 +22,21 @@ here runs anything.  The graph:
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .. import PerscliError
+from ..detector.effects import Persistence
+from ..detector.model import load_detector_model, load_persistence_model
+from ..render.settings import SOURCE_HDU
+from ..scene import project
+from ..scene.dithers import plan_dithers
+from ..scene.footprints import sca_footprint
+from ..scene.schedule import previous_exposures, read_schedule, select_covering
+from .differential import LIGHT_SOURCES, variant_extname
 
 #: the folder of a study's task records (one JSON a finished task), which the runner and the
 #: summary both read
@@ -97,9 +107,6 @@ def variant_settings(s: dict) -> dict:
     ``render.set``).  Each variant's settings are complete: the model's law,
     its source, the study's ``render.set``, the bracket's own.
     """
-    from ..detector.effects import Persistence
-    from ..detector.model import load_detector_model
-
     p = s["persistence"]
     out = {}
     for m in p["models"]:
@@ -135,7 +142,6 @@ def model_settings(model: str) -> list:
     """
     if model in ("typical", "pessimistic"):
         return [f"persistence.base={model}"]
-    from ..detector.model import load_persistence_model
 
     pm = load_persistence_model(model)
     if pm.kind == "linear":
@@ -158,9 +164,6 @@ def select_exposures(s: dict, progress=None) -> Exposures:
     -------
     Exposures
     """
-    from ..scene.dithers import plan_dithers
-    from ..scene.schedule import previous_exposures, read_schedule, select_covering
-
     e, f = s["exposures"], s["field"]
     finals, history, every = {}, {}, {}
     if e["source"] == "plan":
@@ -200,8 +203,6 @@ def select_exposures(s: dict, progress=None) -> Exposures:
 
 
 def _with_sca(p, sca: int):
-    import dataclasses
-
     return dataclasses.replace(p, sca=int(sca))
 
 
@@ -212,8 +213,6 @@ def frame_path(sca: int, expid: int, variant: str = "ref") -> str:
 def is_differential(s: dict) -> bool:
     """Whether a study renders only where persistence reaches (``differential``; auto: when every variant's
     persisting light is drawn from the catalogue, persistence sources drawn and stars)."""
-    from .differential import LIGHT_SOURCES
-
     wanted = s.get("differential")
     drawable = all(src in LIGHT_SOURCES for src, _ in variant_settings(s).values())
     if wanted is None:
@@ -298,8 +297,6 @@ def _build_differential(s: dict, ex: Exposures, seed: int, pre: str) -> list:
     over all their finals; without, each task fits its finals' galaxies right away and writes only their
     shape changes (shapes/scaNN/eNNNNNN.fits), so that a study of thousands of finals keeps no frames.
     """
-    from .differential import variant_extname
-
     tasks = [_catalog_task(s, ex, seed, pre)]
     finals = [(sca, p) for sca, ps in sorted(ex.finals.items()) for p in ps]
     variants = variant_settings(s)
@@ -375,8 +372,6 @@ STRIP_AREA_DEG2 = 0.1
 
 def strips(s: dict) -> int:
     """How many strips of the sky the joint fits are spread over (``measure.parts``, or by the field's area)."""
-    import math
-
     if s["measure"]["parts"]:
         return int(s["measure"]["parts"])
     area = math.pi * s["field"]["radius"] ** 2
@@ -406,11 +401,6 @@ def measure_strips(s: dict, finals, n: int) -> list:
         ``xi_hi``: its edges in standard coordinates, radians, None at the
         ends) and the indices of the finals whose footprints reach it.
     """
-    import math
-
-    from ..scene import project
-    from ..scene.footprints import sca_footprint
-
     f = s["field"]
     spans = []
     for sca, p in finals:
@@ -433,8 +423,6 @@ def measure_strips(s: dict, finals, n: int) -> list:
 
 def _build_full(s: dict, ex: Exposures, seed: int, pre: str) -> list:
     """Every SCA-exposure rendered whole, every final again per variant, every galaxy measured in each."""
-    from ..render.settings import SOURCE_HDU
-
     tasks = []
     final_keys = {(sca, p.expid) for sca, ps in ex.finals.items() for p in ps}
     tasks.append(_catalog_task(s, ex, seed, pre))

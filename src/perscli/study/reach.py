@@ -16,9 +16,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..detector.blocks import NOISE_BLOCK, block_grid
+from ..instrument import ROMAN_PIXEL_SCALE
+from ..measure.perframe import stamp_ladder, stamp_side
 from ..measure.settings import MeasureOptions
-from ..optics import Optics
+from ..optics import Optics, stamp_drawer
 from ..render.exposure import Exposure, plan_objects
+from ..scene import separation
 
 #: pixels added to each side of a measured stamp: the render places a galaxy with GalSim's WCS and
 #: measure with the header's (astropy), which may round it to the neighbouring pixel
@@ -99,8 +102,6 @@ def psf_envelope(sca: int, filter_name: str, n: int) -> np.ndarray:
     A star of flux F lights no pixel at distance d above floor when
     F E[d] <= floor.
     """
-    from ..optics import stamp_drawer
-
     key = (int(sca), filter_name, int(n))
     if key not in _ENVELOPES:
         drawer = stamp_drawer(sca, filter_name)
@@ -229,9 +230,6 @@ def stamp_sides(cols: dict, rows, stamp: int) -> np.ndarray:
     ``stamp``: a stamp sized for a galaxy's half-light radius, mostly 16 to
     32 pixels, rather than ``stamp`` for all.
     """
-    from ..instrument import ROMAN_PIXEL_SCALE
-    from ..measure.perframe import stamp_ladder, stamp_side
-
     ladder = stamp_ladder(stamp)
     hlr = {"hlr": np.asarray(cols["hlr"], dtype=np.float64)}
     return np.array([stamp_side(hlr, int(i), ROMAN_PIXEL_SCALE * SIDE_SCALE, ladder) for i in rows], dtype=np.int64)
@@ -414,8 +412,6 @@ def in_field(cols: dict, field: dict) -> np.ndarray:
     final of a study whose finals are all the exposures reaching it: the
     galaxy is measured on all of its exposures, as in a survey.
     """
-    from ..scene import separation
-
     dist = separation(field["ra"], field["dec"], np.asarray(cols["ra"]), np.asarray(cols["dec"]))
     return (np.asarray(cols["kind"]) == "galaxy") & (dist <= field["radius"])
 

@@ -12,9 +12,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import shutil
 import sys
 
 from .. import PerscliError
+from ..executor import dask_client
+from ..io.checksum import carrying_read_options
+from ..progress import lines
 from .config import fingerprint
 from .tasks import is_done, read_record, run_task
 
@@ -50,8 +54,6 @@ def run_dask(tasks: list, study_dir: str, progress, *, scheduler: str = "local",
     whose arguments are its dependencies' futures, so Dask runs it after
     them; ``retries`` covers a worker lost mid-task.
     """
-    from ..executor import dask_client
-
     todo = [t for t in tasks if not is_done(study_dir, t)]
     for t in tasks:
         if t not in todo:
@@ -61,14 +63,13 @@ def run_dask(tasks: list, study_dir: str, progress, *, scheduler: str = "local",
     if not todo:
         return []
     with dask_client(scheduler, workers) as client:
-        from distributed import as_completed
+        from distributed import as_completed  # lazy: Dask only for --scheduler local or an address
 
         if not quiet:
             link = getattr(client, "dashboard_link", None)
             print(f"study: {len(todo)} tasks on Dask ({scheduler}, "
                   f"{len(client.scheduler_info().get('workers', {}))} workers)"
                   + (f"; dashboard {link}" if link else ""), file=sys.stderr, flush=True)
-        from ..io.checksum import carrying_read_options
 
         # a worker (maybe on another machine) knows nothing of this command line: each task carries
         # the read options (--no-checksum) with it
@@ -108,8 +109,6 @@ def remove_stale_parts(study_dir: str) -> int:
         for name in list(dirs):
             # a temporary output folder (diagnose-style ``.perscli-...``) of a killed run
             if name.startswith(".perscli-"):
-                import shutil
-
                 shutil.rmtree(os.path.join(folder, name), ignore_errors=True)
                 dirs.remove(name)
                 removed += 1
@@ -146,7 +145,6 @@ def run_study(tasks: list, study_dir: str, *, scheduler: str = "local", workers:
     os.makedirs(study_dir, exist_ok=True)
     if remove_stale_parts(study_dir):
         log.info("removed the half-written files of an earlier run")
-    from ..progress import lines
 
     step, done = lines("study", quiet=quiet), [0]
 

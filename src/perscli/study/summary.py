@@ -12,8 +12,15 @@ import glob
 import json
 import math
 import os
+import re
 
+import fitsio
 import numpy as np
+
+from .. import PerscliError
+from ..stats.budget import bin_verdicts
+from .figures import galaxy_beside_ghost, ghost_stamps, xi_against_budget
+from .plan import STATE
 
 #: the paper's numbers (Lin et al., Roman HLS, 0.9M galaxies on 6.25 deg^2)
 PAPER = {
@@ -29,8 +36,6 @@ PAPER = {
 
 
 def _table(path: str, ext: str) -> dict:
-    import fitsio
-
     with fitsio.FITS(path) as f:
         if ext not in f:
             return {}
@@ -39,8 +44,6 @@ def _table(path: str, ext: str) -> dict:
 
 
 def _header(path: str, ext=0) -> dict:
-    import fitsio
-
     with fitsio.FITS(path) as f:
         h = f[ext].read_header()
     return {k: h[k] for k in h.keys() if k not in ("COMMENT", "HISTORY", "")}
@@ -229,7 +232,6 @@ def combine_realisations(per: list) -> dict:
         out["measured_fraction"] = out.get("fitted", 0) / out["sample"]
     for key in ("de1", "de2"):
         out[f"{key}_mean"] = stat([r.get(f"{key}_mean") for r in per], [r.get(f"{key}_err") for r in per])
-    from ..stats.budget import bin_verdicts
 
     bins = [r.get("xi_bins") or [] for r in per]
     nb = min((len(b) for b in bins), default=0)
@@ -263,8 +265,6 @@ def combine_realisations(per: list) -> dict:
 def _products(pattern: str, name: str) -> list:
     """The files matching ``pattern`` whose name is exactly ``name`` (a regex): products, not what a killed
     task left beside them."""
-    import re
-
     return sorted(p for p in glob.glob(pattern) if re.fullmatch(name, os.path.basename(p)))
 
 
@@ -286,7 +286,6 @@ def write_summary(study_dir: str, params: dict, out: str) -> None:
     _write_text(os.path.join(study_dir, "summary.md"), markdown(summary))
     figs = os.path.join(study_dir, "figures")
     os.makedirs(figs, exist_ok=True)
-    from .figures import galaxy_beside_ghost, ghost_stamps, xi_against_budget
 
     for fname, make in (("ghosts_by_magnitude.png", ghost_stamps), ("galaxy_beside_ghost.png", galaxy_beside_ghost)):
         path = os.path.join(figs, fname)
@@ -390,8 +389,6 @@ def _g(v):
 
 def cost(study_dir: str) -> dict:
     """CPU seconds and bytes per kind of product, measured from this run's task records."""
-    from .plan import STATE
-
     per = {}
     for path in sorted(glob.glob(os.path.join(study_dir, STATE, "*.json"))):
         with open(path) as fh:
@@ -446,8 +443,6 @@ def load_cost(path: str) -> dict:
         product, each with non-negative numbers ``tasks``, ``cpu_s`` and
         ``bytes``.
     """
-    from .. import PerscliError
-
     try:
         with open(path, encoding="utf-8") as fh:
             data = json.load(fh)

@@ -13,12 +13,34 @@ import dataclasses
 import json
 import os
 import resource
+import shutil
 import time
 
 import numpy as np
 
+from ..detector.effects import Persistence
+from ..detector.model import load_detector_model
+from ..executor import keep_freed_memory
+from ..io.fitsfile import OutHDU, table_hdu
+from ..io.output import write_hdus
+from ..io.tables import read_table
 from ..measure.settings import MeasureOptions
+from ..measure.shapes import measure_files
+from ..render.exposure import Exposure, read_truth
+from ..render.run import render_file
+from ..render.settings import RenderOptions
+from ..scene.catalog import make_truth_catalog_file
+from ..scene.pointings import write_pointings
+from ..scene.schedule import Pointing
+from ..scene.starcounts import galactic_star_model
+from ..stats.budget import budget_file
+from ..stats.correlate import correlate_files
+from ..stats.settings import CorrelateOptions
+from .changes import write_changes
+from .differential import Region, _truth_columns, final_blocks, render_final
 from .plan import STATE
+from .reach import final_candidates, in_field, plan_regions
+from .summary import final_draws, write_summary
 
 
 def record_path(study_dir: str, key: str) -> str:
@@ -72,7 +94,6 @@ def run_task(task: dict, study_dir: str, *_deps) -> dict:
         rec = read_record(study_dir, task["key"])
         rec["skipped"] = True
         return rec
-    from ..executor import keep_freed_memory
 
     keep_freed_memory()
     t0, c0 = time.perf_counter(), _cpu()
@@ -102,9 +123,6 @@ def _size(path: str) -> int:
 # --------------------------------------------------------------------------------------------
 
 def _pointings(study_dir, p, out):
-    from ..scene.pointings import write_pointings
-    from ..scene.schedule import Pointing
-
     rows = [Pointing(**{k: v for k, v in r.items() if k != "role"}) for r in p["rows"]]
     write_pointings(rows, out, overwrite=True, step="study: every SCA-exposure rendered",
                     params={"NFINAL": (sum(r["role"] == "final" for r in p["rows"]), "final exposures")})
@@ -112,10 +130,6 @@ def _pointings(study_dir, p, out):
 
 
 def _catalog(study_dir, p, out):
-    from ..scene.catalog import make_truth_catalog_file
-
-    from ..scene.starcounts import galactic_star_model
-
     c = p["catalog"]
     stars = galactic_star_model(c["star_model"]) if c["star_density"] is None and not c["gaia"] else None
     # the footprints of every row of the study's pointings table, each on its own SCA: the same
@@ -129,11 +143,6 @@ def _catalog(study_dir, p, out):
 
 
 def _render(study_dir, p, out):
-    from ..detector.model import load_detector_model
-    from ..render.exposure import Exposure
-    from ..render.run import render_file
-    from ..render.settings import RenderOptions
-
     pt = p["pointing"]
     exposure = Exposure(ra=pt["ra"], dec=pt["dec"], pa=pt["pa"], sca=p["sca"], filter=pt["filter"],
                         mjd=pt["mjd"], exptime=pt["exptime"],
@@ -148,8 +157,6 @@ def _render(study_dir, p, out):
 
 
 def _measure(study_dir, p, out):
-    from ..measure.shapes import measure_files
-
     frames = [os.path.join(study_dir, f) for f in p["frames"]]
     options = MeasureOptions(stamp=p["stamp"], joint=p["joint"])
     if p["min_snr"] is not None:
@@ -160,8 +167,6 @@ def _measure(study_dir, p, out):
 
 
 def _exposure(p):
-    from ..render.exposure import Exposure
-
     pt = p["pointing"] if "pointing" in p else p
     bounds = p.get("bounds")
     return Exposure(ra=pt["ra"], dec=pt["dec"], pa=pt["pa"], sca=pt["sca"] or p.get("sca"), filter=pt["filter"],
@@ -170,15 +175,10 @@ def _exposure(p):
 
 
 def _detector(settings):
-    from ..detector.model import load_detector_model
-
     return load_detector_model("roman", list(settings))
 
 
 def _regions(study_dir, p, out):
-    from ..render.exposure import read_truth
-    from .reach import in_field, plan_regions
-
     finals = [(_exposure(dict(f["pointing"], bounds=p["bounds"])),
                [_exposure(dict(q, bounds=p["bounds"])) for q in f["history"]]) for f in p["finals"]]
     floors = [_floor(_detector(m)) for m in p["models"]]
@@ -191,15 +191,10 @@ def _regions(study_dir, p, out):
 
 
 def _floor(model) -> float:
-    from ..detector.effects import Persistence
-
     return Persistence.floor(model)
 
 
 def write_regions_table(out: str, table: dict, counts: dict) -> None:
-    from ..io.fitsfile import OutHDU, table_hdu
-    from ..io.output import write_hdus
-
     hdu = table_hdu(table, "REGIONS", descriptions={"id": "catalogue id of a galaxy whose stamps are simulated",
                                                      "sca": "detector", "expid": "final exposure"})
     for key, (value, comment) in {
@@ -218,11 +213,6 @@ def write_regions_table(out: str, table: dict, counts: dict) -> None:
 def _final(study_dir, p, out):
     """A few consecutive finals of one SCA: with joint fits their stamps kept (one file each in ``out``, a
     folder) for the fit over all finals; without, fitted per exposure and only the shape changes kept."""
-    import shutil
-
-    from .differential import Region, _truth_columns, final_blocks, render_final
-    from .reach import final_candidates, in_field
-
     model = _detector(p["model"])
     variants = {name: _detector(settings) for name, settings in p["variants"].items()}
     truth = os.path.join(study_dir, p["truth"])
@@ -231,8 +221,6 @@ def _final(study_dir, p, out):
     rows_of, reach = {}, {"on": 0, "reached": 0, "fractions": []}
     regions = None
     if p.get("regions"):
-        from ..io.tables import read_table
-
         regions = read_table(os.path.join(study_dir, p["regions"]), what="study regions")
     for f in p["finals"]:
         exposure = _exposure(dict(f, bounds=p["bounds"]))
@@ -257,7 +245,6 @@ def _final(study_dir, p, out):
         area, active, _, _ = final_blocks(_truth_columns(truth, exposure.filter), exposure, rows, p["stamp"])
         region = Region(area, active.copy()) if region is None else Region(area, region.blocks | active)
     earlier = {int(q["expid"]) for f in p["finals"] for q in f["history"]}
-    from .summary import final_draws
 
     draws = len(final_draws(p))
     measure = p.get("measure")
@@ -280,8 +267,6 @@ def _final(study_dir, p, out):
                 rec["changed"][name] = rec["changed"].get(name, 0) + n
         return rec
     # fitted per exposure: each final rendered to a scratch file beside the output, measured, and dropped
-    from .changes import write_changes
-
     frames, arrays, rec = [], [], {"galaxies": 0, "objects": 0, "blocks": 0, "frames": len(rows_of),
                                    "draws": draws}
     try:
@@ -315,14 +300,10 @@ def _final(study_dir, p, out):
 
 
 def _source(model) -> str:
-    from ..detector.effects import Persistence
-
     return Persistence.fluence_input(model)[0]
 
 
 def _changes(study_dir, p, out):
-    from .changes import write_changes
-
     finals = [os.path.join(study_dir, f) for f in p["finals"]]
     options = MeasureOptions(joint=p["joint"], stamp=p["stamp"], min_snr=p["min_snr"])
     summary = write_changes(finals, p["variants"], os.path.join(study_dir, p["truth"]), out, options=options,
@@ -331,9 +312,6 @@ def _changes(study_dir, p, out):
 
 
 def _correlate(study_dir, p, out):
-    from ..stats.correlate import correlate_files
-    from ..stats.settings import CorrelateOptions
-
     figures = os.path.join(study_dir, p["figures"])
     os.makedirs(figures, exist_ok=True)
     f = p["field"]
@@ -354,8 +332,6 @@ def _correlate(study_dir, p, out):
 
 
 def _budget(study_dir, p, out):
-    from ..stats.budget import budget_file
-
     plot = os.path.join(study_dir, p["plot"])
     os.makedirs(os.path.dirname(plot), exist_ok=True)
     budget_file(out, os.path.join(study_dir, p["xi"]), bands=p["bands"], modes=p["modes"], plot=plot,
@@ -363,8 +339,6 @@ def _budget(study_dir, p, out):
 
 
 def _summary(study_dir, p, out):
-    from .summary import write_summary
-
     write_summary(study_dir, p, out)
 
 
