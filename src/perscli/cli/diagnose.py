@@ -8,11 +8,15 @@ import os
 import click
 
 from .. import PerscliError
+from ..diagnose.settings import DiagnoseOptions
 from ..io.output import check_output_folder
 from .helpers import FILE, FOLDER, PerscliCommand, report_errors, verbosity
 from .options import FiniteRange, model_opt, no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
 
 log = logging.getLogger("perscli")
+
+#: the defaults, written once (perscli.diagnose.settings)
+D = DiagnoseOptions()
 
 
 @click.command("diagnose", cls=PerscliCommand,
@@ -27,7 +31,7 @@ log = logging.getLogger("perscli")
            "simulated frames]")
 @click.option("-o", "--output", "outdir", required=True, metavar="OUTDIR", type=FOLDER,
               help="Folder to write: model.yaml, report.json, report.md and PNG figures.")
-@click.option("--fit-pixels", type=click.IntRange(min=1000), default=1_000_000, show_default=True, metavar="N",
+@click.option("--fit-pixels", type=click.IntRange(min=1000), default=D.fit_pixels, show_default=True, metavar="N",
               help="About this many pixels, over all exposures, are used in the fits (a stripe of rows in each eighth "
                    "of the frame, where the simulation is brightest); the gaps use every pixel.")
 @click.option("--gain", type=FiniteRange(min=1e-3, max=1e3), default=None, metavar="E_PER_DN",
@@ -107,8 +111,8 @@ def diagnose(measured, simulated, model_spec, outdir, fit_pixels, gain, exptime,
         if not quiet:
             click.echo(f"diagnose: {text}", err=True)
 
-    outcome = run(measured, simulated=simulated, model_spec=model_spec, fit_pixels=fit_pixels, gain=gain,
-                  exptime=exptime, progress=progress, workers=workers)
+    options = DiagnoseOptions(fit_pixels=fit_pixels, gain=gain, exptime=exptime, workers=workers)
+    outcome = run(measured, simulated=simulated, model_spec=model_spec, options=options, progress=progress)
     write_report(outcome, outdir, overwrite=overwrite)
     report = outcome["report"]
     if not quiet:

@@ -13,7 +13,11 @@ from ..io.config import STUDY_ITEM
 from ..io.output import check_output_folder, write_error
 from ..progress import lines
 from .helpers import FILE, FOLDER, PerscliCommand, report_errors
+from ..study.settings import SCHEDULERS, StudyOptions
 from .options import key_values, no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
+
+#: the defaults, written once (perscli.study.settings)
+D = StudyOptions()
 
 
 @click.command("study", cls=PerscliCommand,
@@ -26,7 +30,7 @@ from .options import key_values, no_checksum_opt, overwrite_opt, verbosity_opts,
                    "test suite's); STUDY.yaml and --set override it.")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", callback=key_values(STUDY_ITEM),
               help="Override a setting, e.g. exposures.count=5 or persistence.sources=[stars,all]; repeatable.")
-@click.option("--scheduler", default="local", show_default=True, metavar="serial|local|ADDRESS",
+@click.option("--scheduler", default=D.scheduler, show_default=True, metavar="serial|local|ADDRESS",
               callback=lambda ctx, param, value: _scheduler(value),
               help="serial: in this process; local: a Dask LocalCluster of --workers processes; "
                    "ADDRESS: an existing Dask scheduler (tcp://host:8786), e.g. one dask-jobqueue started.")
@@ -51,27 +55,29 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     those whose SCA footprint reaches the field, each with its N
     previous exposures of the same SCA whatever their filter; or a planned
     dither sequence), the truth catalogue, the persistence models and sources
-    (stars: only star light persists, the paper's setting; all; or a fluence
-    threshold in electrons), measure and correlate settings and the seed.
+    (drawn, the default and the paper's pipeline: the light drawn on each
+    earlier exposure, galaxies and stars, no sky; stars: star light only;
+    all: the whole fluence; or a fluence threshold in electrons), bracket
+    variants beside them, measure and correlate settings and the seed.
 
-    It becomes a task graph.  When only star light persists (the default,
-    differential: true), an earlier exposure needs its stars only: each final
-    is rendered once, for the reference and every persistence model
-    together, on the stamps of the galaxies that earlier star light can
-    reach (every pixel the same bits as a whole-frame render: noise is keyed
-    on detector blocks), the galaxies whose stamps changed are fitted with
-    and without (jointly over their finals), and every other galaxy gets
-    De = 0 exactly and is counted.  Otherwise (differential: false) every
+    It becomes a task graph.  When what persists is light drawn from the
+    catalogue (drawn or stars: differential, by default), each final is
+    rendered once, for the reference and every variant together, on the
+    stamps of the galaxies that earlier light can reach (every pixel the same
+    bits as a whole-frame render: noise is keyed on detector blocks); each
+    galaxy's shape is fitted once over all its finals (measure.joint, the
+    paper's pipeline) and every variant's from the reference fit's linear
+    response to the pixels that changed; a galaxy whose stamps did not change
+    gets De = 0 exactly and is counted.  Otherwise (differential: false) every
     SCA-exposure is rendered whole without persistence, each final again per
-    model and source with the same seed, and every galaxy measured in each.
-    De is correlated, compared with the additive-shear budget, and
-    summarised beside the paper's numbers (DIR/summary.md, summary.json,
-    figures/, cost.json); realisations: N repeats the study with N seeds and
-    gives the scatter across them.  Every product is a FITS file with its
-    provenance; a rerun skips finished products, so a killed run resumes.
-    The same seeds give the same bytes whatever the scheduler or worker
-    count (cost.json, the run's own timings, excepted).  --overwrite makes
-    every product again.
+    variant with the same seed, and every galaxy measured in each.  De is
+    correlated, compared with the additive-shear budget, and summarised
+    beside the paper's numbers (DIR/summary.md, summary.json, figures/,
+    cost.json); realisations: N repeats the study with N seeds and gives the
+    scatter across them.  Every product is a FITS file with its provenance; a
+    rerun skips finished products, so a killed run resumes.  The same seeds
+    give the same bytes whatever the scheduler or worker count (cost.json,
+    the run's own timings, excepted).  --overwrite makes every product again.
 
     \b
     Examples:
@@ -131,7 +137,7 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
                 os.unlink(tmp)
     except OSError as exc:
         raise write_error(path, exc) from None
-    recs = run_study(tasks, outdir, scheduler=scheduler, workers=workers, quiet=verbosity < 0)
+    recs = run_study(tasks, outdir, StudyOptions(scheduler=scheduler, workers=workers, quiet=verbosity < 0))
     made = sum(1 for r in recs if not r.get("skipped"))
     print(f"study {s['name']}: {made} products made, {len(tasks) - made} already there; "
           f"summary in {outdir}/summary.md", file=sys.stderr)
@@ -139,7 +145,7 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
 
 def _scheduler(value: str) -> str:
     """'serial', 'local' or a Dask scheduler's address (tcp://host:port, tls://, ucx://, inproc://, or host:port)."""
-    if value in ("serial", "local") or re.fullmatch(r"(tcp|tls|ucx|inproc|ws|wss)://\S+|[\w.\-]+:\d{1,5}", value):
+    if value in SCHEDULERS or re.fullmatch(r"(tcp|tls|ucx|inproc|ws|wss)://\S+|[\w.\-]+:\d{1,5}", value):
         return value
     raise click.BadParameter(f"{value!r} is not serial, local or a Dask scheduler address (tcp://HOST:8786)")
 

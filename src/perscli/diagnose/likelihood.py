@@ -29,6 +29,7 @@ from ..executor import thread_map
 from ..io.frames import SECONDS_PER_DAY
 from .data import measured_fluence
 from .probes import _neighbours
+from .settings import DEFAULT_FIT_PIXELS
 
 
 def with_effect(model: DetectorModel, name: str, params: dict | None = None, enabled: bool = True) -> DetectorModel:
@@ -111,7 +112,7 @@ class Problem:
         compiled loops release the GIL); results do not depend on it.
     """
 
-    def __init__(self, exposures, *, fit_pixels: int = 1_000_000, workers: int = 1):
+    def __init__(self, exposures, *, fit_pixels: int = DEFAULT_FIT_PIXELS, workers: int = 1):
         self.exposures = exposures
         for exp in exposures:
             if exp.ideal is None:

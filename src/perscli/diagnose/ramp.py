@@ -46,6 +46,7 @@ from ..io.frames import SECONDS_PER_DAY
 from .data import measured_fluence
 from .likelihood import Evaluation
 from .probes import _neighbours
+from .settings import DEFAULT_FIT_PIXELS
 
 #: a read this many sigma from its self-prediction marks the pixel's ramp as jumping
 JUMP_SIGMA = 10.0
@@ -360,7 +361,7 @@ def ramp_model(exposures) -> DetectorModel:
 class RampProblem:
     """Self-predicted ramps: evaluates a model's nonlinearity, read noise and gain on later reads."""
 
-    def __init__(self, exposures, *, fit_pixels: int = 1_000_000):
+    def __init__(self, exposures, *, fit_pixels: int = DEFAULT_FIT_PIXELS):
         self.exposures = [e for e in exposures if e.is_ramp]
         if not self.exposures:
             raise PerscliError("no ramp among the measured frames")

@@ -24,6 +24,7 @@ from .data import attach_simulations, read_measured
 from .likelihood import Problem
 from .ramp import RampProblem, ramp_model
 from .search import search
+from .settings import DiagnoseOptions
 
 log = logging.getLogger(__name__)
 
@@ -43,8 +44,8 @@ def _jsonable(value):
     return value
 
 
-def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000_000, gain=None, exptime=None,
-             progress=None, workers: int = 1) -> dict:
+def diagnose(measured, *, simulated=(), model_spec=None, options: DiagnoseOptions = DiagnoseOptions(),
+             progress=None) -> dict:
     """Find the missing or mis-set detector effects of ``simulated`` against ``measured``.
 
     Parameters
@@ -57,15 +58,14 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         own earliest reads.
     model_spec : str, optional
         A detector model overriding the one stored in the simulated frames.
-    fit_pixels : int
-        About this many pixels, over all exposures, are used in the fits (the gaps use every pixel).
-    gain, exptime : float, optional
-        For measured frames whose headers lack GAIN or EXPTIME.
+    options : DiagnoseOptions
+        How much of the frames the fits use (``fit_pixels``: the gaps use
+        every pixel), the gain and exposure time of frames whose headers lack
+        them, and ``workers`` (threads over the exposures of each likelihood
+        evaluation, compared with simulated frames; the result does not depend
+        on it).
     progress : callable, optional
         ``progress(text)`` for messages on the way.
-    workers : int
-        Threads over the exposures of each likelihood evaluation (compared with
-        simulated frames); the result does not depend on it.
 
     Returns
     -------
@@ -73,7 +73,7 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
         The report (see :func:`write_report`), plus the objects the figures need.
     """
     say = progress or (lambda text: None)
-    exposures = read_measured(measured, gain=gain, exptime=exptime)
+    exposures = read_measured(measured, gain=options.gain, exptime=options.exptime)
     if simulated:
         models = attach_simulations(exposures, simulated)
         if model_spec is not None:
@@ -83,7 +83,7 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
             if not stored:
                 raise PerscliError("the simulated frames carry no detector model (MODEL table); give --model")
             model = stored[-1]
-        problem = Problem(exposures, fit_pixels=fit_pixels, workers=workers)
+        problem = Problem(exposures, fit_pixels=options.fit_pixels, workers=options.workers)
         mode = "simulated"
     else:
         ramps = [e for e in exposures if e.is_ramp]
@@ -91,7 +91,7 @@ def diagnose(measured, *, simulated=(), model_spec=None, fit_pixels: int = 1_000
             raise PerscliError("without --simulated frames diagnose needs ramps (MULTIACCUM or cubes) to predict "
                                "from themselves; give the simulated frames of these exposures")
         model = load_detector_model(model_spec) if model_spec is not None else ramp_model(exposures)
-        problem = RampProblem(exposures, fit_pixels=fit_pixels)
+        problem = RampProblem(exposures, fit_pixels=options.fit_pixels)
         mode = "self-predicted"
     # said once the inputs are known to make a problem: a refusal stays the one line on stderr
     say(f"{len(exposures)} measured exposure(s), {exposures[0].data.shape[-2]} x {exposures[0].data.shape[-1]} px, "

@@ -46,7 +46,8 @@ SCHEMA = {
     # the scatter across them beside the jackknife errors
     "realisations": 1,
     # differential: render each final only where persistence can reach a galaxy's stamp and measure only
-    # the galaxies it changed (every other galaxy has De = 0 exactly); None: when only star light persists
+    # the galaxies it changed (every other galaxy has De = 0 exactly); None: when what persists is light
+    # drawn from the catalogue (persistence sources drawn and stars)
     "differential": None,
     "field": {
         "ra": 10.0,          # deg, centre of the field
@@ -323,8 +324,8 @@ def check(s: dict) -> None:
     if not (isinstance(r, int) and not isinstance(r, bool) and 1 <= r and s["seed"] + r - 1 <= 1000):
         raise PerscliError(f"realisations {r!r}: an integer >= 1, with seed + realisations - 1 <= 1000")
     if s["differential"] not in (None, True, False):
-        raise PerscliError(f"differential {s['differential']!r}: true, false, or leave it out (true when only "
-                           "star light persists)")
+        raise PerscliError(f"differential {s['differential']!r}: true, false, or leave it out (true when what "
+                           "persists is light drawn from the catalogue: sources drawn and stars)")
     f = s["field"]
     if not (-90 <= f["dec"] <= 90) or not (0 <= f["ra"] < 360):
         raise PerscliError(f"field ra={f['ra']} dec={f['dec']}: ra must be in [0, 360), dec in [-90, 90] degrees")

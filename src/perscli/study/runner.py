@@ -20,6 +20,7 @@ from ..executor import dask_client
 from ..io.checksum import carrying_read_options
 from ..progress import lines
 from .config import fingerprint
+from .settings import StudyOptions
 from .tasks import is_done, read_record, run_task
 
 log = logging.getLogger(__name__)
@@ -140,8 +141,10 @@ def remove_stale_parts(study_dir: str) -> int:
     return removed
 
 
-def run_study(tasks: list, study_dir: str, *, scheduler: str = "local", workers: int = 2, quiet: bool = False) -> list:
-    """Run the graph with ``scheduler`` ('serial', 'local' or a Dask scheduler address)."""
+def run_study(tasks: list, study_dir: str, options: StudyOptions = StudyOptions()) -> list:
+    """Run the graph as ``options`` say (:class:`~perscli.study.settings.StudyOptions`: the scheduler, 'serial',
+    'local' or a Dask scheduler's address, its workers, and whether to say each finished task)."""
+    scheduler, workers, quiet = options.scheduler, options.workers, options.quiet
     os.makedirs(study_dir, exist_ok=True)
     if remove_stale_parts(study_dir):
         log.info("removed the half-written files of an earlier run")
