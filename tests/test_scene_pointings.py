@@ -596,3 +596,22 @@ def test_plan_with_footprints_at_the_default_start(tmp_path):
     assert result.exit_code == 0, result.stderr
     for p, row in zip(read_pointings(str(out)), fits.getdata(out, "POINTINGS")):
         assert np.array_equal(sca_footprint(p)[0], row["corner_ra"])
+
+
+def test_within_is_separation_below_radius_everywhere_on_the_sphere():
+    """scene.within skips the great circle outside the band of declinations that can be near: the same booleans
+    as separation(...) <= radius, at the poles, across RA = 0/360, at radius 0 and beyond a hemisphere."""
+    import numpy as np
+
+    from perscli.scene import separation, within
+
+    rng = np.random.default_rng(0)
+    ra = rng.uniform(0, 360, 200_000)
+    dec = np.degrees(np.arcsin(rng.uniform(-1, 1, ra.size)))
+    ra[:2000], dec[:2000] = (10 + rng.normal(0, 0.3, 2000)) % 360, np.clip(-44 + rng.normal(0, 0.3, 2000), -90, 90)
+    ra[2000:2010], dec[2000:2010] = 10.0, -44.0 + np.array([-0.5, 0.5, 0.5 + 1e-12, -0.5 - 1e-12, 0, 1, -1, 0.25,
+                                                             -0.25, 0.4999999])
+    for ra0, dec0, radius in [(10, -44, 0.5), (0.1, 89.8, 0.5), (359.9, -89.9, 0.5), (10, -44, 0.0), (180, 0, 3),
+                              (10, -44, 120.0)]:
+        np.testing.assert_array_equal(within(ra0, dec0, ra, dec, radius), separation(ra0, dec0, ra, dec) <= radius)
+    assert within(10, -44, [], [], 1.0).shape == (0,)

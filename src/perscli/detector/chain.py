@@ -211,7 +211,7 @@ class ChargeCache:
     result is the same bit for bit as without the cache.
     """
 
-    def __init__(self, keep: int = 4):
+    def __init__(self, keep: int = 2):
         self.keep = keep
         self._entries = {}          # key -> {charge-stage parameters: (mean, var, fluence, unit, sky rate)}
         self._lock = threading.Lock()

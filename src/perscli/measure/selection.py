@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from .. import PerscliError
 from ..instrument import ROMAN_PIXEL_SCALE
 from ..io.tables import read_table
-from ..scene import check_catalog, separation
+from ..scene import check_catalog, separation, within
 
 #: the catalogue's kinds fitted by default (perscli catalog writes 'galaxy' and 'star')
 DEFAULT_KINDS = ("galaxy",)
@@ -179,8 +179,7 @@ def frame_xy(wcs, shape, ra, dec):
                         [nx + 0.5, 0.5]])
     (ra0, dec0), *edges = wcs.all_pix2world(corners, 1)
     half = max(float(separation(ra0, dec0, e[0], e[1])) for e in edges)
-    with np.errstate(invalid="ignore"):
-        near = separation(ra0, dec0, ra, dec) <= half + NEAR_FRAME_DEG
+    near = within(ra0, dec0, ra, dec, half + NEAR_FRAME_DEG)
     if near.any():
         x[near], y[near] = wcs.all_world2pix(ra[near], dec[near], 1)
     return x, y

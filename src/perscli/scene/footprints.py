@@ -21,7 +21,7 @@ import numpy as np
 
 from .. import PerscliError
 from ..instrument import ROMAN_N_SCA, ROMAN_PIXEL_SCALE, ROMAN_SCA_SIZE
-from . import check_mjd, check_pa, check_position, separation
+from . import check_mjd, check_pa, check_position, within
 from .observability import _date, _when, unobservable_message
 
 #: [deg] objects farther than this from an SCA's centre are taken to be off it without asking the WCS:
@@ -98,7 +98,7 @@ def sky_to_pixels(wcs, ra, dec) -> tuple:
         return x, y
     centre = wcs.toWorld(galsim.PositionD(ROMAN_SCA_SIZE / 2 + 0.5, ROMAN_SCA_SIZE / 2 + 0.5))
     with np.errstate(invalid="ignore"):
-        near = separation(centre.ra / galsim.degrees, centre.dec / galsim.degrees, ra, dec) <= NEAR_SCA_DEG
+        near = within(centre.ra / galsim.degrees, centre.dec / galsim.degrees, ra, dec, NEAR_SCA_DEG)
     if np.any(near):
         try:
             px, py = wcs.radecToxy(np.radians(ra[near]), np.radians(dec[near]), units="radians")

@@ -33,7 +33,7 @@ from ..measure.perframe import Windows, frame_setup, measure_object_changes, sta
 from ..measure.response import CHANGE_METHODS
 from ..measure.selection import read_positions
 from ..measure.settings import MIN_SNR_DEFAULT, MeasureOptions
-from ..scene import project, separation
+from ..scene import project, within
 from .differential import read_stamps, stamp_windows, variant_extname
 
 #: |De| of a galaxy fitted on both: De = g(variant) - g(reference); Delta|e| = |g(variant)| - |g(reference)|
@@ -132,7 +132,7 @@ def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions =
         if part.get("xi_hi") is not None:
             subset &= xi < part["xi_hi"]
     if field is not None:
-        subset &= separation(field["ra"], field["dec"], cat["ra"], cat["dec"]) <= field["radius"]
+        subset &= within(field["ra"], field["dec"], cat["ra"], cat["dec"], field["radius"])
 
     changed = {v: [] for v in variants}
     stored = [None] * len(finals)
