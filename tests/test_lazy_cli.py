@@ -165,3 +165,23 @@ def test_library_modules_import_at_the_top():
     assert len(_library()) > 50
     assert not unexcused, ("move these imports to the top of their module, or say on the line (or the line "
                            f"above) why not, with '# {MARKER} ...': " + "; ".join(unexcused))
+
+
+def test_no_command_rewrites_its_own_parameters_at_import():
+    """A command's options say what they are where they are declared: no module of cli/ changes a click
+    parameter after the fact (no loop over ``command.params``, no ``param.required = ...`` at module level)."""
+    import ast
+    from pathlib import Path
+
+    cli_dir = Path(__file__).resolve().parents[1] / "src" / "perscli" / "cli"
+    found = []
+    for path in sorted(cli_dir.glob("*.py")):
+        for node in ast.parse(path.read_text()).body:
+            if isinstance(node, (ast.For, ast.While)):
+                found.append(f"{path.name}:{node.lineno}: a loop at module level")
+            targets = node.targets if isinstance(node, ast.Assign) else (
+                [node.target] if isinstance(node, (ast.AugAssign, ast.AnnAssign)) else [])
+            for t in targets:
+                if isinstance(t, (ast.Attribute, ast.Subscript)):
+                    found.append(f"{path.name}:{node.lineno}: {ast.unparse(t)} changed at module level")
+    assert not found, found

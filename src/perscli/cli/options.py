@@ -54,9 +54,14 @@ from ..io.config import split_key_value
 from ..scene import DEC_RANGE, MJD_RANGE, PA_RANGE, RA_RANGE
 from .helpers import FILE, OUTPUT, DataError, configure_logging, file_or
 
-output_opt = click.option(
-    "-o", "--output", "output", required=True, metavar="PATH", type=OUTPUT,
-    help="Output FITS file, or '-' (or /dev/stdout) for standard output.")
+def output_option(required: bool = True):
+    """``-o/--output PATH``: required, or (``required=False``) checked by a command that can run without one
+    (render --dry-run)."""
+    return click.option("-o", "--output", "output", required=required, metavar="PATH", type=OUTPUT,
+                        help="Output FITS file, or '-' (or /dev/stdout) for standard output.")
+
+
+output_opt = output_option()
 
 overwrite_opt = click.option(
     "--overwrite", is_flag=True, default=False, help="Replace the output if it exists.")
@@ -189,9 +194,11 @@ _SEED_HELP = "Random seed, written into the output: the same seed gives the same
 seed_opt = click.option(
     "--seed", type=click.IntRange(min=0), default=1, show_default=True, metavar="N", help=_SEED_HELP)
 
-#: --seed for commands where every run must choose one (render)
-required_seed_opt = click.option(
-    "--seed", type=click.IntRange(min=0), required=True, metavar="N", help=_SEED_HELP)
+def chosen_seed_option(required: bool = True):
+    """``--seed N`` with no default: every run chooses one (render); ``required=False`` for a command that
+    checks it itself (render --dry-run needs none)."""
+    return click.option("--seed", type=click.IntRange(min=0), required=required, metavar="N", help=_SEED_HELP)
+
 
 
 def _add_verbosity(sign: int):
@@ -244,10 +251,15 @@ no_checksum_opt = click.option(
     help="Do not verify the CHECKSUM/DATASUM of inputs (for files edited on purpose; "
          "astropy's `fitscheck --force FILE` updates them instead).")
 
-compress_opt = click.option(
-    "--compress", type=click.Choice(["none", "gzip", "rice"]), default="none", show_default=True,
-    help="Tile-compress the output's images, losslessly: gzip (GZIP_2, any data) or rice (integer data "
-         "only). An output named *.fits.gz is gzip-compressed as a whole instead.")
+def compress_option(default: str = "none"):
+    """``--compress none|gzip|rice``, with the command's own default (render's is RenderOptions')."""
+    return click.option(
+        "--compress", type=click.Choice(["none", "gzip", "rice"]), default=default, show_default=True,
+        help="Tile-compress the output's images, losslessly: gzip (GZIP_2, any data) or rice (integer data "
+             "only). An output named *.fits.gz is gzip-compressed as a whole instead.")
+
+
+compress_opt = compress_option()
 
 
 def _columns(ctx, param, value):

@@ -13,8 +13,9 @@ from ..io.config import DETECTOR_ITEM
 from ..render.settings import DEFAULT_HDUS, HDU_NAMES, RenderOptions
 from ..scene import check_filter
 from .helpers import FILE, PerscliCommand, check_outputs, progress_reporter, report_errors
-from .options import (columns_opt, compress_opt, dec_opt, key_values, mjd_opt, model_opt, no_checksum_opt, output_opt,
-                      overwrite_opt, pa_opt, plot_opt, ra_opt, required_seed_opt, verbosity_opts, workers_opt)
+from .options import (chosen_seed_option, columns_opt, compress_option, dec_opt, key_values, mjd_opt, model_opt,
+                      no_checksum_opt, output_option, overwrite_opt, pa_opt, plot_opt, ra_opt, verbosity_opts,
+                      workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -84,12 +85,14 @@ def _list_effects(ctx, param, value):
 @click.option("--strict", is_flag=True, default=D.strict,
               help="No object of TRUTH.fits on the frame is an error (exit 1, nothing written), not a warning.")
 @columns_opt("TRUTH.fits", "ra=ALPHA_J2000,dec=DELTA_J2000,id=NUMBER")
-@required_seed_opt
+# --dry-run draws and writes nothing: -o and --seed are required only without it, which the body checks
+# (usage errors, exit 2, in click's own words)
+@chosen_seed_option(required=False)
 @plot_opt("the frame and its persistence")
 @click.option("--list-effects", is_flag=True, expose_value=False, is_eager=True, callback=_list_effects,
               help="Print every effect's parameters (type, unit, default, allowed values) and exit.")
-@output_opt
-@compress_opt
+@output_option(required=False)
+@compress_option(D.compress)
 @no_checksum_opt
 @overwrite_opt
 @workers_opt("processes drawing the objects' stamps (the output does not depend on N)")
@@ -235,13 +238,3 @@ def _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, 
                     filter=check_filter(values["--filter"]), mjd=values["--mjd"],
                     exptime=exptime if exptime is not None else ROMAN_EXPTIME,
                     bounds=tuple(bounds) if bounds else None, expid=expid)
-
-
-# --dry-run draws and writes nothing: -o and --seed are required only without it, which the body checks (usage
-# errors, exit 2, with click's own words).  --compress is the option every writing command shares
-# (cli/options.py): render's default is RenderOptions'
-for _param in render.params:
-    if _param.name in ("output", "seed"):
-        _param.required = False
-    elif _param.name == "compress":
-        _param.default = D.compress
