@@ -183,22 +183,51 @@ def read_truth(path: str, filter_name: str, *, columns=None):
 
 # -- drawing ------------------------------------------------------------------------------------
 
-def plan_objects(cols, optics: Optics, bounds):
-    """Which objects touch the image, with their positions, fluxes and stamp sizes."""
-    x, y = optics.positions(cols["ra"], cols["dec"])
-    flux = optics.electrons(cols["mag"])
+def plan_objects(cols, optics: Optics, bounds, known: dict | None = None):
+    """Which objects touch the image, with their positions, fluxes and stamp sizes.
+
+    Parameters
+    ----------
+    cols : dict
+        The catalogue's columns (:func:`read_truth`).
+    optics : Optics
+    bounds : (xmin, xmax, ymin, ymax)
+        The image, 1-indexed inclusive SCA pixels.
+    known : dict, optional
+        Kept between calls on the same ``cols`` and ``optics`` with other
+        bounds (a study's frame and the area its galaxies need): the
+        positions, fluxes and stamp sizes already worked out are not worked
+        out again.  The plans are the same as without it.
+
+    Returns
+    -------
+    todo, x, y, flux, sizes
+        Indices of the objects to draw, and per object its position, flux
+        (electrons) and stamp side (0 where not needed).
+    """
+    if known is not None and "x" in known:
+        x, y, flux = known["x"], known["y"], known["flux"]
+        sizes = known["sizes"]
+    else:
+        x, y = optics.positions(cols["ra"], cols["dec"])
+        flux = optics.electrons(cols["mag"])
+        sizes = np.full(len(x), -1, dtype=np.int64)         # -1: not worked out yet
+        if known is not None:
+            known.update(x=x, y=y, flux=flux, sizes=sizes)
     is_star = cols["kind"] == "star"
     hlr_pix = cols["hlr"] / roman.pixel_scale
     xmin, xmax, ymin, ymax = bounds
     # no stamp is larger than 2048 pixels: only objects within that margin need a size
     near = np.flatnonzero((x + 1025 >= xmin) & (x - 1025 <= xmax) & (y + 1025 >= ymin) & (y - 1025 <= ymax))
-    sizes = np.zeros(len(x), dtype=np.int64)
-    for i in near:
+    for i in near[sizes[near] < 0]:
         sizes[i] = star_stamp_size(flux[i]) if is_star[i] else galaxy_stamp_size(hlr_pix[i])
-    half = sizes / 2 + 1
-    keep = (sizes > 0) & (x + half >= xmin) & (x - half <= xmax) & (y + half >= ymin) & (y - half <= ymax)
+    # the sizes of these bounds: those near them (other objects' sizes, worked out for other bounds, are 0 here)
+    here = np.zeros(len(x), dtype=np.int64)
+    here[near] = sizes[near]
+    half = here / 2 + 1
+    keep = (here > 0) & (x + half >= xmin) & (x - half <= xmax) & (y + half >= ymin) & (y - half <= ymax)
     keep &= flux > 0
-    return np.flatnonzero(keep), x, y, flux, sizes
+    return np.flatnonzero(keep), x, y, flux, here
 
 
 @dataclass

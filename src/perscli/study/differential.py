@@ -157,10 +157,11 @@ def object_light(truth: str, exposure: Exposure, source: str = "drawn", floor: f
         return _LIGHT[key]
     cols = _truth_columns(truth, exposure.filter)
     optics = Optics(exposure)
-    plan = plan_objects(cols, optics, exposure.full_bounds)
+    known = {}          # the catalogue's positions on this frame, worked out once for both plans
+    plan = plan_objects(cols, optics, exposure.full_bounds, known)
     reaching = None
     if region is not None:
-        reaching = _objects_reaching(plan_objects(cols, optics, region.area), region.blocks, region.area)
+        reaching = _objects_reaching(plan_objects(cols, optics, region.area, known), region.blocks, region.area)
     if source == "drawn":
         light = draw_sources(cols, exposure, optics=optics, plan=plan, only=reaching)[0].astype(np.float32)
     else:
