@@ -49,9 +49,9 @@ from ..io.output import check_output, write_hdus
 from ..io.tables import read_table
 from ..measure.settings import MeasureOptions
 from ..optics import Optics
+from ..render.cards import _exposure_cards, _model_hdu, _provenance, _wcs_cards
 from ..render.exposure import Exposure, draw_sources, plan_objects, read_truth
-from ..render.run import (_exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, pad_to, persisting_fluence,
-                          simulation_area)
+from ..render.run import crop, pad_to, persisting_fluence, simulation_area
 from .reach import (IPC_REACH, WINDOW_MARGIN, _active_blocks, _clip_keep, _objects_reaching, galaxy_positions,
                     persisting_stars, stamp_sides, touches, window_boxes)
 
