@@ -76,3 +76,53 @@ def test_the_library_knows_nothing_of_click():
     assert not _reaching(library, ("perscli.cli",))
     clicking = sorted(str(p.relative_to(SRC)) for p in library if "click" in _third_party(p))
     assert not clicking, f"library modules that import click: {clicking}"
+
+
+# -- functions a reader can hold ----------------------------------------------------------------
+
+#: the longest function of the library (outside diagnose/ and cli/), in lines, docstring included
+MAX_FUNCTION_LINES = 80
+
+#: functions longer than that, not yet split along their jobs (issue 27): "path:name" -> what holds them
+#: together.  Split one, and take it off the list (the test says so).
+LONG_FUNCTIONS = {
+    "detector/apply.py:map_blocks": "the block loop of apply-persistence: its closures share the threads' buffers",
+    "io/frames.py:open_frame": "every frame layout (image, cube, WFC3 ramp) and its units, gain and timing",
+    "measure/fit.py:_newton": "the damped Newton iteration of every fit: one loop over its shared state",
+    "measure/joint.py:joint_setup": "the frames' headers read and what a joint fit fits chosen",
+    "render/exposure.py:draw_sources": "render's stamps: optics, plan, batches and their sum",
+    "samples.py:make_sample_sequence": "the bundled sample exposures: their pixels and cards together",
+    "scene/__init__.py:check_catalog": "the one check of catalogue columns, rule after rule",
+    "scene/dithers.py:plan_dithers": "a dithered sequence: pattern, pointings and Roman's constraints",
+    "stats/de_stats.py:theta_distribution": "the position-angle distribution, its bootstrap and its test",
+    "stats/pairs.py:load_pairs": "many pairs read, matched and pooled, with their bookkeeping",
+    "stats/xi.py:correlate_de": "TreeCorr's correlation and the choice of jackknife or shot-noise errors",
+    "study/summary.py:variant_results": "one variant's statistics, uniformity and budget read together",
+    "study/tasks.py:_final": "a study task: finals rendered, and measured or kept",
+}
+
+
+def _function_lengths() -> dict:
+    """Lines (``end_lineno - lineno + 1``) of every function and method outside diagnose/ and cli/, by "path:name"."""
+    import ast
+
+    lengths = {}
+    for path in sorted(SRC.rglob("*.py")):
+        rel = path.relative_to(SRC)
+        if rel.parts[0] in ("diagnose", "cli"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                key = f"{rel.as_posix()}:{node.name}"
+                lengths[key] = max(lengths.get(key, 0), node.end_lineno - node.lineno + 1)
+    return lengths
+
+
+def test_no_function_is_over_80_lines_but_the_listed_ones():
+    """Science in one function, its FITS layout in another: none over MAX_FUNCTION_LINES but LONG_FUNCTIONS."""
+    lengths = _function_lengths()
+    assert len(lengths) > 500
+    long = {key: n for key, n in lengths.items() if n > MAX_FUNCTION_LINES and key not in LONG_FUNCTIONS}
+    assert not long, f"split these where the science meets the FITS layout: {long}"
+    gone = sorted(key for key in LONG_FUNCTIONS if lengths.get(key, 0) <= MAX_FUNCTION_LINES)
+    assert not gone, f"split or gone: take them off LONG_FUNCTIONS: {gone}"

@@ -457,32 +457,123 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
         raise PerscliError(f"--mode must be one of {', '.join(MODES)}, not {mode!r}")
     _check_corrections(model_error, flag_above, dq_bit)
     the_plan = plan(current, previous, model)
-    ny, nx = current.shape
-    nplanes = current.nreads
-    sci_hdus = [current.hdus[i] for i in current.sci]
-    # stored (big-endian) order: each block is converted and its DATASUM summed in the thread that made it
-    dtype = np.dtype(">f8") if sci_hdus[0].dtype == np.dtype(">f8") and sci_hdus[0].is_plain_float else np.dtype(">f4")
-    out = np.empty((nplanes, ny, nx), dtype=dtype)
-    factors = [_unit_factor(current, k) for k in range(nplanes)]
-    # the fast path: the current frame's stored bytes are checksummed as they are used
-    fold_current = current.rows_are_raw
-
+    factors = [_unit_factor(current, k) for k in range(current.nreads)]
     # the uncertainty and the flags: companions read whole before the blocks (they are small next to
     # the science data, and reading them here keeps CFITSIO out of the worker threads)
     err_in = _err_planes(current, model_error, mode)
+    dq, flag_limit = _flag_targets(current, flag_above, dq_bit)
+    done = _stream_corrections(the_plan, model, factors, err_in, flag_limit, mode=mode, model_error=model_error,
+                               workers=workers, progress=progress)
+    flagged = 0
+    if done.flag_mask is not None:
+        flagged = int(done.flag_mask.sum())
+        for data, _ in dq.values():
+            # every plane of a DQ cube gets the exposure's flags
+            data |= (done.flag_mask * dq_bit).astype(data.dtype)
+    hdus = _frame_hdus(current, done, dq)
+    result = PersistenceResult(used=the_plan.used, skipped=the_plan.skipped, max_electrons=done.peak,
+                               total_electrons=done.total, flagged=flagged)
+    provenance(hdus[0], current, result, model, mode=mode, current_datasum=done.current_sum,
+               model_error=model_error if done.err_out else None,
+               flag=(flag_above, dq_bit) if done.flag_mask is not None else None)
+    return hdus, result
+
+
+def _flag_targets(current: Frame, flag_above, dq_bit: int) -> tuple:
+    """The DQ arrays a flag goes into (:func:`_dq_targets`) and the charge, in electrons, above which it is set.
+
+    Returns
+    -------
+    (dict, float or None)
+        ``({}, None)`` without ``flag_above``.
+    """
+    if flag_above is None:
+        return {}, None
+    dq = _dq_targets(current, dq_bit)
+    seconds = float(_plane_ends(current)[-1])
+    if seconds <= 0:
+        raise PerscliError(f"{current.label}: the exposure lasts 0 s: a persistence rate cannot be flagged; "
+                           "drop --flag-above or fix the timing")
+    return dq, flag_above * seconds
+
+
+@dataclass
+class _Corrected:
+    """The corrected frame of :func:`apply_to_frame`, as streamed block by block (:func:`_stream_corrections`)."""
+
+    out: np.ndarray        # (nplanes, ny, nx), the science planes in the output's stored (big-endian) type
+    plane_sums: list       # DATASUM of each plane of ``out``
+    current_sum: int       # the current frame's DATASUM, checked against its header where it was streamed
+    peak: float            # largest persistence in the last plane, electrons
+    total: float           # sum of the last plane's persistence, electrons
+    err_out: dict          # hdu index -> the updated ERR array
+    flag_mask: np.ndarray | None   # (ny, nx) pixels above the flag's charge; None without flags
+
+
+def _stream_corrections(the_plan: PersistencePlan, model: PersistenceModel, factors, err_in, flag_limit, *,
+                        mode: str, model_error: float, workers: int = 1, progress=None) -> _Corrected:
+    """Compute the persistence block by block (:func:`map_blocks`) and the corrected planes, ERR and flags from it.
+
+    Parameters
+    ----------
+    the_plan, model, workers, progress
+        As :func:`map_blocks`.
+    factors : list of float
+        Electrons per unit of each output plane (:func:`_unit_factor`).
+    err_in : list
+        The ERR planes to update (:func:`_err_planes`).
+    flag_limit : float or None
+        The charge above which a pixel is flagged; None: no flags.
+    mode, model_error
+        As :func:`apply_to_frame`.
+
+    Returns
+    -------
+    _Corrected
+    """
+    current = the_plan.current
+    ny, nx = current.shape
+    sci = current.hdus[current.sci[0]]
+    # stored (big-endian) order: each block is converted and its DATASUM summed in the thread that made it
+    dtype = np.dtype(">f8") if sci.dtype == np.dtype(">f8") and sci.is_plain_float else np.dtype(">f4")
+    out = np.empty((current.nreads, ny, nx), dtype=dtype)
+    # the fast path: the current frame's stored bytes are checksummed as they are used
+    fold_current = current.rows_are_raw
     err_out = {}
     for entry in err_in:
         if entry is not None and entry[0] not in err_out:
             err_out[entry[0]] = np.empty_like(entry[1])
-    flag_mask = None
-    if flag_above is not None:
-        dq = _dq_targets(current, dq_bit)
-        seconds = float(_plane_ends(current)[-1])
-        if seconds <= 0:
-            raise PerscliError(f"{current.label}: the exposure lasts 0 s: a persistence rate cannot be flagged; "
-                               "drop --flag-above or fix the timing")
-        flag_limit = flag_above * seconds
-        flag_mask = np.zeros((ny, nx), dtype=bool)
+    flag_mask = None if flag_limit is None else np.zeros((ny, nx), dtype=bool)
+    consume = _block_consumer(current, out, factors, err_in, err_out, flag_mask, flag_limit, mode=mode,
+                              model_error=model_error, fold_current=fold_current)
+    threads = workers if (fold_current or mode == "predict") else 1  # CFITSIO reads stay in one thread
+    parts = map_blocks(the_plan, model, consume, workers=threads, progress=progress)
+    current_sum = 0
+    plane_sums = [0] * current.nreads
+    for part, _, _, sums in parts:
+        current_sum = ones_complement_add(current_sum, part)
+        plane_sums = [ones_complement_add(a, b) for a, b in zip(plane_sums, sums)]
+    peak = max((p for _, p, _, _ in parts), default=0.0)
+    total = float(sum(t for _, _, t, _ in parts))
+    if fold_current and mode != "predict":
+        current_sum = current.verify(current.sci[0], current_sum)
+    else:
+        current_sum = current.datasum(current.provenance_hdu)
+    return _Corrected(out=out, plane_sums=plane_sums, current_sum=current_sum, peak=peak, total=total,
+                      err_out=err_out, flag_mask=flag_mask)
+
+
+def _block_consumer(current: Frame, out, factors, err_in, err_out, flag_mask, flag_limit, *, mode: str,
+                    model_error: float, fold_current: bool):
+    """The ``consume`` of :func:`map_blocks` for :func:`_stream_corrections`: one block of rows into ``out``.
+
+    It converts the block's persistence to the frame's units, updates the
+    ERR rows in ``err_out`` and the flags in ``flag_mask``, adds it to or
+    subtracts it from the current frame's rows (unless predicting), and
+    returns ``(the current rows' DATASUM part, peak, total, [DATASUM of each
+    output plane's rows])``.
+    """
+    nx = current.shape[1]
 
     def consume(r0, r1, electrons):
         peak_total = (float(electrons[-1].max()), float(electrons[-1].sum()))
@@ -491,7 +582,7 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
         scratch = np.empty((r1 - r0, nx))
         part = 0
         out_sums = []
-        for k in range(nplanes):
+        for k in range(current.nreads):
             if factors[k] == 0.0:
                 work = scratch
                 work.fill(0.0)
@@ -530,57 +621,49 @@ def apply_to_frame(current: Frame, previous, model: PersistenceModel, *, mode: s
             out_sums.append(_kernels.datasum(out[k, r0:r1]))
         return (part,) + peak_total + (out_sums,)
 
-    threads = workers if (fold_current or mode == "predict") else 1  # CFITSIO reads stay in one thread
-    parts = map_blocks(the_plan, model, consume, workers=threads, progress=progress)
-    current_sum = 0
-    plane_sums = [0] * nplanes
-    for part, _, _, sums in parts:
-        current_sum = ones_complement_add(current_sum, part)
-        plane_sums = [ones_complement_add(a, b) for a, b in zip(plane_sums, sums)]
-    peak = max((p for _, p, _, _ in parts), default=0.0)
-    total = float(sum(t for _, _, t, _ in parts))
-    if fold_current and mode != "predict":
-        current_sum = current.verify(current.sci[0], current_sum)
-    else:
-        current_sum = current.datasum(current.provenance_hdu)
+    return consume
 
-    flagged = 0
-    if flag_mask is not None:
-        flagged = int(flag_mask.sum())
-        for data, _ in dq.values():
-            # every plane of a DQ cube gets the exposure's flags
-            data |= (flag_mask * dq_bit).astype(data.dtype)
 
+def _frame_hdus(current: Frame, done: _Corrected, dq: dict) -> list:
+    """The output file's HDUs: the current frame's, in its order, with the corrected science, ERR and DQ data.
+
+    Parameters
+    ----------
+    current : Frame
+    done : _Corrected
+        The corrected planes (:func:`_stream_corrections`).
+    dq : dict
+        The flagged DQ arrays (:func:`_dq_targets`; empty without flags):
+        existing ones replace theirs, new ones are appended at the end.
+
+    Returns
+    -------
+    list of OutHDU
+    """
     hdus = []
     for hdu in current.hdus:
         if hdu.index in current.sci:
             if current.layout == "cube":
-                data, datasum = out, 0
-                for s in plane_sums:
+                data, datasum = done.out, 0
+                for s in done.plane_sums:
                     datasum = ones_complement_add(datasum, s)
             else:
                 k = current.sci.index(hdu.index)
-                data, datasum = out[k], plane_sums[k]
+                data, datasum = done.out[k], done.plane_sums[k]
             extname = hdu.header.get("EXTNAME") if "EXTNAME" in hdu.header else None
             hdus.append(OutHDU(list(hdu.header.cards), data, extname=extname, datasum=datasum))
-        elif hdu.index in err_out:
-            hdus.append(OutHDU(list(hdu.header.cards), err_out[hdu.index], extname="ERR"))
-        elif flag_mask is not None and hdu.index in dq:
+        elif hdu.index in done.err_out:
+            hdus.append(OutHDU(list(hdu.header.cards), done.err_out[hdu.index], extname="ERR"))
+        elif hdu.index in dq:
             data, cards = dq[hdu.index]
             hdus.append(OutHDU(cards, data, extname="DQ"))
         else:
             data, units = hdu.read_copy()
             hdus.append(OutHDU(list(hdu.header.cards), data, units=units))
-    if flag_mask is not None:
-        for key, (data, cards) in dq.items():
-            if isinstance(key, tuple):
-                hdus.append(OutHDU(cards, data, extname="DQ"))
-    result = PersistenceResult(used=the_plan.used, skipped=the_plan.skipped, max_electrons=peak,
-                               total_electrons=total, flagged=flagged)
-    provenance(hdus[0], current, result, model, mode=mode, current_datasum=current_sum,
-               model_error=model_error if err_out else None,
-               flag=(flag_above, dq_bit) if flag_mask is not None else None)
-    return hdus, result
+    for key, (data, cards) in dq.items():
+        if isinstance(key, tuple):
+            hdus.append(OutHDU(cards, data, extname="DQ"))
+    return hdus
 
 
 def provenance(header, current: Frame, result: PersistenceResult, model: PersistenceModel, *,

@@ -130,20 +130,10 @@ def fit_changes(problem: _Problem, start, floors, npix: int, deltas, *, max_nfev
         The reference's fit, each variant's :class:`Change`, and with ``cold``
         each variant's fit from ``start`` (None where nothing changed).
     """
-    # the reference to REF_XTOL only: the Newton step computed at its minimum for the variants takes it the
-    # rest of the way (to the square of where it stopped), so its last steps would be spent twice
-    theta, chi2, A, nfev, flags, us = _newton(problem, start, floors, _valid, max_nfev=max_nfev,
-                                              xtol=max(xtol, REF_XTOL))
-    ref = _finish(theta, chi2, A, npix, nfev, flags)
-    if ref.flags:
-        # no clean minimum (a fit that failed, or stopped at |g| = 1): fitted as a fit of the data alone is, and
-        # every variant likewise (their difference is then that of two such fits)
-        first = start if cold_start is None else cold_start
-        theta, chi2, A, nf, flags, us = _newton(problem, first, floors, _valid, max_nfev=max_nfev, xtol=xtol)
-        ref = _finish(theta, chi2, A, npix, nfev + nf, flags)
+    ref, theta, chi2, flags, us = _fit_reference(problem, start, floors, npix, max_nfev=max_nfev, xtol=xtol,
+                                                 cold_start=cold_start)
     changes, colds = [], []
     state = None
-
     for delta in deltas:
         if delta is None or all(d is None for d in delta):
             changes.append(Change(ref, "same", 0.0))
@@ -162,72 +152,129 @@ def fit_changes(problem: _Problem, start, floors, npix: int, deltas, *, max_nfev
             changes.append(Change(colds[-1] or from_start(), "cold", math.nan))
             continue
         if state is None:
-            # the reference's minimum, with its own residual's second-order term: once per galaxy.  The
-            # reference stopped where its next step fell below the tolerance; that step (own) is what is
-            # left to its exact minimum, against which a variant's change is measured: De is the change of
-            # the minimum, not of where two fits happened to stop
-            jts = []
-            spectra = problem.spectra(us)
-            _, A0, b0, S0, _ = problem.evaluate(theta, spectra, jts=jts)
-            try:
-                own = _solve(A0, S0, b0)
-            except np.linalg.LinAlgError:
-                own = np.zeros(6)
-            if not np.all(np.isfinite(own)):
-                own = np.zeros(6)
-            state = (A0, b0, S0, jts, spectra, own)
+            state = _reference_minimum(problem, theta, us)
             # the reference reported at its exact minimum, as a fit to the tolerance would have it
-            ref.theta = theta + own
+            ref.theta = theta + state[-1]
             ref.nfev += 1
-        A0, b0, S0, jts, spectra, own = state
-        b = np.zeros(6)
-        for st, jt, d in zip(problem.stamps, jts, delta):
-            if d is not None:
-                b += jt @ (st.sw * np.where(st.sw > 0, d, 0.0)).ravel()
-        try:
-            # the linear response to the change alone, from the reference's exact minimum
-            step = _solve(A0, S0, b) + own
-        except np.linalg.LinAlgError:
-            step = None
-        if step is None or not np.all(np.isfinite(step)) or max(abs(step[2]), abs(step[3])) > COLD_ABOVE:
-            changes.append(Change(colds[-1] or from_start(), "cold", math.nan))
-            continue
-        scale = np.maximum(np.abs(theta), floors)
-        if np.all(np.abs(step) <= xtol * scale):
-            # the Newton step from theta* on the changed data is below the tolerance: theta* + step is its
-            # minimum by the fitter's own rule (the error left is of the step's square's order)
-            th1 = theta + step
-            res = _finish(th1, chi2, A0, npix, 1, flags)
-            changes.append(Change(res, "linear", float(max(abs(step[2]), abs(step[3])))))
-            continue
-        th1 = theta + step
-        if _valid(th1, theta) != "ok":
-            changes.append(Change(colds[-1] or from_start(), "cold", math.nan))
-            continue
-        # the check: one Newton evaluation at the linear response, on the changed data (the second-order
-        # term with the reference's residual, as every trial point of a fit takes the previous point's)
-        c1, A1, b1, S1, us1 = varied.evaluate(th1, spectra)
-        try:
-            corr = _solve(A1, S1, b1)
-        except np.linalg.LinAlgError:
-            corr = None
-        if corr is not None and np.all(np.isfinite(corr)):
-            # th1 + corr is within |corr|^2 (and |corr| times the second-order term's small change with
-            # the data) of the minimum: taken when the correction is below the tolerance, or below
-            # LINEAR_REL of the change itself (then its error is orders below what the change needs)
-            limit = np.maximum(xtol * np.maximum(np.abs(th1), floors), LINEAR_REL * np.abs(step - own))
-            if np.all(np.abs(corr) <= limit):
-                res = _finish(th1 + corr, c1, A1, npix, 2, flags)
-                changes.append(Change(res, "linear", float(max(abs(corr[2]), abs(corr[3])))))
-                continue
-        # further warm steps: a damped Newton fit from the linear response
-        th, c2, AA, nf, fl, _ = _newton(varied, th1, floors, _valid, max_nfev=MAX_WARM_NFEV, xtol=xtol)
-        if fl & FLAG_FAILED:
-            changes.append(Change(colds[-1] or from_start(), "cold", math.nan))
-            continue
-        changes.append(Change(_finish(th, c2, AA, npix, 2 + nf, fl), "newton",
-                              float(max(abs(th[2] - th1[2]), abs(th[3] - th1[3])))))
+        change = _warm_change(problem, varied, delta, state, theta=theta, chi2=chi2, flags=flags, floors=floors,
+                              npix=npix, xtol=xtol)
+        # None: refitted from the start, as a fit of the changed data alone would be
+        changes.append(change if change is not None else Change(colds[-1] or from_start(), "cold", math.nan))
     return ref, changes, colds
+
+
+def _fit_reference(problem: _Problem, start, floors, npix: int, *, max_nfev: int, xtol: float,
+                   cold_start=None) -> tuple:
+    """The reference's fit for :func:`fit_changes`: to :data:`REF_XTOL` from ``start``.
+
+    Returns
+    -------
+    (FitResult, ndarray, float, int, object)
+        The fit, and the theta, chi2, flags and spectra state of the last
+        Newton step of :func:`perscli.measure.fit._newton`.
+    """
+    # the reference to REF_XTOL only: the Newton step computed at its minimum for the variants takes it the
+    # rest of the way (to the square of where it stopped), so its last steps would be spent twice
+    theta, chi2, A, nfev, flags, us = _newton(problem, start, floors, _valid, max_nfev=max_nfev,
+                                              xtol=max(xtol, REF_XTOL))
+    ref = _finish(theta, chi2, A, npix, nfev, flags)
+    if ref.flags:
+        # no clean minimum (a fit that failed, or stopped at |g| = 1): fitted as a fit of the data alone is, and
+        # every variant likewise (their difference is then that of two such fits)
+        first = start if cold_start is None else cold_start
+        theta, chi2, A, nf, flags, us = _newton(problem, first, floors, _valid, max_nfev=max_nfev, xtol=xtol)
+        ref = _finish(theta, chi2, A, npix, nfev + nf, flags)
+    return ref, theta, chi2, flags, us
+
+
+def _reference_minimum(problem: _Problem, theta, us) -> tuple:
+    """The reference's minimum, with its own residual's second-order term: once per galaxy.
+
+    The reference stopped where its next step fell below the tolerance;
+    that step (``own``) is what is left to its exact minimum, against which
+    a variant's change is measured: De is the change of the minimum, not of
+    where two fits happened to stop.
+
+    Returns
+    -------
+    (A0, b0, S0, jts, spectra, own)
+        The Gauss-Newton matrix, gradient and second-order term at
+        ``theta``, each stamp's Jacobian (transposed), the spectra, and the
+        step to the exact minimum.
+    """
+    jts = []
+    spectra = problem.spectra(us)
+    _, A0, b0, S0, _ = problem.evaluate(theta, spectra, jts=jts)
+    try:
+        own = _solve(A0, S0, b0)
+    except np.linalg.LinAlgError:
+        own = np.zeros(6)
+    if not np.all(np.isfinite(own)):
+        own = np.zeros(6)
+    return A0, b0, S0, jts, spectra, own
+
+
+def _warm_change(problem: _Problem, varied: _Problem, delta, state: tuple, *, theta, chi2, flags, floors, npix: int,
+                 xtol: float):
+    """A variant's fit from the reference's minimum: its linear response, checked, or warm Newton steps.
+
+    Parameters
+    ----------
+    problem, varied : _Problem
+        The reference's stamps, and the variant's (the data plus ``delta``).
+    state : tuple
+        The reference's minimum (:func:`_reference_minimum`).
+    theta, chi2, flags
+        The reference's fit (:func:`_fit_reference`).
+
+    Returns
+    -------
+    Change or None
+        'linear' or 'newton'; None where the variant is to be fitted from
+        the start ('cold').
+    """
+    A0, b0, S0, jts, spectra, own = state
+    b = np.zeros(6)
+    for st, jt, d in zip(problem.stamps, jts, delta):
+        if d is not None:
+            b += jt @ (st.sw * np.where(st.sw > 0, d, 0.0)).ravel()
+    try:
+        # the linear response to the change alone, from the reference's exact minimum
+        step = _solve(A0, S0, b) + own
+    except np.linalg.LinAlgError:
+        step = None
+    if step is None or not np.all(np.isfinite(step)) or max(abs(step[2]), abs(step[3])) > COLD_ABOVE:
+        return None
+    scale = np.maximum(np.abs(theta), floors)
+    if np.all(np.abs(step) <= xtol * scale):
+        # the Newton step from theta* on the changed data is below the tolerance: theta* + step is its
+        # minimum by the fitter's own rule (the error left is of the step's square's order)
+        th1 = theta + step
+        res = _finish(th1, chi2, A0, npix, 1, flags)
+        return Change(res, "linear", float(max(abs(step[2]), abs(step[3]))))
+    th1 = theta + step
+    if _valid(th1, theta) != "ok":
+        return None
+    # the check: one Newton evaluation at the linear response, on the changed data (the second-order
+    # term with the reference's residual, as every trial point of a fit takes the previous point's)
+    c1, A1, b1, S1, us1 = varied.evaluate(th1, spectra)
+    try:
+        corr = _solve(A1, S1, b1)
+    except np.linalg.LinAlgError:
+        corr = None
+    if corr is not None and np.all(np.isfinite(corr)):
+        # th1 + corr is within |corr|^2 (and |corr| times the second-order term's small change with
+        # the data) of the minimum: taken when the correction is below the tolerance, or below
+        # LINEAR_REL of the change itself (then its error is orders below what the change needs)
+        limit = np.maximum(xtol * np.maximum(np.abs(th1), floors), LINEAR_REL * np.abs(step - own))
+        if np.all(np.abs(corr) <= limit):
+            res = _finish(th1 + corr, c1, A1, npix, 2, flags)
+            return Change(res, "linear", float(max(abs(corr[2]), abs(corr[3]))))
+    # further warm steps: a damped Newton fit from the linear response
+    th, c2, AA, nf, fl, _ = _newton(varied, th1, floors, _valid, max_nfev=MAX_WARM_NFEV, xtol=xtol)
+    if fl & FLAG_FAILED:
+        return None
+    return Change(_finish(th, c2, AA, npix, 2 + nf, fl), "newton", float(max(abs(th[2] - th1[2]), abs(th[3] - th1[3]))))
 
 
 def fit_joint_changes(stamps, start, deltas, *, max_nfev: int = MAX_NFEV, xtol: float = 1e-10, cold: bool = False,

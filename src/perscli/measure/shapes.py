@@ -104,6 +104,45 @@ def measure_files(frames, catalog: str, dest: str, *, options: MeasureOptions | 
         numbers selected, fitted and cut.
     """
     o = options if options is not None else MeasureOptions()
+    frames = list(frames)
+    min_snr, psf_options = _checked_options(o, frames, catalog, dest, write_psf, overwrite)
+    psf_used = []
+    cat = read_positions(catalog, columns=o.columns)
+    _, kinds_text = select_kinds(cat, o.kinds)       # bad --kinds fail here, before any frame is read
+    inputs = [("CAT", catalog, cat["datasum"])]
+    measure = _measure_jointly if o.joint else _measure_each_frame
+    shapes, noise_sources, counts = measure(frames, cat, o, psf_options=psf_options, psf_used=psf_used,
+                                            inputs=inputs, workers=workers, progress=progress)
+    hdus = [OutHDU([]), *_shapes_hdus(shapes, o.joint, len(frames))]
+    params = _measure_params(o, len(frames), kinds_text, min_snr, psf_options, counts, noise_sources, psf_used)
+    add_provenance(hdus[0], step=f"measure method={o.method} psf={params['PSF'][0]} frames={len(frames)}"
+                                 f"{' joint' if o.joint else ''} kinds={kinds_text} min_snr={min_snr:g}",
+                   params=params, inputs=inputs)
+    _document(hdus[0], o.joint)
+    if write_psf is not None:
+        _write_psf(psf_used, write_psf, o.psf, inputs, overwrite)
+    write_hdus(hdus, dest, overwrite=overwrite)
+    good = int(np.sum(shapes["flags"] == 0))
+    totals = counts if o.joint else {"selected": counts[0]["selected"] if counts else 0,
+                                     "fitted": sum(c["fitted"] for c in counts), "cut": sum(c["cut"] for c in counts)}
+    return {"rows": len(shapes["id"]), "good": good, "unflagged": good, "frames": len(frames),
+            "selected": totals["selected"], "fitted": totals["fitted"], "cut": totals["cut"], "joint": bool(o.joint)}
+
+
+def _checked_options(o: MeasureOptions, frames: list, catalog: str, dest: str, write_psf, overwrite: bool) -> tuple:
+    """Check :func:`measure_files`' options and outputs before anything is read.
+
+    Returns
+    -------
+    (float, perscli.measure.psf.PsfOptions)
+        The S/N cut, and the run's PSF image settings.
+
+    Raises
+    ------
+    PerscliError
+        An option out of range or at odds with another, or an output that
+        cannot be written.
+    """
     psf, method, stamp, joint, psf_pixel = o.psf, o.method, o.stamp, o.joint, o.psf_pixel
     if method not in ("exp", "hsm"):
         raise PerscliError(f"--method must be exp or hsm, not {method!r}")
@@ -112,7 +151,6 @@ def measure_files(frames, catalog: str, dest: str, *, options: MeasureOptions | 
     min_snr = _check_min_snr(o.min_snr)
     if joint and method != "exp":
         raise PerscliError("--joint fits the exponential model: it does not go with --method hsm")
-    frames = list(frames)
     if frames.count("-") > 1:
         raise PerscliError("only one frame can be standard input ('-')")
     if psf == "roman":
@@ -131,87 +169,120 @@ def measure_files(frames, catalog: str, dest: str, *, options: MeasureOptions | 
             raise PerscliError("--write-psf and -o cannot both be standard output: give --write-psf a file")
         if write_psf != "-" and dest != "-" and os.path.abspath(write_psf) == os.path.abspath(dest):
             raise PerscliError(f"{write_psf}: --write-psf and -o name the same file: choose another name for the PSF")
-    psf_used = []
-    cat = read_positions(catalog, columns=o.columns)
-    _, kinds_text = select_kinds(cat, o.kinds)       # bad --kinds fail here, before any frame is read
-    inputs = [("CAT", catalog, cat["datasum"])]
-    params = {"METHOD": (method, "exp (mixture fit) or hsm (REGAUSS)"),
+    return min_snr, psf_options
+
+
+def _measure_jointly(frames, cat, o: MeasureOptions, *, psf_options, psf_used, inputs, workers, progress) -> tuple:
+    """One fit per galaxy over all the frames (:func:`perscli.measure.joint.measure_joint`).
+
+    Returns
+    -------
+    (dict, list, dict)
+        The columns, the noise model of each frame, and the counts
+        (selected, on, cut, fitted, models).
+    """
+    cols = measure_joint(frames, cat, options=o, progress=progress, workers=workers, inputs=inputs,
+                         psf_options=psf_options, psf_used=psf_used)
+    noise_sources = cols.pop("_noise")
+    counts = cols.pop("_counts")
+    return cols, noise_sources, counts
+
+
+def _measure_each_frame(frames, cat, o: MeasureOptions, *, psf_options, psf_used, inputs, workers,
+                        progress) -> tuple:
+    """The fits on each frame (:func:`perscli.measure.perframe.measure_frame`), one after the other.
+
+    Each frame's input (FRMnn) is appended to ``inputs``.
+
+    Returns
+    -------
+    (dict, list, list of dict)
+        The columns of all the frames' rows (``frame``: the index of the
+        frame), the noise model of each frame, and each frame's counts.
+    """
+    tables, noise_sources, frame_counts = [], [], []
+    kwargs = dict(options=o, psf_options=psf_options, psf_used=psf_used)
+    models = {}
+    for k, name in enumerate(frames):
+        frame = open_frame(name)
+        try:
+            inputs.append((f"FRM{k + 1:02d}", name, frame.datasum(frame.sci[0])))
+            # one model (the PSF's table: half a second) per SCA and filter, not per frame
+            wcs = frame_wcs(frame)
+            key = (str(frame.keyword("SCA")), str(frame.keyword("FILTER")), round(_pixel_scale(wcs), 6))
+            cols = measure_frame(frame, cat, progress=progress, workers=workers,
+                                 models=models.setdefault(key, {}), **kwargs)
+        finally:
+            frame.close()
+        noise_sources.append(cols.pop("_noise"))
+        frame_counts.append(cols.pop("_counts"))
+        table = {"id": cols["id"], "frame": np.full(len(cols["id"]), k, dtype=np.int16)}
+        table.update({key: cols[key] for key in ("x", "y", "ra", "dec", "g1", "g2", "T", "flux", "x_err",
+                                                  "y_err", "g1_err", "g2_err", "T_err", "flux_err", "s2n",
+                                                  "snr_pred", "chi2", "nfev", "flags")})
+        tables.append(table)
+    shapes = {key: np.concatenate([np.asarray(t[key]) for t in tables]) for key in tables[0]}
+    return shapes, noise_sources, frame_counts
+
+
+def _shapes_hdus(shapes: dict, joint: bool, nframes: int) -> list:
+    """The tables of :func:`measure_files`: JOINT, or SHAPES and (for several frames) COMBINED."""
+    if joint:
+        order = ("id", "ra", "dec", "g1", "g2", "T", "flux", "ra_err", "dec_err", "g1_err", "g2_err", "T_err",
+                 "flux_err", "s2n", "snr_pred", "nframes", "chi2", "nfev", "flags")
+        table = {key: shapes[key] for key in order}
+        descriptions = dict(_DESCRIPTIONS, g1="reduced shear on the sky, +g1 East-West (RA axis)",
+                            g2="reduced shear on the sky, +g2 North-West/South-East",
+                            ra_err="error of the centre towards the West", dec_err="error towards the North",
+                            flux="[e-/s] electrons per second (no FITS unit)", flux_err="[e-/s] error of flux")
+        return [table_hdu(table, "JOINT", units=_JOINT_UNITS, descriptions=descriptions)]
+    descriptions = dict(_DESCRIPTIONS, g1="reduced shear, +g1 along the frame's x axis",
+                        g2="reduced shear, +g2 along the diagonal x = y")
+    hdus = [table_hdu(shapes, "SHAPES", units=_SHAPES_UNITS, descriptions=descriptions)]
+    if nframes > 1:
+        hdus.append(_combined(shapes))
+    return hdus
+
+
+def _measure_params(o: MeasureOptions, nframes: int, kinds_text: str, min_snr: float, psf_options, counts,
+                    noise_sources, psf_used) -> dict:
+    """The primary header's keywords of :func:`measure_files`: the settings, the counts, flags and backgrounds.
+
+    ``counts``: the joint fit's counts, or each frame's (:func:`_measure_jointly`,
+    :func:`_measure_each_frame`).
+    """
+    psf, joint = o.psf, o.joint
+    params = {"METHOD": (o.method, "exp (mixture fit) or hsm (REGAUSS)"),
               "PSF": (psf if psf == "roman" else psf.split("/")[-1], "PSF source"),
-              "STAMP": (stamp, "[pix] largest stamp side"),
-              "STAMPRUL": (f"{STAMP_HLR:g} hlr+{STAMP_MARGIN:g}px" if method == "exp" else "fixed",
+              "STAMP": (o.stamp, "[pix] largest stamp side"),
+              "STAMPRUL": (f"{STAMP_HLR:g} hlr+{STAMP_MARGIN:g}px" if o.method == "exp" else "fixed",
                            f"exp stamp: smallest {STAMP_MIN},{STAMP_MIN + 8},.. holding it"),
               "RDNOISE": (o.read_noise if o.read_noise is not None else "model",
                                                             "[e-] read noise ('model': the frame's)"),
-              "NFRAMES": (len(frames), "frames measured"), "XTOL": (1e-10, "relative step tolerance"),
+              "NFRAMES": (nframes, "frames measured"), "XTOL": (1e-10, "relative step tolerance"),
               "BLENDRAD": (o.blend_radius, "[pix] neighbour distance flagged as a blend"),
               "KINDS": (kinds_text, "catalogue kinds fitted"),
               "MINSNR": (min_snr, "cut on the S/N predicted from the catalogue"),
               "SNRPRED": ("mag,hlr,PSF,noise", "predicted S/N from (never the pixels)"),
               "ALLROWS": (bool(o.all_rows), "rows off the frame (256) / below cut (4096)"),
               "JOINT": (bool(joint), "one fit per galaxy over all frames"),
-              "PSFPIXEL": (psf_pixel or "header", "PSF image includes the pixel (--psf-pixel)"),
+              "PSFPIXEL": (o.psf_pixel or "header", "PSF image includes the pixel (--psf-pixel)"),
               "PSFOVERS": (psf_options.oversampling or "header", "PSF pixels per frame pixel (option)"),
               "PSFUNDER": (bool(o.allow_undersampled_psf), "undersampled PSF image allowed")}
-    hdus = [OutHDU([])]
     if joint:
-        cols = measure_joint(frames, cat, options=o, progress=progress, workers=workers, inputs=inputs,
-                             psf_options=psf_options, psf_used=psf_used)
-        noise_sources = cols.pop("_noise")
-        counts = cols.pop("_counts")
-        order = ("id", "ra", "dec", "g1", "g2", "T", "flux", "ra_err", "dec_err", "g1_err", "g2_err", "T_err",
-                 "flux_err", "s2n", "snr_pred", "nframes", "chi2", "nfev", "flags")
-        table = {key: cols[key] for key in order}
-        descriptions = dict(_DESCRIPTIONS, g1="reduced shear on the sky, +g1 East-West (RA axis)",
-                            g2="reduced shear on the sky, +g2 North-West/South-East",
-                            ra_err="error of the centre towards the West", dec_err="error towards the North",
-                            flux="[e-/s] electrons per second (no FITS unit)", flux_err="[e-/s] error of flux")
-        hdus.append(table_hdu(table, "JOINT", units=_JOINT_UNITS, descriptions=descriptions))
         params.update({"NSEL": (counts["selected"], "catalogue rows of KINDS"),
                        "NONFRM": (counts["on"], "of them on at least one frame"),
                        "NCUT": (counts["cut"], "on a frame, combined predicted S/N < MINSNR"),
                        "NFIT": (counts["fitted"], "galaxies fitted"),
                        "NPSF": (counts["models"], "PSF models (SCA, filter) used"),
                        "GAXES": ("sky: u=West, v=North", "axes of g1, g2 (GalSim's world axes)")})
-        rows = len(table["id"])
-        good = int(np.sum(table["flags"] == 0))
     else:
-        tables, noise_sources, frame_counts = [], [], []
-        kwargs = dict(options=o, psf_options=psf_options, psf_used=psf_used)
-        models = {}
-        for k, name in enumerate(frames):
-            frame = open_frame(name)
-            try:
-                inputs.append((f"FRM{k + 1:02d}", name, frame.datasum(frame.sci[0])))
-                # one model (the PSF's table: half a second) per SCA and filter, not per frame
-                wcs = frame_wcs(frame)
-                key = (str(frame.keyword("SCA")), str(frame.keyword("FILTER")), round(_pixel_scale(wcs), 6))
-                cols = measure_frame(frame, cat, progress=progress, workers=workers,
-                                     models=models.setdefault(key, {}), **kwargs)
-            finally:
-                frame.close()
-            noise_sources.append(cols.pop("_noise"))
-            frame_counts.append(cols.pop("_counts"))
-            table = {"id": cols["id"], "frame": np.full(len(cols["id"]), k, dtype=np.int16)}
-            table.update({key: cols[key] for key in ("x", "y", "ra", "dec", "g1", "g2", "T", "flux", "x_err",
-                                                      "y_err", "g1_err", "g2_err", "T_err", "flux_err", "s2n",
-                                                      "snr_pred", "chi2", "nfev", "flags")})
-            tables.append(table)
-        shapes = {key: np.concatenate([np.asarray(t[key]) for t in tables]) for key in tables[0]}
-        descriptions = dict(_DESCRIPTIONS, g1="reduced shear, +g1 along the frame's x axis",
-                            g2="reduced shear, +g2 along the diagonal x = y")
-        hdus.append(table_hdu(shapes, "SHAPES", units=_SHAPES_UNITS, descriptions=descriptions))
-        if len(frames) > 1:
-            hdus.append(_combined(shapes))
-        params["NSEL"] = (frame_counts[0]["selected"] if frame_counts else 0, "catalogue rows of KINDS")
-        for k, c in enumerate(frame_counts, 1):
+        params["NSEL"] = (counts[0]["selected"] if counts else 0, "catalogue rows of KINDS")
+        for k, c in enumerate(counts, 1):
             params[f"NON{k:02d}"] = (c["on"], f"of them on frame {k}")
             params[f"NCUT{k:02d}"] = (c["cut"], f"on frame {k}, predicted S/N < MINSNR")
             params[f"NFIT{k:02d}"] = (c["fitted"], f"fitted on frame {k}")
         params["GAXES"] = ("pixel", "axes of g1, g2: the frame's x, y")
-        rows = len(shapes["id"])
-        good = int(np.sum(shapes["flags"] == 0))
-        counts = {"selected": params["NSEL"][0], "fitted": sum(c["fitted"] for c in frame_counts),
-                  "cut": sum(c["cut"] for c in frame_counts)}
     for bit, text in FLAGS.items():
         params[f"FLAG{int(math.log2(bit)):02d}"] = (bit, text[:47])
     for k, noise in enumerate(noise_sources, 1):
@@ -221,15 +292,7 @@ def measure_files(frames, catalog: str, dest: str, *, options: MeasureOptions | 
         for k, used in enumerate(psf_used[:99], 1):
             params[f"PSFPX{k:02d}"] = (bool(used.pixel_included), f"PSF {k} includes the pixel response")
             params[f"PSFOV{k:02d}"] = (float(used.oversampling), f"PSF {k}: PSF pixels per frame pixel")
-    add_provenance(hdus[0], step=f"measure method={method} psf={params['PSF'][0]} frames={len(frames)}"
-                                 f"{' joint' if joint else ''} kinds={kinds_text} min_snr={min_snr:g}",
-                   params=params, inputs=inputs)
-    _document(hdus[0], joint)
-    if write_psf is not None:
-        _write_psf(psf_used, write_psf, psf, inputs, overwrite)
-    write_hdus(hdus, dest, overwrite=overwrite)
-    return {"rows": rows, "good": good, "unflagged": good, "frames": len(frames), "selected": counts["selected"],
-            "fitted": counts["fitted"], "cut": counts["cut"], "joint": bool(joint)}
+    return params
 
 
 def _write_psf(psf_used, dest, psf, inputs, overwrite):

@@ -23,13 +23,14 @@ catalogue it covers, without drawing anything.  A frame on which no object
 of the catalogue lands is almost always a mistake (the wrong SCA or row, or
 a catalogue drawn elsewhere): :func:`render_file` warns, naming where the
 frame and the catalogue are, and refuses it with ``strict``.
+
+The frame's FITS layout (its HDUs and their cards) is :mod:`perscli.render.cards`.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
-import datetime as _dt
 import logging
 import os
 
@@ -41,65 +42,21 @@ from ..detector.blocks import NOISE_BLOCK
 from ..detector.chain import run_chain
 from ..detector.earlier import check_earlier
 from ..detector.effects import Persistence
-from ..detector.model import DetectorModel, model_table
+from ..detector.model import DetectorModel
 from ..detector.persistence import order_earlier, persistence_charge
-from ..io.cards import format_card
-from ..io.fitsfile import OutHDU
 from ..io.fitsreader import open_fits
 from ..io.frames import SECONDS_PER_DAY, normalize_unit, open_frame
-from ..io.output import add_provenance, atomic_output, atomic_path, check_output, write_hdus
+from ..io.output import atomic_output, atomic_path, check_output, write_hdus
 from ..io.sources import split_selector
 from ..optics import Optics
 from ..scene import separation, sky_extent
 from ..scene.footprints import objects_on_sca
+from .cards import _frame_hdus, _provenance, _source_params
 from .exposure import SCA_SIZE, Exposure, draw_sources, plan_objects, read_truth
 from .plots import frame_figure
 from .settings import DEFAULT_HDUS, HDU_NAMES, LIGHT_HDUS, SOURCE_HDU, RenderOptions
 
 log = logging.getLogger(__name__)
-
-
-def _wcs_cards(optics, bounds) -> list:
-    """FITS WCS cards of the exposure's SCA for an image with these bounds."""
-    xmin, xmax, ymin, ymax = bounds
-    header = {}
-    optics.wcs.writeToFitsHeader(header, galsim.BoundsI(xmin, xmax, ymin, ymax))
-    cards = []
-    for key, value in header.items():
-        if isinstance(value, tuple):
-            value, comment = value
-        else:
-            comment = None
-        if key in ("GS_XMIN", "GS_YMIN", "GS_WCS", "TELESCOP", "INSTRUME"):
-            # GalSim's own markers, and instrument names that _exposure_cards writes
-            continue
-        cards.append(format_card(key, value, comment))
-    return cards
-
-
-def _exposure_cards(exposure: Exposure, optics, seed: int, bunit: str, gain: float) -> list:
-    xmin, _, ymin, _ = exposure.full_bounds
-    date_obs = (_dt.datetime(1858, 11, 17) + _dt.timedelta(days=exposure.mjd)).isoformat(timespec="milliseconds")
-    return [
-        format_card("BUNIT", bunit, "units of the data"),
-        format_card("GAIN", gain, "[e-/DN]"),
-        format_card("EXPTIME", exposure.exptime, "[s] exposure time"),
-        format_card("EXPSTART", exposure.mjd, "[MJD] exposure start"),
-        format_card("EXPEND", exposure.end, "[MJD] exposure end"),
-        format_card("DATE-OBS", date_obs, "UTC start of the exposure"),
-        format_card("TELESCOP", "ROMAN"),
-        format_card("INSTRUME", "WFI"),
-        format_card("SCA", exposure.sca, "sensor chip assembly"),
-        format_card("FILTER", exposure.filter),
-        format_card("EXPID", exposure.expid, "exposure identifier (e.g. schedule row)"),
-        format_card("RA_PNT", exposure.ra, "[deg] pointing of the focal plane"),
-        format_card("DEC_PNT", exposure.dec, "[deg] pointing of the focal plane"),
-        format_card("PA_PNT", exposure.pa, "[deg] observatory position angle"),
-        format_card("ZPT_AB", optics.zeropoint, "AB mag of 1 photon/cm^2/s"),
-        format_card("LTV1", float(1 - xmin), "cutout offset: image x = SCA x + LTV1"),
-        format_card("LTV2", float(1 - ymin), "cutout offset: image y = SCA y + LTV2"),
-        format_card("SEED", int(seed), "random seed"),
-    ]
 
 
 def check_hdus(hdus) -> tuple:
@@ -618,113 +575,33 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
         or with ``strict`` a frame without objects.  Nothing is written.
     """
     o = options if options is not None else RenderOptions()
-    hdus, compress, persistence_source, strict, columns = o.hdus, o.compress, o.persistence_source, o.strict, o.columns
-    check_output(dest, overwrite=overwrite, inputs=[truth, *previous])
-    if plot:
-        check_output(plot, overwrite=overwrite, inputs=[truth, *previous])
-        if dest != "-" and os.path.abspath(plot) == os.path.abspath(dest):
-            raise PerscliError(f"{plot}: --plot and -o name the same file: choose another name for the figure")
-    hdus = check_hdus(hdus)
-    model = with_persistence_source(model, persistence_source)
+    hdus = _checked_outputs(truth, dest, previous, o.hdus, plot=plot, overwrite=overwrite)
+    model = with_persistence_source(model, o.persistence_source)
     source, threshold, cap = Persistence.fluence_input(model)
-    cols = read_truth(truth, exposure.filter, columns=columns)
+    cols = read_truth(truth, exposure.filter, columns=o.columns)
     optics = Optics(exposure)
     # what only the drawn light needs (the history of later frames): the objects drawn on the frame, no sky,
-    # no detector; the stars alone when only their light is asked for
+    # no detector
     light_only = set(hdus) <= {*LIGHT_HDUS, "MODEL"}
-    stars_only = set(hdus) <= {"STARFLU", "MODEL"}
     area = exposure.full_bounds if light_only else simulation_area(exposure.full_bounds)
     plan = plan_objects(cols, optics, area)
-    on_frame = reaching(plan, exposure.full_bounds)
-    if not on_frame.any():
-        message = no_objects_message(footprint_report(truth, exposure, cols=cols, optics=optics))
-        if strict:
-            raise PerscliError("--strict: " + message)
-        # short lines rather than one of 600 characters: what, then how to fix it
-        log.warning("%s%s", message, no_objects_fix())
-    previous = list(previous)
-    if previous and not model.enabled("persistence"):
-        log.warning("--previous given but the persistence effect is off in the detector model: ignored")
-    if previous and light_only:
-        log.info("--previous not needed: only the drawn light (%s) is written", ",".join(h for h in hdus if h != "MODEL"))
-    opened = []
+    on_frame = _objects_on_frame(truth, exposure, cols, optics, plan, strict=o.strict)
+    opened = _open_previous(previous, model, source, light_only=light_only, hdus=hdus)
     try:
-        for name in previous if model.enabled("persistence") and not light_only else []:
-            opened.append(open_history(name, source))
-        is_star = cols["kind"] == "star"
-        drawn = draw_sources(cols, exposure, workers=workers, progress=progress, stars="STARFLU" in hdus,
-                             optics=optics, plan=plan, bounds=area, only=is_star if stars_only else None,
-                             image=not stars_only)
-        sources, _, optics = drawn[:3]
-        star_light = drawn[3] if len(drawn) > 3 else None
-        # the light of every object drawn, as the frame's float32: what persists for source drawn
-        drawn_light = crop(sources, area, exposure.full_bounds).astype(np.float32) if "DRAWN" in hdus else None
-        nobj = int(np.count_nonzero(on_frame & is_star)) if stars_only else int(np.count_nonzero(on_frame))
-        xmin, xmax, ymin, ymax = exposure.full_bounds
-        pers_info = []
-
-        def persistence():
-            charge, gaps = history_persistence(opened, exposure, model.persistence_model(), threshold=threshold,
-                                               cap=cap, floor=Persistence.floor(model))
-            pers_info.extend(gaps)
-            return pad_to(charge, exposure.full_bounds, area)
-
-        if light_only:
-            result = None
-        else:
-            result = crop_result(run_chain(sources, model, exptime=exposure.exptime, seed=seed,
-                                           sky_rate=optics.sky_rate, persistence=persistence if opened else None,
-                                           origin=(area[0], area[2])), area, exposure.full_bounds)
-        star_light = None if star_light is None else crop(star_light, area, exposure.full_bounds)
-        gain = model.value("gain", "gain", off=1.0)
-        well = model.value("saturation", "full_well")
-        common = _wcs_cards(optics, exposure.full_bounds)
-        sky_rate = result.sky_rate if result is not None else None
-        unit = result.unit if result is not None else "electron"
-        sci_cards = common + _exposure_cards(exposure, optics, seed, unit, gain) + [
-            format_card("SKYRATE", sky_rate or 0.0, "[e-/pixel/s] sky background used"),
-            format_card("NOBJ", nobj, "objects drawn")]
-        e_cards = common + _exposure_cards(exposure, optics, seed, "electron", 1.0)
+        drawn = _render_frame(cols, exposure, model, optics, plan, area, on_frame, opened, hdus=hdus,
+                              light_only=light_only, seed=seed, threshold=threshold, cap=cap, workers=workers,
+                              progress=progress)
         source_params = _source_params(source, threshold, cap)
-        source_cards = [format_card(k, v, c) for k, (v, c) in source_params.items()]
-        out = [OutHDU([format_card("SIMPLE", True), format_card("BITPIX", 8), format_card("NAXIS", 0),
-                       format_card("EXTEND", True)])]
-
-        def image(data, name, cards, dtype=np.float32):
-            return OutHDU(list(cards), np.asarray(data, dtype=dtype), extname=name)
-
-        if "SCI" in hdus:
-            out.append(image(result.sci, "SCI", sci_cards))
-        if "IDEAL" in hdus:
-            out.append(image(result.ideal, "IDEAL", e_cards))
-        if "FLUENCE" in hdus:
-            out.append(image(result.fluence, "FLUENCE", e_cards + [
-                format_card("CONTENT", "charge collected, after saturation",
-                            "what persists for source all or a threshold"),
-                format_card("SATWELL", float(well) if well is not None else 0.0,
-                            "[e-] full well FLUENCE is clipped at (0: none)")]))
-        if "DRAWN" in hdus:
-            out.append(image(drawn_light, "DRAWN", e_cards + [
-                format_card("CONTENT", "expected electrons of every object drawn", "what persists for source drawn"),
-                format_card("COMMENT", "galaxies and stars, no sky, noise-free, not clipped at the well: the")
-                , format_card("COMMENT", "persistence cap (fluence_cap) applies when it is used")]))
-        if "STARFLU" in hdus:
-            out.append(image(star_light, "STARFLU", e_cards + [
-                format_card("CONTENT", "expected electrons of the stars alone", "what persists for source stars"),
-                format_card("COMMENT", "noise-free, not clipped at the well: the persistence cap applies when used")]))
-        if "PERSIST" in hdus and result is not None and result.persistence is not None:
-            out.append(image(result.persistence, "PERSIST", e_cards + source_cards))
-        if "MODEL" in hdus:
-            out.append(_model_hdu(model))
-        _provenance(out[0], truth, cols["datasum"], exposure, model, seed, opened, pers_info,
-                    source_params if opened else {}, sky_rate, nobj, hdus)
-        write_hdus(out, dest, overwrite=overwrite, compress=compress)
+        out = _frame_hdus(drawn, exposure, model, seed, hdus, source_params)
+        _provenance(out[0], truth, cols["datasum"], exposure, model, seed, opened, drawn.gaps,
+                    source_params if opened else {}, drawn.sky_rate, drawn.nobj, hdus)
+        write_hdus(out, dest, overwrite=overwrite, compress=o.compress)
         if plot:
             with atomic_path(plot, overwrite=overwrite, suffix=".part.png") as tmp:
-                frame_figure(result.sci, tmp, persist=result.persistence, unit=result.unit,
+                frame_figure(drawn.result.sci, tmp, persist=drawn.result.persistence, unit=drawn.result.unit,
                              title=f"SCA {exposure.sca} {exposure.filter} MJD {exposure.mjd:.5f} seed {seed}")
-        persist = result.persistence if result is not None else None
-        return {"objects": nobj, "sky_rate": sky_rate, "unit": unit,
+        persist = drawn.result.persistence if drawn.result is not None else None
+        return {"objects": drawn.nobj, "sky_rate": drawn.sky_rate, "unit": drawn.unit,
                 "persistence_max": float(np.nanmax(persist)) if persist is not None else 0.0,
                 "hdus": tuple(h.extname for h in out[1:]),
                 "persistence_source": "threshold" if source == "threshold" else source,
@@ -734,48 +611,118 @@ def render_file(truth: str, exposure: Exposure, dest: str, options: RenderOption
             frame.close()
 
 
-def _source_params(source: str, threshold, cap) -> dict:
-    """Header keywords saying what of the earlier exposures persisted: KEY -> (value, comment)."""
-    params = {"PS_SRC": (source, "persisting: drawn, stars (STARFLU), all (FLUENCE), threshold")}
-    if threshold is not None:
-        params["PS_THR"] = (float(threshold), "[e-] only FLUENCE above this persisted")
-    params["PS_CAP"] = (float(cap) if cap is not None else "none", "[e-] fluence fed to the law clipped here")
-    return params
+def _checked_outputs(truth: str, dest: str, previous, hdus, *, plot, overwrite: bool) -> tuple:
+    """Check :func:`render_file`'s outputs (the frame, the figure) and the HDUs asked for (:func:`check_hdus`)."""
+    check_output(dest, overwrite=overwrite, inputs=[truth, *previous])
+    if plot:
+        check_output(plot, overwrite=overwrite, inputs=[truth, *previous])
+        if dest != "-" and os.path.abspath(plot) == os.path.abspath(dest):
+            raise PerscliError(f"{plot}: --plot and -o name the same file: choose another name for the figure")
+    return check_hdus(hdus)
 
 
-def _model_hdu(model: DetectorModel) -> OutHDU:
-    """The resolved detector model as a MODEL table: one row per effect parameter, in physical order.
+def _objects_on_frame(truth: str, exposure: Exposure, cols, optics, plan, *, strict: bool) -> np.ndarray:
+    """Per catalogue row: whether its stamp reaches the frame (:func:`reaching`).
 
-    ``perscli render --model FRAME.fits`` (:func:`~perscli.detector.model.load_detector_model`)
-    reads it back; values are JSON text, so every digit survives.
+    A frame that no object reaches is warned of (where the frame and the
+    catalogue are, and how to fix it), or refused with ``strict``.
     """
-    data, units = model_table(model)
-    cards = [format_card("COMMENT", "the detector model that made this frame, one row per parameter in physical"),
-             format_card("COMMENT", "order (VALUE: JSON); perscli render --model THIS.fits reproduces it")]
-    return OutHDU(cards, data, extname="MODEL", units=units)
+    on_frame = reaching(plan, exposure.full_bounds)
+    if not on_frame.any():
+        message = no_objects_message(footprint_report(truth, exposure, cols=cols, optics=optics))
+        if strict:
+            raise PerscliError("--strict: " + message)
+        # short lines rather than one of 600 characters: what, then how to fix it
+        log.warning("%s%s", message, no_objects_fix())
+    return on_frame
 
 
-def _provenance(primary: OutHDU, truth, truth_datasum, exposure: Exposure, model: DetectorModel, seed, opened,
-                used, source_params=None, sky_rate=None, nobj=None, hdus=()):
-    params = {
-        "DETMODEL": (os.path.basename(model.source)[-68:], "detector model given; as resolved: MODEL table"),
-        "FILTER": exposure.filter, "SCA": exposure.sca,
-    }
-    params["DETNEFF"] = (len(model.effects), "effects in the MODEL table, in physical order")
-    if sky_rate is not None:
-        params["SKYRATE"] = (float(sky_rate), "[e-/pixel/s] sky background used")
-    if nobj is not None:
-        params["NOBJ"] = (int(nobj), "objects drawn")
-    if hdus:
-        params["HDUS"] = (",".join(hdus), "HDUs asked for (PERSIST only with earlier ones)")
-    params.update(source_params or {})
-    inputs = [("TRUTH", truth, truth_datasum)]
-    for i, frame in enumerate(opened, 1):
-        inputs.append((f"PRV{i:02d}", frame.name,
-                       frame.datasum(frame.provenance_hdu)))
-    for i, gap in enumerate(used, 1):
-        params[f"PSP{i:02d}DT"] = (round(gap, 6), "[s] delay after an earlier exposure")
-    add_provenance(primary, step=f"render sca={exposure.sca} filter={exposure.filter} mjd={exposure.mjd} "
-                                 f"model={model.source} previous={len(opened)}",
-                   params=params, inputs=inputs, seed=seed)
+def _open_previous(previous, model: DetectorModel, source: str, *, light_only: bool, hdus) -> list:
+    """The earlier frames whose persistence falls on the frame (:func:`open_history`), open.
 
+    None when the persistence effect is off or only the drawn light is
+    written (with a note); the frames opened are closed again if one fails.
+    """
+    previous = list(previous)
+    if previous and not model.enabled("persistence"):
+        log.warning("--previous given but the persistence effect is off in the detector model: ignored")
+    if previous and light_only:
+        log.info("--previous not needed: only the drawn light (%s) is written", ",".join(h for h in hdus if h != "MODEL"))
+    opened = []
+    try:
+        for name in previous if model.enabled("persistence") and not light_only else []:
+            opened.append(open_history(name, source))
+    except BaseException:
+        for frame in opened:
+            frame.close()
+        raise
+    return opened
+
+
+@dataclasses.dataclass
+class _Drawn:
+    """A frame as :func:`_render_frame` made it, on the frame's pixels."""
+
+    result: object                  # ChainResult of the detector chain; None when only the drawn light is written
+    drawn_light: np.ndarray | None  # DRAWN: every object's light, float32 (when asked for)
+    star_light: np.ndarray | None   # STARFLU: the stars' light (when asked for)
+    optics: Optics                  # as draw_sources returned it
+    nobj: int                       # objects drawn on the frame
+    gaps: list                      # [s] delays after the earlier exposures used
+
+    @property
+    def sky_rate(self):
+        return self.result.sky_rate if self.result is not None else None
+
+    @property
+    def unit(self) -> str:
+        return self.result.unit if self.result is not None else "electron"
+
+
+def _render_frame(cols, exposure: Exposure, model: DetectorModel, optics, plan, area, on_frame, opened, *, hdus,
+                  light_only: bool, seed: int, threshold, cap, workers: int = 1, progress=None) -> _Drawn:
+    """Draw the objects over ``area`` and run the detector chain (persistence of ``opened`` included).
+
+    Parameters
+    ----------
+    cols, plan, area, on_frame
+        The catalogue, its stamps (:func:`plan_objects`), the pixels
+        simulated (:func:`simulation_area`) and the rows on the frame.
+    opened : list of Frame
+        Earlier frames (:func:`_open_previous`).
+    hdus, light_only
+        The HDUs asked for; whether they are only drawn light (no chain).
+    threshold, cap
+        What of the earlier frames persists (:func:`persisting_fluence`).
+
+    Returns
+    -------
+    _Drawn
+    """
+    stars_only = set(hdus) <= {"STARFLU", "MODEL"}
+    is_star = cols["kind"] == "star"
+    drawn = draw_sources(cols, exposure, workers=workers, progress=progress, stars="STARFLU" in hdus,
+                         optics=optics, plan=plan, bounds=area, only=is_star if stars_only else None,
+                         image=not stars_only)
+    sources, _, optics = drawn[:3]
+    star_light = drawn[3] if len(drawn) > 3 else None
+    # the light of every object drawn, as the frame's float32: what persists for source drawn
+    drawn_light = crop(sources, area, exposure.full_bounds).astype(np.float32) if "DRAWN" in hdus else None
+    nobj = int(np.count_nonzero(on_frame & is_star)) if stars_only else int(np.count_nonzero(on_frame))
+    gaps = []
+
+    def persistence():
+        charge, used = history_persistence(opened, exposure, model.persistence_model(), threshold=threshold,
+                                           cap=cap, floor=Persistence.floor(model))
+        gaps.extend(used)
+        return pad_to(charge, exposure.full_bounds, area)
+
+    if light_only:
+        result = None
+    else:
+        result = crop_result(run_chain(sources, model, exptime=exposure.exptime, seed=seed,
+                                       sky_rate=optics.sky_rate, persistence=persistence if opened else None,
+                                       origin=(area[0], area[2])), area, exposure.full_bounds)
+    star_light = None if star_light is None else crop(star_light, area, exposure.full_bounds)
+    return _Drawn(result=result, drawn_light=drawn_light, star_light=star_light, optics=optics, nobj=nobj,
+                  gaps=gaps)

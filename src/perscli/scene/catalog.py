@@ -467,6 +467,30 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         A negative density or seed, a bad field or footprint, an unreadable
         Gaia file, or a star density with a Galactic star model.
     """
+    star_model, star_density = _star_population(galaxy_density, star_density, star_model, seed)
+    fld, gal_fld = _catalog_region(ra, dec, size, footprints, margin_arcsec, galaxy_footprints)
+    galaxies, stars, gaia_stars = _draw_sources(fld, gal_fld, seed, galaxy_density, galaxy_model, star_model,
+                                                star_density, gaia, stdin=stdin, columns=columns)
+    meta = _truth_meta(fld, gal_fld, len(galaxies["ra"]), len(stars["ra"]), gaia_stars, seed=seed,
+                       galaxy_density=galaxy_density, galaxy_model=galaxy_model, star_model=star_model,
+                       star_density=star_density)
+    return _truth_table(galaxies, stars, meta)
+
+
+def _star_population(galaxy_density, star_density, star_model, seed) -> tuple:
+    """The star model and density :func:`make_truth_catalog` draws with, its arguments checked.
+
+    Returns
+    -------
+    (GalacticStarModel or StarModel, float or None)
+        The model (default: Galactic, or power-law with a ``star_density``)
+        and the density of power-law stars (None for the Galactic model).
+
+    Raises
+    ------
+    PerscliError
+        A negative density or seed, or a star density with a Galactic model.
+    """
     for label, value in (("galaxy density", galaxy_density), ("star density", star_density)):
         if value is not None and not (math.isfinite(value) and value >= 0):
             raise PerscliError(f"{label} {value} per arcmin^2: must be a number >= 0")
@@ -482,6 +506,23 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         raise PerscliError(f"star model {star_model!r}: give a GalacticStarModel or a StarModel")
     if int(seed) < 0:
         raise PerscliError(f"seed {seed}: must be an integer >= 0")
+    return star_model, star_density
+
+
+def _catalog_region(ra, dec, size, footprints, margin_arcsec, galaxy_footprints) -> tuple:
+    """The region :func:`make_truth_catalog` draws in: a square :class:`Field` or a footprints' union.
+
+    Returns
+    -------
+    (Field or FootprintUnion, Field or FootprintUnion)
+        The region of the stars, and that of the galaxies (the same object
+        unless ``galaxy_footprints`` are given).
+
+    Raises
+    ------
+    PerscliError
+        A bad field or footprint, or a mix of the two ways to give a region.
+    """
     if footprints is not None:
         if margin_arcsec is None:
             margin_arcsec = DEFAULT_MARGIN_ARCSEC
@@ -492,70 +533,115 @@ def make_truth_catalog(ra: float | None = None, dec: float | None = None, size: 
         if ra is not None:
             ra, dec = check_position(ra, dec, "tangent point")
         fld = FootprintUnion(footprints, margin_arcsec, centre=None if ra is None else (ra, dec))
-        meta = {"REGION": "footprints", "FIELDRA": fld.ra, "FIELDDEC": fld.dec, "NFOOT": len(fld),
-                "FOOTMARG": float(margin_arcsec), "FIELDAR": round(fld.area, 6),
-                "BOXAREA": round(fld.box_area, 6)}
     else:
         if ra is None or dec is None:
             raise PerscliError("give the field centre (ra, dec) of a square field, or footprints")
-        size = 10.0 if size is None else size
-        fld = Field(ra, dec, size)
-        meta = {"FIELDRA": fld.ra, "FIELDDEC": float(dec), "FIELDSZ": float(size), "FIELDAR": round(fld.area, 6)}
+        fld = Field(ra, dec, 10.0 if size is None else size)
+    if galaxy_footprints is None:
+        return fld, fld
+    if footprints is None:
+        raise PerscliError("galaxy footprints go with footprints")
+    return fld, FootprintUnion(galaxy_footprints, margin_arcsec, centre=(fld.ra, fld.dec))
+
+
+def _draw_sources(fld, gal_fld, seed, galaxy_density, galaxy_model, star_model, star_density, gaia, *,
+                  stdin=None, columns=None) -> tuple:
+    """The galaxies and stars of :func:`make_truth_catalog`, from one random stream each.
+
+    Returns
+    -------
+    (dict, dict, GaiaStars or None)
+        The galaxies' and the stars' columns (:func:`draw_galaxies`), and
+        the Gaia stars' bookkeeping when the stars are Gaia's.
+    """
     gal_seq, star_seq = np.random.SeedSequence(int(seed)).spawn(2)
-    gal_fld = fld
-    if galaxy_footprints is not None:
-        if footprints is None:
-            raise PerscliError("galaxy footprints go with footprints")
-        gal_fld = FootprintUnion(galaxy_footprints, margin_arcsec, centre=(fld.ra, fld.dec))
-        meta.update({"NGALFOOT": (len(gal_fld), "footprints holding galaxies (stars: all NFOOT)"),
-                     "GALAREA": (round(gal_fld.area, 6), "[arcmin2] their union")})
     galaxies = draw_galaxies(np.random.Generator(np.random.PCG64(gal_seq)), gal_fld, galaxy_density, galaxy_model)
-    meta.update({
-        "POSMODEL": "uniform in solid angle",
-        "GALDENS": float(galaxy_density), "NGAL": len(galaxies["ra"]),
-    })
     if gaia:
         gaia_stars = read_gaia_stars(list(gaia), fld, stdin=stdin, columns=columns)
-        stars = gaia_stars.columns
-        meta.update({"STARSRC": "gaia", "NSTAR": len(stars["ra"])})
-    elif isinstance(star_model, StarModel):
-        gaia_stars = None
-        stars = draw_stars(np.random.Generator(np.random.PCG64(star_seq)), fld, star_density, star_model)
-        meta.update({"STARSRC": "model", "STARMOD": "powerlaw", "STARDENS": float(star_density),
-                     "NSTAR": len(stars["ra"])})
+        return galaxies, gaia_stars.columns, gaia_stars
+    star_rng = np.random.Generator(np.random.PCG64(star_seq))
+    if isinstance(star_model, StarModel):
+        return galaxies, draw_stars(star_rng, fld, star_density, star_model), None
+    return galaxies, draw_galactic_stars(star_rng, fld, star_model), None
+
+
+def _truth_meta(fld, gal_fld, n_gal, n_star, gaia_stars, *, seed, galaxy_density, galaxy_model, star_model,
+                star_density) -> dict:
+    """The catalog's header keywords, in the order they are written (:func:`make_truth_catalog`'s ``meta``).
+
+    Parameters
+    ----------
+    fld, gal_fld : Field or FootprintUnion
+        The regions of the stars and of the galaxies (:func:`_catalog_region`).
+    n_gal, n_star : int
+        The numbers drawn.
+    gaia_stars : GaiaStars or None
+        The Gaia stars' bookkeeping, if the stars are Gaia's.
+    seed, galaxy_density, galaxy_model, star_model, star_density
+        As :func:`make_truth_catalog` drew with them.
+
+    Returns
+    -------
+    dict
+        Keyword -> value (or (value, comment)); ``FOOTPRINTS``: the corners of footprints.
+    """
+    footprints = isinstance(fld, FootprintUnion)
+    if footprints:
+        meta = {"REGION": "footprints", "FIELDRA": fld.ra, "FIELDDEC": fld.dec, "NFOOT": len(fld),
+                "FOOTMARG": fld.margin_arcsec, "FIELDAR": round(fld.area, 6),
+                "BOXAREA": round(fld.box_area, 6)}
     else:
-        gaia_stars = None
-        stars = draw_galactic_stars(np.random.Generator(np.random.PCG64(star_seq)), fld, star_model)
+        meta = {"FIELDRA": fld.ra, "FIELDDEC": float(fld.dec), "FIELDSZ": float(fld.size),
+                "FIELDAR": round(fld.area, 6)}
+    if gal_fld is not fld:
+        meta.update({"NGALFOOT": (len(gal_fld), "footprints holding galaxies (stars: all NFOOT)"),
+                     "GALAREA": (round(gal_fld.area, 6), "[arcmin2] their union")})
+    meta.update({"POSMODEL": "uniform in solid angle", "GALDENS": float(galaxy_density), "NGAL": n_gal})
+    if gaia_stars is not None:
+        meta.update({"STARSRC": "gaia", "NSTAR": n_star})
+    elif isinstance(star_model, StarModel):
+        meta.update({"STARSRC": "model", "STARMOD": "powerlaw", "STARDENS": float(star_density), "NSTAR": n_star})
+    else:
         meta.update({"STARSRC": "model", **star_model.meta(),
                      "SDENSC": round(float(model_density(fld.ra, meta["FIELDDEC"], star_model)), 6),
-                     "NSTAR": len(stars["ra"])})
+                     "NSTAR": n_star})
+    meta.update(_population_cards(galaxy_model, star_model, gaia_stars))
+    meta["COLMODEL"] = "linear in ln(lambda)"
+    for name in ROMAN_FILTERS:
+        meta[f"LEFF{name}"] = EFFECTIVE_WAVELENGTH_UM[name]
+    meta["SEED"] = int(seed)
+    if footprints:
+        meta["FOOTPRINTS"] = [(np.asarray(r, dtype=np.float64), np.asarray(d, dtype=np.float64))
+                              for r, d in fld.given]
+    return meta
+
+
+def _population_cards(galaxy_model, star_model, gaia_stars) -> dict:
+    """The header keywords of the galaxy model's parameters, then the star model's or the Gaia stars' bookkeeping."""
     gm = asdict(galaxy_model)
-    meta.update({
+    cards = {
         "GPROFILE": "exponential", "GMAGSLP": gm["mag_slope"], "GMAGMIN": gm["mag_min"], "GMAGMAX": gm["mag_max"],
         "GJHMEAN": gm["jh_mean"], "GJHSIG": gm["jh_sigma"], "GHLR23": gm["hlr_at_23"],
         "GHLRSLP": gm["hlr_slope"], "GHLRSIG": gm["hlr_sigma"], "GHLRMIN": gm["hlr_min"],
         "GHLRMAX": gm["hlr_max"], "GESIG": gm["e_sigma"], "GEMAX": gm["e_max"],
         "EDEFN": "reduced shear g",
-    })
+    }
     if gaia_stars is None and isinstance(star_model, StarModel):
         sm = asdict(star_model)
-        meta.update({"SMAGSLP": sm["mag_slope"], "SMAGMIN": sm["mag_min"], "SMAGMAX": sm["mag_max"],
-                     "SJHMEAN": sm["jh_mean"], "SJHSIG": sm["jh_sigma"], "SJHMIN": sm["jh_min"],
-                     "SJHMAX": sm["jh_max"]})
+        cards.update({"SMAGSLP": sm["mag_slope"], "SMAGMIN": sm["mag_min"], "SMAGMAX": sm["mag_max"],
+                      "SJHMEAN": sm["jh_mean"], "SJHSIG": sm["jh_sigma"], "SJHMIN": sm["jh_min"],
+                      "SJHMAX": sm["jh_max"]})
     elif gaia_stars is not None:
-        meta.update({"GAIANIN": gaia_stars.n_read, "GAIANOG": gaia_stars.n_no_flux,
-                     "GAIANMED": gaia_stars.n_median_colour, "GAIABPRP": round(gaia_stars.median_bp_rp, 6)})
+        cards.update({"GAIANIN": gaia_stars.n_read, "GAIANOG": gaia_stars.n_no_flux,
+                      "GAIANMED": gaia_stars.n_median_colour, "GAIABPRP": round(gaia_stars.median_bp_rp, 6)})
         for i, (name, datasum) in enumerate(gaia_stars.inputs, 1):
-            meta[f"GA{i:03d}"] = "stdin" if name == "-" else name
-            meta[f"GA{i:03d}DS"] = str(datasum)
-    meta["COLMODEL"] = "linear in ln(lambda)"
-    for name in ROMAN_FILTERS:
-        meta[f"LEFF{name}"] = EFFECTIVE_WAVELENGTH_UM[name]
-    meta["SEED"] = int(seed)
-    if footprints is not None:
-        meta["FOOTPRINTS"] = [(np.asarray(r, dtype=np.float64), np.asarray(d, dtype=np.float64))
-                              for r, d in fld.given]
+            cards[f"GA{i:03d}"] = "stdin" if name == "-" else name
+            cards[f"GA{i:03d}DS"] = str(datasum)
+    return cards
 
+
+def _truth_table(galaxies, stars, meta) -> Table:
+    """The catalog's table: galaxies then stars, ``id`` from 1, magnitudes in every filter, units and descriptions."""
     n_gal, n_star = len(galaxies["ra"]), len(stars["ra"])
     both = {k: np.concatenate([galaxies[k], stars[k]]) for k in galaxies}
     mags = filter_magnitudes(both["mag_j"], both["mag_h"])

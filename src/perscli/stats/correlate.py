@@ -55,6 +55,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+from dataclasses import dataclass
 
 from .. import PerscliError
 from ..io.output import check_output, write_hdus
@@ -68,7 +69,7 @@ from .de_stats import _abs, de_histogram, de_statistics, theta_distribution, the
 from .pairs import _check_pairs, load_pairs
 from .patches import patch_center_vectors, read_patch_center_columns
 from .shape_changes import load_shape_changes
-from .xi import VAR_METHODS, correlate_de
+from .xi import VAR_METHODS, Errors, correlate_de
 
 log = logging.getLogger("perscli")
 
@@ -155,31 +156,67 @@ def correlate_files(catalogs, dest: str, options: CorrelateOptions | None = None
         and source.
     """
     o = options if options is not None else CorrelateOptions()
-    de_columns, common_ids, positions, pixel_scale, columns = (o.de_columns, o.common_ids, o.positions,
-                                                               o.pixel_scale, o.columns)
-    min_sep, max_sep, nbins, sep_units, bin_slop = o.min_sep, o.max_sep, o.nbins, o.sep_units, o.bin_slop
-    npatch, cross_patch_weight, var_method, seed = o.npatch, o.cross_patch_weight, o.var_method, o.seed
-    thresholds, theta_edges, nboot = o.thresholds, o.theta_edges, o.nboot
     catalogs = list(catalogs or ())
+    pairs, thresholds, theta_edges = _checked_options(o, catalogs, pairs, frames)
+    inputs = [*catalogs, *(name for pair in (pairs or ()) for name in pair), patch_centers]
+    pngs = _checked_outputs(dest, inputs, plot=plot, plots_dir=plots_dir, overwrite=overwrite)
+    sc, centers = _read_de(o, catalogs, pairs, frames=frames, patch_centers=patch_centers, stdin=stdin)
+    found = _correlate(sc, o, centers, thresholds=thresholds, theta_edges=theta_edges, workers=workers)
+    settings = dict(min_sep=float(o.min_sep), max_sep=float(o.max_sep), nbins=int(o.nbins), sep_units=o.sep_units,
+                    cross_patch_weight=o.cross_patch_weight, nboot=int(o.nboot))
+    source = os.path.basename(patch_centers) if patch_centers is not None else f"kmeans npatch={o.npatch}"
+    errors = found.errors
+    hdul = build_hdus(sc, found.gg, found.cat, found.stats, found.hist, found.theta, settings=settings, seed=o.seed,
+                      patch_source=source, errors=errors)
+    xi = xi_table(found.gg, errors.cov)
+    errs = "jackknife errors" if errors.method == "jackknife" else "shot-noise errors"
+    figures = {"xi": lambda p: plots.xi_figure(xi, p, sep_units=o.sep_units, title=sc.source, errors=errs),
+               "hist_de": lambda p: plots.hist_de_figure(found.hist, p, thresholds=thresholds, n=len(sc)),
+               "bin_theta": lambda p: plots.theta_figure(found.theta, p)}
+    _write_all(hdul, dest, pngs, figures, plots_dir=plots_dir, overwrite=overwrite)
+    return {"n": len(sc), "npairs": len(sc.pairs), "counts": sc.counts, "stats": found.stats, "xi": xi,
+            "npatch": errors.npatch, "var_method": errors.method, "var_reason": errors.reason,
+            "shot_bins": list(errors.shot_bins),
+            "theta": theta_summary(found.theta), "figures": list(pngs.values()), "source": sc.source}
+
+
+def _checked_options(o: CorrelateOptions, catalogs: list, pairs, frames) -> tuple:
+    """Check :func:`correlate_files`' inputs and settings before anything is read.
+
+    Returns
+    -------
+    (list or None, tuple of float, tuple of float)
+        The pairs (:func:`perscli.stats.pairs._check_pairs`), the |De|
+        thresholds and the position-angle bins' edges.
+
+    Raises
+    ------
+    PerscliError
+        Tables and pairs both, or a setting out of range.
+    """
     if pairs is not None:
         if catalogs:
             raise PerscliError("give SHAPES tables or pairs, not both")
-        if de_columns is not None:
+        if o.de_columns is not None:
             raise PerscliError("--de1/--de2 name the De columns of one table; they do not go with pairs")
         pairs = _check_pairs(pairs, frames)
-    if var_method not in VAR_METHODS:
-        raise PerscliError(f"--var-method {var_method}: one of {', '.join(VAR_METHODS)}")
-    thresholds = tuple(float(t) for t in thresholds)
+    if o.var_method not in VAR_METHODS:
+        raise PerscliError(f"--var-method {o.var_method}: one of {', '.join(VAR_METHODS)}")
+    thresholds = tuple(float(t) for t in o.thresholds)
     if not thresholds or any(not (t > 0 and math.isfinite(t)) for t in thresholds):
         raise PerscliError(f"--thresholds {thresholds}: need one or more positive numbers")
-    theta_edges = tuple(float(t) for t in theta_edges)
+    theta_edges = tuple(float(t) for t in o.theta_edges)
     if len(theta_edges) < 2 or any(b <= a for a, b in zip(theta_edges[:-1], theta_edges[1:])) or theta_edges[0] < 0:
         raise PerscliError(f"--theta-bins {theta_edges}: need two or more increasing edges >= 0")
-    if nboot < 2:
-        raise PerscliError(f"--nboot {nboot}: need at least 2 resamples")
-    if not 0 < min_sep < max_sep:
-        raise PerscliError(f"--min-sep {min_sep} and --max-sep {max_sep}: need 0 < min-sep < max-sep")
-    inputs = [*catalogs, *(name for pair in (pairs or ()) for name in pair), patch_centers]
+    if o.nboot < 2:
+        raise PerscliError(f"--nboot {o.nboot}: need at least 2 resamples")
+    if not 0 < o.min_sep < o.max_sep:
+        raise PerscliError(f"--min-sep {o.min_sep} and --max-sep {o.max_sep}: need 0 < min-sep < max-sep")
+    return pairs, thresholds, theta_edges
+
+
+def _checked_outputs(dest: str, inputs: list, *, plot, plots_dir, overwrite: bool) -> dict:
+    """Check the output file and the figures' (:func:`_png_targets`); returns {kind: path} of the figures."""
     check_output(dest, overwrite=overwrite, inputs=inputs)
     pngs = _png_targets(plot, plots_dir, overwrite)
     for path in pngs.values():
@@ -187,50 +224,76 @@ def correlate_files(catalogs, dest: str, options: CorrelateOptions | None = None
             check_output(path, overwrite=overwrite, inputs=inputs)
         if dest != "-" and os.path.abspath(path) == os.path.abspath(dest):
             raise PerscliError(f"{path}: a figure and the -o output name the same file: choose another name")
+    return pngs
 
+
+def _read_de(o: CorrelateOptions, catalogs: list, pairs, *, frames, patch_centers, stdin):
+    """The De to correlate (:func:`load_pairs` or :func:`load_shape_changes`) and the patch centres given.
+
+    Returns
+    -------
+    (ShapeChanges, ndarray or None)
+        De (within ``o.within`` when set), and the patch centres as vectors
+        (:func:`perscli.stats.patches.patch_center_vectors`) or None.
+    """
     # the patch centres are read first: a bad --patch-centers (a FIFO without a writer, /dev/zero, a folder)
     # is one line before any table is read, never a hang or a traceback after it
     centre_columns = read_patch_center_columns(patch_centers) if patch_centers is not None else None
     if o.flagged not in ("drop", "keep"):
         raise PerscliError(f"flagged {o.flagged!r}: drop or keep")
     if pairs is not None:
-        sc = load_pairs(pairs, frames=frames, common_ids=common_ids, positions=positions, pixel_scale=pixel_scale,
-                        stdin=stdin, columns=columns, flagged=o.flagged)
+        sc = load_pairs(pairs, frames=frames, common_ids=o.common_ids, positions=o.positions,
+                        pixel_scale=o.pixel_scale, stdin=stdin, columns=o.columns, flagged=o.flagged)
     else:
-        sc = load_shape_changes(catalogs, frames=frames, de_columns=de_columns, common_ids=common_ids,
-                                positions=positions, pixel_scale=pixel_scale, stdin=stdin, columns=columns,
+        sc = load_shape_changes(catalogs, frames=frames, de_columns=o.de_columns, common_ids=o.common_ids,
+                                positions=o.positions, pixel_scale=o.pixel_scale, stdin=stdin, columns=o.columns,
                                 flagged=o.flagged)
     if o.within is not None:
         sc = _within(sc, *o.within)
     centers = patch_center_vectors(centre_columns, sc.coords, patch_centers) if patch_centers is not None else None
     log.info("%s: %d objects (%d matched, %d flagged, %d not finite)", sc.source, len(sc), sc.counts["matched"],
              sc.counts["flagged"], sc.counts["nonfinite"])
-    gg, cat, errors = correlate_de(sc, min_sep=min_sep, max_sep=max_sep, nbins=nbins, sep_units=sep_units,
-                                   bin_slop=bin_slop, npatch=npatch, patch_centers=centers,
-                                   cross_patch_weight=cross_patch_weight, var_method=var_method, seed=seed,
+    return sc, centers
+
+
+@dataclass
+class _Correlation:
+    """What :func:`_correlate` finds: xi+/- of De and the statistics of De."""
+
+    gg: object          # treecorr.GGCorrelation, processed
+    cat: object         # its treecorr.Catalog (the jackknife's patches)
+    errors: Errors      # the covariance of xi
+    stats: dict         # de_statistics
+    hist: dict          # de_histogram of |De|
+    theta: dict         # theta_distribution
+
+
+def _correlate(sc, o: CorrelateOptions, centers, *, thresholds, theta_edges, workers: int = 1) -> _Correlation:
+    """xi+/- of De (:func:`correlate_de`), its statistics, the |De| histogram and the position angles' distribution."""
+    gg, cat, errors = correlate_de(sc, min_sep=o.min_sep, max_sep=o.max_sep, nbins=o.nbins, sep_units=o.sep_units,
+                                   bin_slop=o.bin_slop, npatch=o.npatch, patch_centers=centers,
+                                   cross_patch_weight=o.cross_patch_weight, var_method=o.var_method, seed=o.seed,
                                    workers=workers)
     stats = de_statistics(sc.de1, sc.de2, e1=sc.e1, e2=sc.e2, thresholds=thresholds, dabs=sc.dabs,
                           flags=sc.flags if o.flagged == "keep" else None)
     hist = de_histogram(_abs(sc.de1, sc.de2))
-    theta = theta_distribution(sc.de1, sc.de2, edges=theta_edges, nboot=nboot, seed=seed)
-    settings = dict(min_sep=float(min_sep), max_sep=float(max_sep), nbins=int(nbins), sep_units=sep_units,
-                    cross_patch_weight=cross_patch_weight, nboot=int(nboot))
-    source = os.path.basename(patch_centers) if patch_centers is not None else f"kmeans npatch={npatch}"
-    hdul = build_hdus(sc, gg, cat, stats, hist, theta, settings=settings, seed=seed, patch_source=source,
-                      errors=errors)
-    xi = xi_table(gg, errors.cov)
+    theta = theta_distribution(sc.de1, sc.de2, edges=theta_edges, nboot=o.nboot, seed=o.seed)
+    return _Correlation(gg=gg, cat=cat, errors=errors, stats=stats, hist=hist, theta=theta)
 
-    # figures first, into temporary files beside their targets, renamed once the FITS file is in place
+
+def _write_all(hdul: list, dest: str, pngs: dict, figures: dict, *, plots_dir, overwrite: bool) -> None:
+    """Write the figures and the FITS file, everything or nothing.
+
+    The figures first, into temporary files beside their targets, renamed
+    once the FITS file is in place; ``figures``: kind -> a function drawing
+    it into a path.
+    """
     temps, made_dir = {}, None
     try:
         if pngs:
             if plots_dir is not None and not os.path.isdir(plots_dir):
                 os.mkdir(plots_dir)
                 made_dir = plots_dir
-            errs = "jackknife errors" if errors.method == "jackknife" else "shot-noise errors"
-            figures = {"xi": lambda p: plots.xi_figure(xi, p, sep_units=sep_units, title=sc.source, errors=errs),
-                       "hist_de": lambda p: plots.hist_de_figure(hist, p, thresholds=thresholds, n=len(sc)),
-                       "bin_theta": lambda p: plots.theta_figure(theta, p)}
             for key, path in pngs.items():
                 # a new file's permissions (0666 less the umask), as for every output
                 fd, tmp = make_temp_file(os.path.dirname(os.path.abspath(path)),
@@ -249,7 +312,3 @@ def correlate_files(catalogs, dest: str, options: CorrelateOptions | None = None
                 os.unlink(tmp)
         if made_dir is not None:
             os.rmdir(made_dir)
-    return {"n": len(sc), "npairs": len(sc.pairs), "counts": sc.counts, "stats": stats, "xi": xi,
-            "npatch": errors.npatch, "var_method": errors.method, "var_reason": errors.reason,
-            "shot_bins": list(errors.shot_bins),
-            "theta": theta_summary(theta), "figures": list(pngs.values()), "source": sc.source}

@@ -65,9 +65,48 @@ _AXES_COMMENTS = {
 
 def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, *, settings: dict, seed: int,
                patch_source: str, errors: Errors | None = None):
-    """The output file: provenance, XI, COV, STATS, HIST_DE, THETA_DE, PATCHES and, for pooled pairs, PAIRS."""
+    """The output file: provenance, XI, COV, STATS, HIST_DE, THETA_DE, PATCHES and, for pooled pairs, PAIRS.
+
+    Parameters
+    ----------
+    sc : ShapeChanges
+        The De correlated, with their inputs and counts.
+    gg : treecorr.GGCorrelation
+        The correlation, processed.
+    cat : treecorr.Catalog
+        Its catalogue (the jackknife's patches).
+    stats, hist, theta : dict
+        The one-point statistics, the |De| histogram and the position-angle
+        distribution (:mod:`perscli.stats.de_stats`).
+    settings : dict
+        The binning and error settings used (:mod:`perscli.stats.settings`).
+    seed : int
+    patch_source : str
+        Where the patches came from: k-means, or the --patch-centers file.
+    errors : Errors, optional
+        The covariance of xi (default: TreeCorr's, of ``gg``).
+
+    Returns
+    -------
+    list of OutHDU
+    """
     if errors is None:
         errors = Errors(str(gg.var_method), npatch=int(cat.npatch) if gg.var_method == "jackknife" else 0)
+    jackknife = errors.method == "jackknife"
+    primary = _primary_hdu(sc, gg, stats, settings=settings, seed=seed, patch_source=patch_source, errors=errors)
+    cov_matrix = errors.cov if errors.cov is not None else np.asarray(gg.cov, dtype=np.float64)
+    hdus = [primary, _xi_hdu(sc, gg, cov_matrix, settings, errors), _cov_hdu(cov_matrix, settings, errors),
+            _stats_hdu(sc, stats), _hist_hdu(hist), _theta_hdu(theta, settings), _patches_hdu(sc, cat, jackknife)]
+    if sc.pairs:
+        hdus.append(_pairs_hdu(sc.pairs, sc.g_axes))
+    if sc.tables:
+        hdus.append(_inputs_hdu(sc.tables))
+    return hdus
+
+
+def _primary_hdu(sc: ShapeChanges, gg, stats: dict, *, settings: dict, seed: int, patch_source: str,
+                 errors: Errors) -> OutHDU:
+    """The primary HDU: the provenance, the settings and counts, and COMMENT cards on the axes and errors."""
     jackknife = errors.method == "jackknife"
     sep = settings["sep_units"]
     primary = OutHDU([])
@@ -109,8 +148,12 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
         _comment(primary, "SHOTBINS: separation bins (0-based) with pairs whose jackknife variance was zero to "
                           "rounding (too few pairs per patch); their xi+ and xi- have shot-noise errors and no "
                           "covariance with other bins.")
+    return primary
 
-    cov_matrix = errors.cov if errors.cov is not None else np.asarray(gg.cov, dtype=np.float64)
+
+def _xi_hdu(sc: ShapeChanges, gg, cov_matrix, settings: dict, errors: Errors) -> OutHDU:
+    """XI: :func:`xi_table` with the errors of ``cov_matrix``, and the binning in its header."""
+    sep = settings["sep_units"]
     xi = _table_hdu(xi_table(gg, cov_matrix), "XI", units={"r_nom": sep, "meanr": sep, "meanlogr": f"log({sep})"})
     xh = xi.header
     xh["SEP_UNIT"] = (sep, "units of r_nom and meanr")
@@ -128,7 +171,11 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     if errors.shot_bins:
         xh["SHOTBINS"] = (",".join(str(k) for k in errors.shot_bins), "rows with shot-noise errors")
     xh["NOBJ"] = len(sc)
+    return xi
 
+
+def _cov_hdu(cov_matrix, settings: dict, errors: Errors) -> OutHDU:
+    """COV: the covariance of xi+ then xi- over the bins."""
     cov = OutHDU([], cov_matrix, extname="COV")
     cov.header["ORDER"] = ("xip,xim", "rows/columns: xi+ of every bin, then xi-")
     cov.header["NBINS"] = settings["nbins"]
@@ -136,7 +183,11 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     cov.header["NPATCH"] = errors.npatch
     if errors.shot_bins:
         cov.header["SHOTBINS"] = (",".join(str(k) for k in errors.shot_bins), "bins (xi+ and xi-) with shot noise")
+    return cov
 
+
+def _stats_hdu(sc: ShapeChanges, stats: dict) -> OutHDU:
+    """STATS: the one-point statistics of De, one row, with the counts of the objects read."""
     scols = {"n": np.array([stats["n"]])}
     for key in ("e1_mean", "e1_err", "e2_mean", "e2_err", "de1_mean", "de1_err", "de2_mean", "de2_err",
                 "de_abs_mean", "de_abs_max"):
@@ -160,10 +211,18 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     if sc.pairs:
         stats_hdu.header["NPAIRS"] = (len(sc.pairs), "pairs pooled: counts are sums over them")
         _comment(stats_hdu, "pooled pairs: an object measured in several pairs counts once per pair.")
+    return stats_hdu
 
+
+def _hist_hdu(hist: dict) -> OutHDU:
+    """HIST_DE: the |De| histogram."""
     hist_hdu = _table_hdu(hist, "HIST_DE")
     _comment(hist_hdu, "|De| histogram: log bins; first row [0, lo) underflow, last [hi, inf) overflow.")
+    return hist_hdu
 
+
+def _theta_hdu(theta: dict, settings: dict) -> OutHDU:
+    """THETA_DE: the distribution of De's position angle per |De| bin, and its test against uniform."""
     tcols = {k: v for k, v in theta.items() if k not in ("ngroups", "p_method")}
     theta_hdu = _table_hdu(tcols, "THETA_DE", units={"theta_lo": "deg", "theta_hi": "deg"})
     th = theta_hdu.header
@@ -182,7 +241,11 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
                         "chi2_uniform = n_eff sum (frac - p)^2 / p with dof_uniform = NANGLE - 1; p_uniform from "
                         "the chi2 distribution (PMETHODk = chi2) or, for few objects, from NULLSIMS simulations "
                         "with uniform angles (null-sim).")
+    return theta_hdu
 
+
+def _patches_hdu(sc: ShapeChanges, cat, jackknife: bool) -> OutHDU:
+    """PATCHES: the jackknife's patch centres (none for shot-noise errors) and their objects."""
     if jackknife:
         centers = np.asarray(cat.patch_centers, dtype=np.float64)
         counts = np.bincount(cat.patch, minlength=len(centers)).astype(np.int64)
@@ -199,16 +262,16 @@ def build_hdus(sc: ShapeChanges, gg, cat, stats: dict, hist: dict, theta: dict, 
     patches = _table_hdu(pcols, "PATCHES", units={"ra": "deg", "dec": "deg"})
     patches.header["NPATCH"] = (len(centers), "patches (0: shot-noise errors, no jackknife)")
     _comment(patches, "TreeCorr's patch centres (x, y[, z]); reuse with --patch-centers THIS_FILE.")
-    hdus = [primary, xi, cov, stats_hdu, hist_hdu, theta_hdu, patches]
-    if sc.pairs:
-        hdus.append(_pairs_hdu(sc.pairs, sc.g_axes))
-    if sc.tables:
-        hdus.append(table_hdu({"name": np.array([os.path.basename(r["name"]) for r in sc.tables]),
-                               "datasum": np.array([r["datasum"] for r in sc.tables], dtype=np.int64),
-                               "rows": np.array([r["rows"] for r in sc.tables], dtype=np.int64),
-                               "used": np.array([r["used"] for r in sc.tables], dtype=np.int64)}, "INPUTS",
-                              descriptions={"name": "table pooled (file[EXT])", "used": "objects pooled from it"}))
-    return hdus
+    return patches
+
+
+def _inputs_hdu(tables: list) -> OutHDU:
+    """INPUTS: one row per table of De pooled, with its DATASUM and the objects it gave."""
+    return table_hdu({"name": np.array([os.path.basename(r["name"]) for r in tables]),
+                      "datasum": np.array([r["datasum"] for r in tables], dtype=np.int64),
+                      "rows": np.array([r["rows"] for r in tables], dtype=np.int64),
+                      "used": np.array([r["used"] for r in tables], dtype=np.int64)}, "INPUTS",
+                     descriptions={"name": "table pooled (file[EXT])", "used": "objects pooled from it"})
 
 
 def _pairs_hdu(records: list, g_axes: str):

@@ -123,7 +123,30 @@ def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions =
     finals = list(finals)
     variants = [variants] if isinstance(variants, str) else list(variants)
     cat, e1_true, e2_true = _catalogue(catalog)
-    index = {int(i): k for k, i in enumerate(cat["id"])}
+    subset = _sample(cat, part, field)
+    changed, stored = _changed_rows(finals, variants, cat, subset, pixels)
+    opts = MeasureOptions(stamp=options.stamp, min_snr=options.min_snr)
+    parts = {v: [] for v in variants}
+    if options.joint:
+        refs = [f"{p}[SCI]" for p in finals]
+        per_variant = [np.logical_or.reduce(changed[v]) if finals else np.zeros(len(cat["id"]), dtype=bool)
+                       for v in variants]
+        ref, var = _joint_changes(refs, variants, cat, per_variant, opts, workers=workers, cold=cold,
+                                  pixels=pixels, stored=stored, within=subset)
+        for v in variants:
+            parts[v].append(_assemble(cat, ref, var[v], subset, -1, e1_true, e2_true))
+    else:
+        for k, path in enumerate(finals):
+            expid = int(expids[k]) if expids is not None else k
+            ref, var = _final_changes(path, pixels[k] if pixels is not None else None, variants, cat,
+                                      [changed[v][k] for v in variants], opts, workers=workers, cold=cold)
+            for v in variants:
+                parts[v].append(_assemble(cat, ref, var[v], subset, expid, e1_true, e2_true))
+    return {v: _variant_columns(parts[v], cold) for v in variants}
+
+
+def _sample(cat, part, field) -> np.ndarray:
+    """Per catalogue row: in the strip ``part`` and within ``field`` (:func:`measure_changes`)."""
     subset = np.ones(len(cat["id"]), dtype=bool)
     if part is not None:
         xi, _ = project(part["ra0"], part["dec0"], cat["ra"], cat["dec"])
@@ -133,7 +156,20 @@ def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions =
             subset &= xi < part["xi_hi"]
     if field is not None:
         subset &= within(field["ra"], field["dec"], cat["ra"], cat["dec"], field["radius"])
+    return subset
 
+
+def _changed_rows(finals: list, variants: list, cat, subset, pixels) -> tuple:
+    """Which galaxies of the sample each variant changed on each final, from the finals' CHANGED tables.
+
+    Returns
+    -------
+    (dict, list)
+        Variant -> per final, per catalogue row: changed (and in ``subset``);
+        and per final its stamps' tables read (:func:`read_stamps` without
+        the pixels; None with ``pixels``).
+    """
+    index = {int(i): k for k, i in enumerate(cat["id"])}
     changed = {v: [] for v in variants}
     stored = [None] * len(finals)
     for k, path in enumerate(finals):
@@ -148,42 +184,32 @@ def measure_changes(finals, variants, catalog: str, *, options: MeasureOptions =
             ids = np.asarray(table["id"])[np.asarray(table[variant_extname(v)], dtype=bool)]
             mask[[index[int(i)] for i in ids if int(i) in index]] = True
             changed[v].append(mask & subset)
-    opts = MeasureOptions(stamp=options.stamp, min_snr=options.min_snr)
-    parts = {v: [] for v in variants}
-    if options.joint:
-        refs = [f"{p}[SCI]" for p in finals]
-        per_variant = [np.logical_or.reduce(changed[v]) if finals else np.zeros(len(cat["id"]), dtype=bool)
-                       for v in variants]
-        ref, var = _joint_changes(refs, variants, cat, per_variant, opts, workers=workers, cold=cold,
-                                  pixels=pixels, stored=stored, within=subset)
-        for v in variants:
-            parts[v].append(_assemble(cat, ref, var[v], subset, -1, e1_true, e2_true))
-    else:
-        for k, path in enumerate(finals):
-            expid = int(expids[k]) if expids is not None else k
-            mine = pixels[k] if pixels is not None else None
-            if mine is None:
-                raise PerscliError(f"{path}: finals fitted per exposure are measured from their pixels in memory")
-            with open_frame(f"{path}[SCI]") as frame:
-                base = mine["SCI"]
-                views = [np.where(np.isfinite(mine[variant_extname(v)]), mine[variant_extname(v)], base)
-                         for v in variants]
-                ref, var = frame_changes(frame, cat, variants, [changed[v][k] for v in variants], views, opts,
-                                         data=base, workers=workers, cold=cold)
-            for v in variants:
-                parts[v].append(_assemble(cat, ref, var[v], subset, expid, e1_true, e2_true))
-    out = {}
-    for v in variants:
-        columns = COLUMNS + (COLD_COLUMNS if cold else ())
-        cols = {c: np.concatenate([p[c] for p in parts[v]]) for c in columns}
-        fitted = cols["fitted"].astype(bool)
+    return changed, stored
 
-        cols["_counts"] = {"sample": len(cols["id"]), "fitted": int(fitted.sum()),
-                           "flagged": int(np.count_nonzero(fitted & (cols["flags"] != 0))),
-                           **{f"method_{m}": int(np.count_nonzero(fitted & (cols["method"] == k)))
-                              for k, m in enumerate(CHANGE_METHODS)}}
-        out[v] = cols
-    return out
+
+def _final_changes(path: str, mine, variants: list, cat, changed: list, options, *, workers: int = 1,
+                   cold: bool = False) -> tuple:
+    """One final fitted on its own (:func:`frame_changes`) from its pixels in memory (``mine``)."""
+    if mine is None:
+        raise PerscliError(f"{path}: finals fitted per exposure are measured from their pixels in memory")
+    with open_frame(f"{path}[SCI]") as frame:
+        base = mine["SCI"]
+        views = [np.where(np.isfinite(mine[variant_extname(v)]), mine[variant_extname(v)], base)
+                 for v in variants]
+        return frame_changes(frame, cat, variants, changed, views, options, data=base, workers=workers, cold=cold)
+
+
+def _variant_columns(parts: list, cold: bool) -> dict:
+    """A variant's rows of every measurement as columns, with '_counts': the sample, fitted, flagged, methods."""
+    columns = COLUMNS + (COLD_COLUMNS if cold else ())
+    cols = {c: np.concatenate([p[c] for p in parts]) for c in columns}
+    fitted = cols["fitted"].astype(bool)
+
+    cols["_counts"] = {"sample": len(cols["id"]), "fitted": int(fitted.sum()),
+                       "flagged": int(np.count_nonzero(fitted & (cols["flags"] != 0))),
+                       **{f"method_{m}": int(np.count_nonzero(fitted & (cols["method"] == k)))
+                          for k, m in enumerate(CHANGE_METHODS)}}
+    return cols
 
 
 def _delta(ref: np.ndarray, var: np.ndarray) -> np.ndarray:

@@ -49,9 +49,9 @@ from ..io.output import check_output, write_hdus
 from ..io.tables import read_table
 from ..measure.settings import MeasureOptions
 from ..optics import Optics
+from ..render.cards import _exposure_cards, _model_hdu, _provenance, _wcs_cards
 from ..render.exposure import Exposure, draw_sources, plan_objects, read_truth
-from ..render.run import (_exposure_cards, _model_hdu, _provenance, _wcs_cards, crop, pad_to, persisting_fluence,
-                          simulation_area)
+from ..render.run import crop, pad_to, persisting_fluence, simulation_area
 from .reach import (IPC_REACH, WINDOW_MARGIN, _active_blocks, _clip_keep, _objects_reaching, galaxy_positions,
                     persisting_stars, stamp_sides, touches, window_boxes)
 
@@ -343,17 +343,52 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     """
     check_output(dest, overwrite=overwrite, inputs=[truth])
     cols = _truth_columns(truth, exposure.filter)
+    _check_light_sources(variants)
+    optics = Optics(exposure)
+    area, active, windows, gal = final_blocks(cols, exposure, rows, stamp)
+    if region is not None and (region.area != area or np.any(active & ~region.blocks)):
+        raise PerscliError("render_final: the region does not cover the final's stamps")
+    drawn, sources = _draw_final(truth, exposure, cols, optics, area, active, keep_light=keep_light, region=region)
+    charges, blocks = _final_charges(truth, exposure, histories, variants, active, sources.shape, area, region)
+    final = _final_pixels(sources, {"": model, **variants}, charges, exposure=exposure, seed=seed,
+                          sky_rate=optics.sky_rate, active=active, area=area, blocks=blocks, windows=windows[1],
+                          keep_frames=pixels is not None)
+    ids = np.asarray(cols["id"])[gal[windows[0]]].astype(np.int64)
+    nobj = int(np.count_nonzero(drawn))
+    out = _final_hdus(final, ids, exposure, optics, model, variants, seed=seed, active=active, nobj=nobj)
+    _final_provenance(out[0], truth, cols["datasum"], exposure, model, seed, final.sky_rate, nobj, histories)
+    write_hdus(out, dest, overwrite=overwrite, compress=compress)
+    if pixels is not None:
+        ref_full = np.where(final.inside, final.ref32, np.float32(np.nan))
+        changed = {"id": ids, **{variant_extname(n): final.changed[n] for n in variants}}
+        pixels.update({"SCI": ref_full, "CHANGED": changed,
+                       **{variant_extname(n): final.var_full[n] for n in variants}})
+    return {"rows": int(len(windows[0])), "objects": nobj, "blocks": int(active.sum()),
+            "block_fraction": float(active.mean()) if active.size else 0.0,
+            "changed": {n: int(c.sum()) for n, c in final.changed.items()}}
+
+
+def _check_light_sources(variants: dict) -> None:
+    """Refuse a variant whose persistence source is not light drawn from the catalogue (:data:`LIGHT_SOURCES`)."""
     for name, vm in variants.items():
         source = Persistence.fluence_input(vm)[0]
         if source not in LIGHT_SOURCES:
             raise PerscliError(f"variant {name}: a differential render draws what persists from the catalogue: "
                                f"persistence.source {' or '.join(LIGHT_SOURCES)}, not {source}")
-    optics = Optics(exposure)
-    bounds = exposure.full_bounds
-    xmin, xmax, ymin, ymax = bounds
-    area, active, windows, gal = final_blocks(cols, exposure, rows, stamp)
-    if region is not None and (region.area != area or np.any(active & ~region.blocks)):
-        raise PerscliError("render_final: the region does not cover the final's stamps")
+
+
+def _draw_final(truth: str, exposure: Exposure, cols: dict, optics, area, active, *, keep_light: bool,
+                region: Region | None) -> tuple:
+    """The objects of a final drawn over ``area``: those whose light reaches the ``active`` blocks.
+
+    With ``keep_light``, every object of ``region`` (or of the frame) is
+    drawn and the frame's light kept (:func:`remember_light`).
+
+    Returns
+    -------
+    (ndarray of bool, ndarray)
+        Per catalogue row: drawn; and the electrons of the objects over ``area``.
+    """
     plan = plan_objects(cols, optics, area)
     drawn = _objects_reaching(plan, active, area)
     if keep_light:
@@ -364,9 +399,23 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
     sources = draw_sources(cols, exposure, optics=optics, plan=plan, bounds=area, only=drawn)[0] \
         if active.any() or keep_light else np.zeros((area[3] - area[2] + 1, area[1] - area[0] + 1))
     if keep_light:
-        remember_light(truth, exposure, "drawn", crop(sources, area, bounds).astype(np.float32), region)
+        remember_light(truth, exposure, "drawn", crop(sources, area, exposure.full_bounds).astype(np.float32), region)
+    return drawn, sources
+
+
+def _final_charges(truth: str, exposure: Exposure, histories, variants: dict, active, shape, area,
+                   region: Region | None) -> tuple:
+    """Each variant's persistence charge from ``histories`` (:func:`history_charges`), made lazily.
+
+    Returns
+    -------
+    (dict, BlockStack or None)
+        Variant -> a callable giving its charge (or None), empty without
+        histories or active blocks; and the stack of the active blocks the
+        chain runs on (None: the whole area, :data:`STACK_FRACTION`).
+    """
     charges = {}
-    blocks = BlockStack.of(active, (area[0], area[2]), sources.shape) \
+    blocks = BlockStack.of(active, (area[0], area[2]), shape) \
         if active.any() and active.mean() <= STACK_FRACTION else None
     if active.any() and histories:
         laws = {name: (vm.persistence_model(), *Persistence.fluence_input(vm), Persistence.floor(vm))
@@ -374,22 +423,66 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         # each law's charge made when its chain needs it, and dropped with its frame: one at a time in memory
         charges = history_charges(truth, exposure, histories, laws, blocks, area, region, lazy=True)
         if blocks is None:
+            bounds = exposure.full_bounds
             charges = {name: charge if charge is None else
                        (lambda charge=charge: pad_to(charge(), bounds, area)) for name, charge in charges.items()}
-    models = {"": model, **variants}
-    results = _simulate(sources, models, charges, exposure=exposure, seed=seed, sky_rate=optics.sky_rate,
+    return charges, blocks
+
+
+@dataclass
+class _FinalPixels:
+    """A final's reference and variants on its galaxies' windows (:func:`_final_pixels`)."""
+
+    unit: str               # of the frame's pixels
+    sky_rate: float         # [e-/pixel/s] the sky background used
+    inside: np.ndarray      # (ny, nx) bool: the frame's pixels inside a window
+    ref32: np.ndarray       # (ny, nx) the reference frame, float32 (as written)
+    windows: np.ndarray     # (n, 4) each galaxy's window: x0, x1, y0, y1 (detector pixels, inclusive)
+    wx0: np.ndarray         # first column of each window (0-indexed, frame array)
+    wy0: np.ndarray         # first row of each window
+    wnx: np.ndarray         # columns of each window
+    wny: np.ndarray         # rows of each window
+    offsets: np.ndarray     # (n + 1) first pixel of each window in ``ref_pix``, then their total
+    ref_pix: np.ndarray     # the reference's pixels of the windows, one window after the other, row by row
+    changed: dict           # variant -> per window: whether the variant changed a pixel of it
+    deltas: dict            # variant -> its pixels of the windows minus the reference's (float32 when exact)
+    var_full: dict          # variant -> its frame, NaN outside the windows it changed (with ``keep_frames``)
+
+
+def _final_pixels(sources, models: dict, charges: dict, *, exposure: Exposure, seed: int, sky_rate, active, area,
+                  blocks, windows, keep_frames: bool) -> _FinalPixels:
+    """Simulate the reference (``models['']``) and every variant, and compare them on the windows.
+
+    Parameters
+    ----------
+    sources, charges, seed, sky_rate, active, area, blocks
+        As :func:`_simulate`.
+    models : dict
+        '' -> the reference's model, then variant -> its model.
+    windows : ndarray
+        (n, 4): each galaxy's window, x0, x1, y0, y1 (:func:`final_blocks`).
+    keep_frames : bool
+        Also keep each variant's frame (``var_full``).
+
+    Returns
+    -------
+    _FinalPixels
+    """
+    bounds = exposure.full_bounds
+    xmin, _, ymin, _ = bounds
+    results = _simulate(sources, models, charges, exposure=exposure, seed=seed, sky_rate=sky_rate,
                         active=active, area=area, blocks=blocks)
-    name, (ref, unit, sky_rate) = next(results)
+    name, (ref, unit, frame_sky) = next(results)
     assert name == ""
     ref = crop(ref, area, bounds)
     inside = np.zeros(ref.shape, dtype=bool)
-    for x0, x1, y0, y1 in windows[1]:
+    for x0, x1, y0, y1 in windows:
         inside[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
     if np.any(inside & ~np.isfinite(ref)):          # pragma: no cover - the blocks cover the windows
         raise PerscliError("render_final: a stamp reaches pixels that were not simulated")
     ref32 = ref.astype(np.float32)
     # each galaxy's window of the frame (0-indexed array coordinates), one after the other
-    win = windows[1]
+    win = windows
     wx0, wy0 = win[:, 0] - xmin, win[:, 2] - ymin
     wnx, wny = win[:, 1] - win[:, 0] + 1, win[:, 3] - win[:, 2] + 1
     offsets = np.concatenate([[0], np.cumsum(wnx * wny)]).astype(np.int64)
@@ -408,17 +501,29 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         d = cut(sci).astype(np.float64) - ref_pix.astype(np.float64)
         d32 = d.astype(np.float32)
         changed[name], deltas[name] = flags, d32 if np.array_equal(d32, d) else d
-        if pixels is not None:
+        if keep_frames:
             keep = np.zeros(ref.shape, dtype=bool)
             for x0, x1, y0, y1 in win[flags]:
                 keep[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
             var_full[name] = np.where(keep, sci, np.float32(np.nan))
         del sci
+    return _FinalPixels(unit=unit, sky_rate=frame_sky, inside=inside, ref32=ref32, windows=win, wx0=wx0, wy0=wy0,
+                        wnx=wnx, wny=wny, offsets=offsets, ref_pix=ref_pix, changed=changed, deltas=deltas,
+                        var_full=var_full)
+
+
+def _final_hdus(final: _FinalPixels, ids, exposure: Exposure, optics, model: DetectorModel, variants: dict, *,
+                seed: int, active, nobj: int) -> list:
+    """A final's file: primary, SCI (the reference's header), MODEL, STAMPS, REFPIX and one D_ image per variant.
+
+    ``ids``: the catalogue id of each window's galaxy; ``nobj``: the objects drawn.
+    """
+    xmin, xmax, ymin, ymax = exposure.full_bounds
     gain = model.value("gain", "gain", off=1.0)
-    common = _wcs_cards(optics, bounds)
-    frame_cards = common + _exposure_cards(exposure, optics, seed, unit, gain) + [
-        format_card("SKYRATE", sky_rate, "[e-/pixel/s] sky background used"),
-        format_card("NOBJ", int(np.count_nonzero(drawn)), "objects drawn (those reaching the stamps)")]
+    common = _wcs_cards(optics, exposure.full_bounds)
+    frame_cards = common + _exposure_cards(exposure, optics, seed, final.unit, gain) + [
+        format_card("SKYRATE", final.sky_rate, "[e-/pixel/s] sky background used"),
+        format_card("NOBJ", nobj, "objects drawn (those reaching the stamps)")]
     region = [format_card("REGION", "stamps", "only the stamps of galaxies persistence can reach"),
               format_card("NBLOCKS", int(active.sum()), f"noise blocks ({NOISE_BLOCK} px) simulated"),
               format_card("FBLOCKS", round(float(active.mean()) if active.size else 0.0, 6),
@@ -431,40 +536,36 @@ def render_final(truth: str, exposure: Exposure, dest: str, *, model: DetectorMo
         format_card("CONTENT", "the reference's header", "pixels: REFPIX at the STAMPS windows")],
         None, extname="SCI"))
     out.append(_model_hdu(model))
-    ids = np.asarray(cols["id"])[gal[windows[0]]].astype(np.int64)
-    table = {"id": ids, "x0": wx0.astype(np.int32), "y0": wy0.astype(np.int32), "nx": wnx.astype(np.int32),
-             "ny": wny.astype(np.int32), "offset": offsets[:-1],
-             **{variant_extname(n): changed[n].astype(np.int16) for n in variants}}
+    table = {"id": ids, "x0": final.wx0.astype(np.int32), "y0": final.wy0.astype(np.int32),
+             "nx": final.wnx.astype(np.int32), "ny": final.wny.astype(np.int32), "offset": final.offsets[:-1],
+             **{variant_extname(n): final.changed[n].astype(np.int16) for n in variants}}
     out.append(table_hdu(table, STAMPS_EXTNAME, descriptions={
         "id": "catalogue id of a galaxy simulated", "x0": "first column of its window (0-indexed, frame array)",
         "y0": "first row of its window", "nx": "columns of the window", "ny": "rows of the window",
         "offset": "first pixel of the window in REFPIX and the D_ images (row by row)",
         **{variant_extname(n): f"1: variant {n} changed a pixel of the window" for n in variants}}))
-    out.append(OutHDU([format_card("BUNIT", unit),
+    out.append(OutHDU([format_card("BUNIT", final.unit),
                        format_card("CONTENT", "reference pixels of the STAMPS windows", "no persistence")],
-                      ref_pix, extname=REF_EXTNAME))
+                      final.ref_pix, extname=REF_EXTNAME))
     for name, vm in variants.items():
         pm = vm.persistence_model()
-        out.append(OutHDU([format_card("BUNIT", unit),
+        out.append(OutHDU([format_card("BUNIT", final.unit),
                            format_card("CONTENT", f"variant {name} minus the reference", "STAMPS windows"),
                            format_card("VARIANT", name), format_card("PS_LAW", pm.name[-68:], "persistence law"),
                            format_card("PS_FLOOR", Persistence.floor(vm), "[e-] fluence at or below leaves nothing"),
-                           format_card("NCHANGED", int(changed[name].sum()), "galaxies whose stamps changed")],
-                          deltas[name], extname=delta_extname(name)))
-    _provenance(out[0], truth, cols["datasum"], exposure, model, seed, [], [], {}, sky_rate,
-                int(np.count_nonzero(drawn)), ("SCI",))
-    out[0]["NPREV"] = (len(histories), "earlier exposures whose light persists")
+                           format_card("NCHANGED", int(final.changed[name].sum()), "galaxies whose stamps changed")],
+                          final.deltas[name], extname=delta_extname(name)))
+    return out
+
+
+def _final_provenance(primary: OutHDU, truth: str, truth_datasum, exposure: Exposure, model: DetectorModel,
+                      seed: int, sky_rate, nobj: int, histories) -> None:
+    """A final's provenance (:func:`perscli.render.cards._provenance`) and its earlier exposures (NPREV, PRVnnID)."""
+    _provenance(primary, truth, truth_datasum, exposure, model, seed, [], [], {}, sky_rate, nobj, ("SCI",))
+    primary["NPREV"] = (len(histories), "earlier exposures whose light persists")
     for k, h in enumerate(histories, 1):
         if k <= 99:
-            out[0][f"PRV{k:02d}ID"] = (int(h.expid), f"earlier exposure, ended MJD {h.end:.6f}")
-    write_hdus(out, dest, overwrite=overwrite, compress=compress)
-    if pixels is not None:
-        ref_full = np.where(inside, ref32, np.float32(np.nan))
-        pixels.update({"SCI": ref_full, "CHANGED": {"id": ids, **{variant_extname(n): changed[n] for n in variants}},
-                       **{variant_extname(n): var_full[n] for n in variants}})
-    return {"rows": int(len(windows[0])), "objects": int(np.count_nonzero(drawn)), "blocks": int(active.sum()),
-            "block_fraction": float(active.mean()) if active.size else 0.0,
-            "changed": {n: int(c.sum()) for n, c in changed.items()}}
+            primary[f"PRV{k:02d}ID"] = (int(h.expid), f"earlier exposure, ended MJD {h.end:.6f}")
 
 
 #: a final's table of the galaxies' windows, and its 1-D images of their pixels
