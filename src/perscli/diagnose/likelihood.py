@@ -228,10 +228,14 @@ class Problem:
             return have
         own = self.charge(index, pmodel, region, well)
         rest, saturated = self._history_rest(index, base, rows, region, well)
-        now = rest + own[0] * np.float32(own[1])
+        # in place, one frame at a time (a full frame's history is 67 MB, and two threads make them at once):
+        # the same values as rest + charge, clipped at the well where the simulation did not saturate, and at 0
+        now = np.multiply(own[0], np.float32(own[1]), dtype=np.float32)
+        now += rest
         if well:
-            now = np.where(saturated, base, np.minimum(now, np.float32(well)))
-        have = np.maximum(now, 0.0).astype(np.float32, copy=False)
+            np.minimum(now, np.float32(well), out=now)
+            np.copyto(now, base, where=saturated)
+        have = np.maximum(now, np.float32(0.0), out=now)
         if region == "fit":
             # every pixel's histories would be frames more to hold: those are made again when asked (a few
             # elementwise passes each)
@@ -249,7 +253,8 @@ class Problem:
             if have is not None:
                 return have
         exp = self.exposures[index]
-        rest = base - exp.persist[rows].astype(np.float32)
+        rest = exp.persist[rows].astype(np.float32)
+        np.subtract(base, rest, out=rest)       # base - PERSIST, in the one new frame
         saturated = base >= np.float32(well * (1.0 - 1e-6)) if well else None
         if region == "fit":
             with self._lock:
