@@ -458,7 +458,7 @@ def test_study_takes_no_checksum_and_passes_it_to_its_tasks(tmp_path, monkeypatc
     monkeypatch.setattr(runner, "task_dicts", lambda tasks: [])
     from perscli.io.checksum import checksums_enabled
 
-    monkeypatch.setattr(runner, "run_study", lambda tasks, outdir, **kw: seen.append(checksums_enabled()) or [])
+    monkeypatch.setattr(runner, "run_study", lambda tasks, outdir, options=None: seen.append(checksums_enabled()) or [])
     for flag, expected in (([], True), (["--no-checksum"], False)):
         result = CliRunner().invoke(cli, ["study", "--preset", "ci", "-o", str(tmp_path / "s"), *flag])
         assert result.exit_code == 0, result.output

@@ -213,7 +213,7 @@ class ChargeCache:
 
     def __init__(self, keep: int = 2):
         self.keep = keep
-        self._entries = {}          # key -> {charge-stage parameters: (mean, var, fluence, unit, sky rate)}
+        self._entries = {}          # key -> {charge-stage parameters: (fluence, var, unit, sky rate)}
         self._lock = threading.Lock()
 
     def get(self, key, params):
@@ -256,8 +256,8 @@ def forward(sources: np.ndarray, model: DetectorModel, *, exptime: float,
                                            for eff in effects[:first_readout])
         hit = cache.get(key, params)
     if hit is not None:
-        mean, var, fluence, unit, used_sky = hit
-        mean, var = mean.copy(), var.copy()
+        fluence, var, unit, used_sky = hit        # the charge stage's mean is the fluence the readout starts from
+        mean, var = fluence.copy(), var.copy()
         ctx = ChainContext(exptime=exptime, seed=0, sky_rate=sky_rate, persistence=persistence)
         rest = effects[first_readout:]
     else:
@@ -273,7 +273,7 @@ def forward(sources: np.ndarray, model: DetectorModel, *, exptime: float,
             if params is not None:
                 kept = np.broadcast_to(var, mean.shape).copy()
                 fluence.flags.writeable = kept.flags.writeable = False     # shared: nobody may change them
-                cache.put(key, params, (fluence, kept, fluence, unit, ctx.used_sky_rate))
+                cache.put(key, params, (fluence, kept, unit, ctx.used_sky_rate))
         if not eff.enabled:
             continue
         step = eff.instance()
@@ -281,7 +281,7 @@ def forward(sources: np.ndarray, model: DetectorModel, *, exptime: float,
         unit = eff.cls.unit_out or unit
     if fluence is None:
         fluence = mean.copy()
-    used_sky = hit[4] if hit is not None else ctx.used_sky_rate
+    used_sky = hit[3] if hit is not None else ctx.used_sky_rate
     return Forward(mean=mean, variance=np.broadcast_to(var, mean.shape).copy(), unit=unit, fluence=fluence,
                    sky_rate=used_sky)
 

@@ -442,6 +442,13 @@ class Problem:
             blocks.append((slice(a, b), r0 - a, r0 - a + (r1 - r0)))
 
         prepared = self._prepared(model)
+        if model.enabled("persistence"):
+            # every exposure's persistence on every pixel made first, one exposure at a time (each needs the
+            # earlier ones' histories, frames of their own): two threads making them at once held both sets of
+            # frames besides the blocks the threads then go through
+            pmodel, well = model.persistence_model(), model.value("saturation", "full_well", off=None)
+            for i in range(1, len(self.exposures)):
+                self.charge(i, pmodel, "full", well)
 
         def one(i):
             sums = []
