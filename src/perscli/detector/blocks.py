@@ -54,6 +54,9 @@ class ChainContext:
     used_sky_rate: float = field(default=0.0, init=False)
     used_persistence: np.ndarray | None = field(default=None, init=False)
     _cache: dict = field(default_factory=dict, init=False, repr=False)
+    #: draws that do not depend on the image, shared by the branches of one :func:`iter_chains` call (the same
+    #: seed, origin and blocks): a read noise is drawn once for the reference and every persistence variant
+    shared: dict | None = field(default=None, repr=False)
 
     def sky(self) -> float:
         if "sky" not in self._cache:

@@ -92,7 +92,7 @@ def run_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
 
 def iter_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
                 sky_rate: Callable[[], float] | float = 0.0, persistence: dict | None = None,
-                origin=(1, 1), active=None, blocks: BlockStack | None = None):
+                origin=(1, 1), active=None, blocks: BlockStack | None = None, frames: bool = True):
     """:func:`run_chain` for several models of one exposure, sharing the steps they have in common.
 
     The same frame with and without persistence, or with two persistence
@@ -111,6 +111,9 @@ def iter_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
     blocks : BlockStack, optional
         ``sources`` and the charges are stacks of these noise blocks, and so
         are the results (:class:`BlockStack`).
+    frames : bool
+        False: the results' IDEAL and FLUENCE are None (not copied: a
+        caller that keeps only SCI).
     Others as for :func:`run_chain`.
 
     Yields
@@ -132,12 +135,13 @@ def iter_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
     ctx0 = ChainContext(exptime=exptime, seed=seed, sky_rate=sky_rate, origin=tuple(origin), active=active,
                         blocks=blocks)
     img = np.array(sources, dtype=np.float64)
-    state = _Steps()
+    state = _Steps(frames)
     for eff in chains[0][:shared]:
         img = state.step(eff, img, ctx0)
+    draws = {} if len(names) > 1 else None
     for n, chain in zip(names, chains):
         ctx = ChainContext(exptime=exptime, seed=seed, sky_rate=ctx0.sky, persistence=persistence.get(n),
-                           origin=tuple(origin), active=active, blocks=blocks)
+                           origin=tuple(origin), active=active, blocks=blocks, shared=draws)
         ctx.used_sky_rate = ctx0.used_sky_rate
         branch = state.copy()
         mine = img.copy() if len(names) > 1 else img
@@ -150,19 +154,20 @@ def iter_chains(sources: np.ndarray, models: dict, *, exptime: float, seed: int,
 class _Steps:
     """The running state of a chain: IDEAL and FLUENCE as they are passed, and the unit."""
 
-    def __init__(self):
+    def __init__(self, frames: bool = True):
         self.unit, self.ideal, self.fluence = "electron", None, None
+        self.frames = frames
 
     def copy(self) -> "_Steps":
-        other = _Steps()
+        other = _Steps(self.frames)
         other.unit, other.ideal, other.fluence = self.unit, self.ideal, self.fluence
         return other
 
     def step(self, eff: Effect, img: np.ndarray, ctx: ChainContext) -> np.ndarray:
         cls = eff.cls
-        if self.ideal is None and cls.stage != "scene":
+        if self.frames and self.ideal is None and cls.stage != "scene":
             self.ideal = img.copy()
-        if self.fluence is None and cls.stage == "readout":
+        if self.frames and self.fluence is None and cls.stage == "readout":
             # the charge collected so far is what traps hold on to: it drives later persistence
             self.fluence = img.copy()
         if not eff.enabled:
@@ -172,6 +177,9 @@ class _Steps:
         return img
 
     def result(self, img: np.ndarray, ctx: ChainContext) -> ChainResult:
+        if not self.frames:
+            return ChainResult(sci=img, unit=self.unit, ideal=None, fluence=None, persistence=ctx.used_persistence,
+                               sky_rate=ctx.used_sky_rate)
         ideal = self.ideal if self.ideal is not None else img.copy()
         fluence = self.fluence if self.fluence is not None else img.copy()
         return ChainResult(sci=img, unit=self.unit, ideal=ideal, fluence=fluence, persistence=ctx.used_persistence,

@@ -507,7 +507,10 @@ class Nonlinearity(DetectorEffect):
     schema = (Param("beta", "float", ROMAN_NONLINEARITY_BETA, "1/e-", "quadratic coefficient (galsim.roman: -6e-7)"),)
 
     def sample(self, image, ctx):
-        image += self.p["beta"] * image * image
+        # (beta x) x, then added: the bits of ``image += beta * image * image`` with one temporary, not two
+        term = np.multiply(self.p["beta"], image)
+        term *= image
+        image += term
         return image
 
     def expectation(self, mean, ctx):
@@ -568,8 +571,18 @@ class ReadNoise(DetectorEffect):
     schema = (Param("sigma", "float", ROMAN_READ_NOISE, "e-", "standard deviation (galsim.roman: 8.5)", lo=0.0),)
 
     def sample(self, image, ctx):
-        for gen, part, cut in self.streams(ctx, image.shape):
-            image[part] += gen.normal(0.0, self.p["sigma"], size=(NOISE_BLOCK, NOISE_BLOCK))[cut]
+        if ctx.shared is None:
+            for gen, part, cut in self.streams(ctx, image.shape):
+                image[part] += gen.normal(0.0, self.p["sigma"], size=(NOISE_BLOCK, NOISE_BLOCK))[cut]
+            return self.fresh(ctx, image)
+        # several branches of one frame: the noise drawn once (each pixel the same sum as above, bit for bit)
+        key = (self.name, self.p["sigma"], image.shape)
+        noise = ctx.shared.get(key)
+        if noise is None:
+            noise = ctx.shared[key] = np.zeros(image.shape)
+            for gen, part, cut in self.streams(ctx, image.shape):
+                noise[part] = gen.normal(0.0, self.p["sigma"], size=(NOISE_BLOCK, NOISE_BLOCK))[cut]
+        image += noise
         return self.fresh(ctx, image)
 
     def variance(self, mean, var, ctx):
@@ -664,7 +677,7 @@ class Quantize(DetectorEffect):
     description = "rounding to integer values (the A/D converter); adds 1/12 unit^2 of variance"
 
     def sample(self, image, ctx):
-        return np.round(image)
+        return np.round(image, out=image)
 
     def variance(self, mean, var, ctx):
         # uniform rounding error: exact when the noise before it is well above one unit

@@ -53,7 +53,7 @@ from ..render.cards import _exposure_cards, _model_hdu, _provenance, _wcs_cards
 from ..render.exposure import Exposure, draw_sources, plan_objects, read_truth
 from ..render.run import crop, pad_to, persisting_fluence, simulation_area
 from .reach import (IPC_REACH, WINDOW_MARGIN, _active_blocks, _clip_keep, _objects_reaching, galaxy_positions,
-                    persisting_stars, stamp_sides, touches, window_boxes)
+                    persisting_stars, stamp_sides, window_boxes)
 
 log = logging.getLogger(__name__)
 
@@ -279,12 +279,13 @@ def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, are
     """
     if blocks is None:
         for name, r in iter_chains(sources, models, exptime=exposure.exptime, seed=seed, sky_rate=sky_rate,
-                                   persistence=charges, origin=(area[0], area[2]), active=active):
+                                   persistence=charges, origin=(area[0], area[2]), active=active, frames=False):
             yield name, (r.sci, r.unit, r.sky_rate)
             del r
         return
     for name, r in iter_chains(blocks.gather(sources), models, exptime=exposure.exptime, seed=seed,
-                               sky_rate=sky_rate, persistence=charges, origin=(area[0], area[2]), blocks=blocks):
+                               sky_rate=sky_rate, persistence=charges, origin=(area[0], area[2]), blocks=blocks,
+                               frames=False):
         yield name, (blocks.scatter(r.sci, dtype=np.float32), r.unit, r.sky_rate)
         del r
 
@@ -495,18 +496,20 @@ def _final_pixels(sources, models: dict, charges: dict, *, exposure: Exposure, s
     ref_pix = cut(ref32)
     changed, deltas, var_full = {}, {}, {}
     for name, (sci, _, _) in results:
-        sci = crop(sci, area, bounds).astype(np.float32)
-        # a stamp changed when any of its pixels (as written: float32) differs from the reference's
-        flags = touches(inside & (sci != ref32), win, bounds)
-        d = cut(sci).astype(np.float64) - ref_pix.astype(np.float64)
+        sci = crop(sci, area, bounds)
+        # only the windows' pixels are converted (as written: float32), not the frame's
+        pix = cut(sci).astype(np.float32)
+        # a stamp changed when any of its pixels differs from the reference's (every window holds a pixel)
+        flags = np.logical_or.reduceat(pix != ref_pix, offsets[:-1]) if len(win) else np.zeros(0, dtype=bool)
+        d = pix.astype(np.float64) - ref_pix.astype(np.float64)
         d32 = d.astype(np.float32)
         changed[name], deltas[name] = flags, d32 if np.array_equal(d32, d) else d
         if keep_frames:
             keep = np.zeros(ref.shape, dtype=bool)
             for x0, x1, y0, y1 in win[flags]:
                 keep[y0 - ymin:y1 - ymin + 1, x0 - xmin:x1 - xmin + 1] = True
-            var_full[name] = np.where(keep, sci, np.float32(np.nan))
-        del sci
+            var_full[name] = np.where(keep, sci.astype(np.float32), np.float32(np.nan))
+        del sci, pix
     return _FinalPixels(unit=unit, sky_rate=frame_sky, inside=inside, ref32=ref32, windows=win, wx0=wx0, wy0=wy0,
                         wnx=wnx, wny=wny, offsets=offsets, ref_pix=ref_pix, changed=changed, deltas=deltas,
                         var_full=var_full)
