@@ -510,6 +510,91 @@ def test_ipc_kernel_is_ndimage_correlate_bit_for_bit():
                                   ndimage.correlate(x.astype(np.float64), kernels[0], mode="constant"))
 
 
+def test_stamps_are_added_as_numpy_adds_their_slices_bit_for_bit():
+    """render's compiled stamp adder (perscli._kernels.add_stamps through render.exposure.add_stamp_run) gives
+    the bits of the numpy loop it replaced: each stamp rolled by n/2, times its flux, its slice added in
+    order, clipped at every edge, the stars also into their own image (or only there)."""
+    from perscli.render.exposure import StampRun, add_stamp_run
+
+    rng = np.random.default_rng(3)
+    bounds = (5, 94, -3, 66)
+    shape = (bounds[3] - bounds[2] + 1, bounds[1] - bounds[0] + 1)
+    stamps = (rng.normal(size=(4, 8, 8)), rng.normal(size=(3, 32, 32)), rng.normal(size=(2, 2, 2)))
+    n_obj = 300
+    group = rng.integers(0, 3, n_obj)
+    slot = np.array([rng.integers(0, len(stamps[g])) for g in group])
+    x0 = rng.integers(bounds[0] - 40, bounds[1] + 5, n_obj)
+    y0 = rng.integers(bounds[2] - 40, bounds[3] + 5, n_obj)
+    index = rng.permutation(n_obj)
+    is_star = rng.integers(0, 2, n_obj).astype(bool)
+    run = StampRun(index, x0, y0, rng.uniform(1, 1e4, n_obj), group, slot, stamps)
+    base = rng.normal(size=shape)
+    image, stars, only = base.copy(), base.copy(), base.copy()
+    add_stamp_run(run, image, bounds, stars, is_star)
+    add_stamp_run(run, None, bounds, only, is_star)
+    want, want_stars = base.copy(), base.copy()
+    for o in range(n_obj):
+        st = stamps[group[o]][slot[o]]
+        n = st.shape[0]
+        st = np.roll(st, (n // 2, n // 2), axis=(0, 1)) * run.flux[o]
+        a0, a1 = max(x0[o], bounds[0]), min(x0[o] + n, bounds[1] + 1)
+        b0, b1 = max(y0[o], bounds[2]), min(y0[o] + n, bounds[3] + 1)
+        if a0 < a1 and b0 < b1:
+            part = st[b0 - y0[o]:b1 - y0[o], a0 - x0[o]:a1 - x0[o]]
+            want[b0 - bounds[2]:b1 - bounds[2], a0 - bounds[0]:a1 - bounds[0]] += part
+            if is_star[index[o]]:
+                want_stars[b0 - bounds[2]:b1 - bounds[2], a0 - bounds[0]:a1 - bounds[0]] += part
+    assert np.array_equal(image, want) and not np.array_equal(image, base)
+    assert np.array_equal(stars, want_stars) and np.array_equal(only, want_stars)
+    with pytest.raises(ValueError, match="group or slot"):
+        add_stamp_run(run._replace(slot=slot + 5), image, bounds)
+
+
+def test_inactive_blocks_are_blanked_as_the_pixel_mask_blanks_them():
+    """blank_inactive (one slice per block left out) leaves NaN exactly where active_pixels is False, for
+    images that start and end inside blocks."""
+    from perscli.detector.blocks import active_pixels, blank_inactive, block_grid
+
+    rng = np.random.default_rng(1)
+    for origin, shape in [((1, 1), (300, 200)), ((37, 100), (129, 257)), ((4000, 3990), (89, 99))]:
+        grid = block_grid(origin, shape)
+        active = rng.random((grid[2], grid[3])) < 0.5
+        want = rng.normal(size=shape)
+        got = blank_inactive(want.copy(), active, origin)
+        want[~active_pixels(active, origin, shape)] = np.nan
+        np.testing.assert_array_equal(got, want)
+        assert np.isnan(got).any() and np.isfinite(got).any()
+
+
+def test_a_block_stack_gathers_and_scatters_each_block_as_its_slices():
+    """BlockStack.gather/scatter (whole blocks in one gather, the cut ones one at a time) put each block's
+    pixels where its own slices of the area say, ``fill`` beyond the area, in the dtype asked for."""
+    from perscli.detector.blocks import BlockStack, block_grid
+
+    rng = np.random.default_rng(0)
+    for origin, shape in [((1, 1), (256, 192)), ((1, 1), (250, 189)), ((33, 65), (100, 70))]:
+        grid = block_grid(origin, shape)
+        stack = BlockStack.of(rng.random((grid[2], grid[3])) < 0.5, origin, shape)
+        image = rng.normal(size=shape)
+        for fill, dtype in [(np.nan, np.float64), (0.0, np.float32)]:
+            got = stack.gather(image, fill=fill, dtype=dtype)
+            want = np.full(got.shape, fill, dtype=dtype)
+            back = np.full(shape, fill, dtype=dtype)
+            for k in range(len(stack)):
+                rows, cols = stack._place(k)
+                want[k, :stack.h[k], :stack.w[k]] = image[rows, cols]
+                back[rows, cols] = want[k, :stack.h[k], :stack.w[k]]
+            np.testing.assert_array_equal(got, want)
+            np.testing.assert_array_equal(stack.scatter(got, fill=fill, dtype=dtype), back)
+        # a part of the area (a frame inside its simulation area): as if padded with ``fill`` to the area
+        for at, part_shape in [((3, 5), (shape[0] - 7, shape[1] - 9)), ((0, 0), shape), ((40, 33), (20, 20))]:
+            part = rng.normal(size=part_shape).astype(np.float32)
+            padded = np.zeros(shape, dtype=np.float32)
+            padded[at[0]:at[0] + part_shape[0], at[1]:at[1] + part_shape[1]] = part
+            np.testing.assert_array_equal(stack.gather(part, fill=0.0, dtype=np.float32, at=at),
+                                          stack.gather(padded, fill=0.0, dtype=np.float32))
+
+
 def test_reciprocity_moments_are_its_expectation_and_variance():
     """forward's one-pass moments equal the effect's own expectation and variance (shared logarithm)."""
     from perscli.detector.blocks import ChainContext

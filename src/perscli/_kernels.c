@@ -921,6 +921,117 @@ done:
     return result;
 }
 
+/* ---- stamps added into an image ----------------------------------------------------------------- */
+
+/* Add a run of stamps into an image (and the stars' into a second one), one stamp after the other in
+ * the given order, as render's Python loop did: image[y0 + r, x0 + c] += flux * s[(r + h) % n, (c + h) % n]
+ * with h = n / 2 (the stamp as the inverse FFT leaves it, its centre at [0, 0]: np.roll by n / 2 folded
+ * into the indexing), clipped to the image.  The product and the sum are two roundings, as in numpy
+ * (c99 forbids contracting them into a fused multiply-add): the same bits. */
+static PyObject *
+add_stamps(PyObject *self, PyObject *args)
+{
+    Py_buffer ib, sb, gb, slb, xb, yb, fb, stb;
+    PyObject *groups, *starobj;
+    Py_ssize_t ny, nx, xmin, ymin;
+    if (!PyArg_ParseTuple(args, "w*O(nnnn)Oy*y*y*y*y*y*", &ib, &starobj, &ny, &nx, &xmin, &ymin, &groups,
+                          &gb, &slb, &xb, &yb, &fb, &stb))
+        return NULL;
+    PyObject *result = NULL, *seq = NULL;
+    Py_buffer *gbufs = NULL;
+    Py_ssize_t ng = 0, nopen = 0;
+    int have_star = 0;
+    sb.buf = NULL;
+    const Py_ssize_t nobj = fb.len / (Py_ssize_t)sizeof(double);
+    if (ny < 0 || nx < 0 || ib.len != (Py_ssize_t)sizeof(double) * ny * nx ||
+        fb.len != nobj * (Py_ssize_t)sizeof(double) || gb.len != nobj * (Py_ssize_t)sizeof(int64_t) ||
+        slb.len != gb.len || xb.len != gb.len || yb.len != gb.len || stb.len != nobj) {
+        PyErr_SetString(PyExc_ValueError, "add_stamps: image is not ny x nx float64, or the per-object arrays differ "
+                        "in length");
+        goto release;
+    }
+    if (starobj != Py_None) {
+        if (PyObject_GetBuffer(starobj, &sb, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0) goto release;
+        have_star = 1;
+        if (sb.len != ib.len) {
+            PyErr_SetString(PyExc_ValueError, "add_stamps: the stars' image differs from the image in size");
+            goto release;
+        }
+    }
+    seq = PySequence_Fast(groups, "add_stamps: groups must be a sequence of stamp arrays");
+    if (seq == NULL) goto release;
+    ng = PySequence_Fast_GET_SIZE(seq);
+    gbufs = PyMem_Calloc(ng > 0 ? ng : 1, sizeof(Py_buffer));
+    Py_ssize_t *side = PyMem_Calloc(ng > 0 ? ng : 1, sizeof(Py_ssize_t));
+    Py_ssize_t *count = PyMem_Calloc(ng > 0 ? ng : 1, sizeof(Py_ssize_t));
+    if (gbufs == NULL || side == NULL || count == NULL) { PyErr_NoMemory(); PyMem_Free(side); PyMem_Free(count);
+                                                          goto release; }
+    for (Py_ssize_t g = 0; g < ng; g++) {
+        if (PyObject_GetBuffer(PySequence_Fast_GET_ITEM(seq, g), &gbufs[g], PyBUF_ND | PyBUF_C_CONTIGUOUS |
+                               PyBUF_FORMAT) < 0) break;
+        nopen++;
+        Py_buffer *v = &gbufs[g];
+        if (v->ndim != 3 || v->itemsize != (Py_ssize_t)sizeof(double) || v->shape[1] != v->shape[2] ||
+            v->shape[1] < 2 || v->shape[1] % 2 || strcmp(v->format ? v->format : "B", "d") != 0) {
+            PyErr_SetString(PyExc_ValueError, "add_stamps: each group must be a (B, n, n) float64 array, n even");
+            break;
+        }
+        side[g] = v->shape[1];
+        count[g] = v->shape[0];
+    }
+    if (nopen == ng && !PyErr_Occurred()) {
+        const int64_t *grp = (const int64_t *)gb.buf, *slot = (const int64_t *)slb.buf;
+        const int64_t *x0s = (const int64_t *)xb.buf, *y0s = (const int64_t *)yb.buf;
+        const double *flux = (const double *)fb.buf;
+        const unsigned char *isstar = (const unsigned char *)stb.buf;
+        int bad = 0;
+        for (Py_ssize_t o = 0; o < nobj; o++)
+            if (grp[o] < 0 || grp[o] >= ng || slot[o] < 0 || slot[o] >= count[grp[o]]) bad = 1;
+        if (bad) {
+            PyErr_SetString(PyExc_ValueError, "add_stamps: an object's group or slot is out of range");
+        } else {
+            double *img = (double *)ib.buf, *simg = have_star ? (double *)sb.buf : NULL;
+            Py_BEGIN_ALLOW_THREADS
+            for (Py_ssize_t o = 0; o < nobj; o++) {
+                const Py_ssize_t n = side[grp[o]], h = n / 2;
+                const double *st = (const double *)gbufs[grp[o]].buf + slot[o] * n * n;
+                const double f = flux[o];
+                const Py_ssize_t x0 = x0s[o] - xmin, y0 = y0s[o] - ymin;
+                const Py_ssize_t r0 = y0 < 0 ? -y0 : 0, r1 = y0 + n > ny ? ny - y0 : n;
+                const Py_ssize_t c0 = x0 < 0 ? -x0 : 0, c1 = x0 + n > nx ? nx - x0 : n;
+                double *other = (simg != NULL && isstar[o]) ? simg : NULL;
+                /* columns [c0, cm) read the stamp's second half, [cm, c1) its first: no modulo per pixel */
+                const Py_ssize_t cm = c1 < h ? c1 : (c0 > h ? c0 : h);
+                for (Py_ssize_t r = r0; r < r1; r++) {
+                    const double *src = st + ((r + h) % n) * n;
+                    double *dst = img + (y0 + r) * nx + x0;
+                    const double *lo = src + h, *hi = src - h;
+                    for (Py_ssize_t c = c0; c < cm; c++) dst[c] += lo[c] * f;
+                    for (Py_ssize_t c = cm; c < c1; c++) dst[c] += hi[c] * f;
+                    if (other != NULL) {
+                        double *dst2 = other + (y0 + r) * nx + x0;
+                        for (Py_ssize_t c = c0; c < cm; c++) dst2[c] += lo[c] * f;
+                        for (Py_ssize_t c = cm; c < c1; c++) dst2[c] += hi[c] * f;
+                    }
+                }
+            }
+            Py_END_ALLOW_THREADS
+            result = Py_None;
+            Py_INCREF(result);
+        }
+    }
+    PyMem_Free(side);
+    PyMem_Free(count);
+release:
+    for (Py_ssize_t g = 0; g < nopen; g++) PyBuffer_Release(&gbufs[g]);
+    PyMem_Free(gbufs);
+    Py_XDECREF(seq);
+    if (have_star) PyBuffer_Release(&sb);
+    PyBuffer_Release(&ib); PyBuffer_Release(&gb); PyBuffer_Release(&slb); PyBuffer_Release(&xb);
+    PyBuffer_Release(&yb); PyBuffer_Release(&fb); PyBuffer_Release(&stb);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"accumulate", accumulate, METH_VARARGS,
      "accumulate(x, acc, time_factors, scale, combine_max, linear_only, A, x0, dx, alpha,\n"
@@ -941,6 +1052,11 @@ static PyMethodDef methods[] = {
      "(points or exponentials, params rows dx, dy, a, b, c, galaxy) through a tabulated PSF transfer."},
     {"exp_nonpos", exp_nonpos_py, METH_VARARGS,
      "exp_nonpos(x, out): out = exp(min(x, 0)) with the fitter's vectorisable exp (float64 buffers)."},
+    {"add_stamps", add_stamps, METH_VARARGS,
+     "add_stamps(image, stars_or_None, (ny, nx, xmin, ymin), groups, group, slot, x0, y0, flux, is_star) -> None\n\n"
+     "For each object o in order: image[y0-ymin+r, x0-xmin+c] += flux[o] * s[(r+n/2)%n, (c+n/2)%n] with\n"
+     "s = groups[group[o]][slot[o]] (n x n, unrolled), clipped to the image; also into stars_or_None\n"
+     "where is_star[o].  group, slot, x0, y0: int64; flux: float64; is_star: uint8."},
     {"correlate3x3", correlate3x3, METH_VARARGS,
      "correlate3x3(x, out, k, (nplanes, ny, nx)): out = the 3x3 correlation of each plane of x with k\n"
      "(float64, C order; zero outside each plane), as scipy.ndimage.correlate(x, k[None], mode='constant')."},

@@ -161,7 +161,7 @@ class StampDrawer:
                                        np.ascontiguousarray(k, dtype=np.float64))
         return split
 
-    def batch(self, n: int, dx, dy, forms=None) -> np.ndarray:
+    def batch(self, n: int, dx, dy, forms=None, roll: bool = True) -> np.ndarray:
         """Stamps of unit flux for several objects of one stamp side: points, or exponential galaxies.
 
         The Fourier transform of each object (1 for a point; for an
@@ -182,6 +182,9 @@ class StampDrawer:
         forms : ndarray, shape (B, 3), optional
             Per object (Cxx, Cxy, Cyy) of an exponential, or NaN in a row
             for a point; None: all points.
+        roll : bool
+            False: the stamps as the inverse FFT leaves them, the centre's
+            pixel at [0, 0] (:func:`perscli._kernels.add_stamps` adds them so).
 
         Returns
         -------
@@ -202,6 +205,8 @@ class StampDrawer:
         work = np.empty(2 * (2 * m * n + n * half))
         _kernels.fold_objects(spec, work, tr_re, tr_im, k, n, m, params)
         images = scipy.fft.irfft2(spec, s=(n, n), axes=(-2, -1))
+        if not roll:
+            return images
         # stamp index [n/2, n/2] is the centre's pixel
         return np.roll(images, (n // 2, n // 2), axis=(-2, -1))
 

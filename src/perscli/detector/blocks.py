@@ -207,18 +207,65 @@ class BlockStack:
         ya, xa = self.by[k] * NOISE_BLOCK - y0, self.bx[k] * NOISE_BLOCK - x0
         return slice(ya, ya + self.h[k]), slice(xa, xa + self.w[k])
 
-    def gather(self, image: np.ndarray, fill=np.nan, dtype=np.float64) -> np.ndarray:
-        """The blocks of ``image`` (the area) as a stack; ``fill`` beyond the area."""
-        out = np.full((len(self), NOISE_BLOCK, NOISE_BLOCK), fill, dtype=dtype)
-        for k in range(len(self)):
+    def _whole(self, shape, at=(0, 0)):
+        """The blocks wholly inside an image of ``shape`` whose [0, 0] is area pixel ``at`` (and inside the area).
+
+        Returns
+        -------
+        (ndarray of bool, function)
+            Per block of the stack: wholly inside; and a function giving the
+            image's pixels as (block row, row, block column, column) indexed
+            by the stack's blocks there (a view, no copy).
+        """
+        b = NOISE_BLOCK
+        by0, bx0, _, _ = block_grid(self.origin, self.shape)
+        oy, ox = int(at[0]), int(at[1])
+        # block rows and columns [lo, hi) of the area whose pixels all lie in the image and in the area
+        jlo, ilo = -(-oy // b), -(-ox // b)
+        jhi = min((oy + shape[0]) // b, self.shape[0] // b)
+        ihi = min((ox + shape[1]) // b, self.shape[1] // b)
+        jj, ii = self.by - by0, self.bx - bx0
+        whole = (jj >= jlo) & (jj < jhi) & (ii >= ilo) & (ii < ihi)
+
+        def blocks(image):
+            part = image[jlo * b - oy:jhi * b - oy, ilo * b - ox:ihi * b - ox]
+            return part.reshape(max(jhi - jlo, 0), b, max(ihi - ilo, 0), b)[jj[whole] - jlo, :, ii[whole] - ilo, :]
+
+        return whole, blocks
+
+    def gather(self, image: np.ndarray, fill=np.nan, dtype=np.float64, at=(0, 0)) -> np.ndarray:
+        """The blocks of ``image`` as a stack; ``fill`` beyond the area.
+
+        ``image`` is the area, or with ``at`` a part of it whose [0, 0] is
+        area pixel (row, column) ``at``: the area's pixels outside it are
+        ``fill`` too (a frame inside its simulation area, gathered without
+        padding it to the area first).
+        """
+        whole, blocks = self._whole(image.shape, at)
+        out = np.empty((len(self), NOISE_BLOCK, NOISE_BLOCK), dtype=dtype)
+        # the whole blocks in one gather; the few cut by the area's or the image's edges one at a time
+        out[whole] = blocks(image)
+        oy, ox = int(at[0]), int(at[1])
+        for k in np.flatnonzero(~whole):
             rows, cols = self._place(k)
-            out[k, :self.h[k], :self.w[k]] = image[rows, cols]
+            out[k] = fill
+            ya, yb = max(rows.start, oy), min(rows.stop, oy + image.shape[0])
+            xa, xb = max(cols.start, ox), min(cols.stop, ox + image.shape[1])
+            if ya < yb and xa < xb:
+                out[k, ya - rows.start:yb - rows.start, xa - cols.start:xb - cols.start] = \
+                    image[ya - oy:yb - oy, xa - ox:xb - ox]
         return out
 
     def scatter(self, stack: np.ndarray, fill=np.nan, dtype=np.float64) -> np.ndarray:
         """The stack back in the area, ``fill`` where no block was simulated."""
+        whole, _ = self._whole(self.shape)
         out = np.full(self.shape, fill, dtype=dtype)
-        for k in range(len(self)):
+        b = NOISE_BLOCK
+        by0, bx0, _, _ = block_grid(self.origin, self.shape)
+        nby, nbx = self.shape[0] // b, self.shape[1] // b
+        out[:nby * b, :nbx * b].reshape(nby, b, nbx, b)[self.by[whole] - by0, :, self.bx[whole] - bx0, :] = \
+            stack[whole]
+        for k in np.flatnonzero(~whole):
             rows, cols = self._place(k)
             out[rows, cols] = stack[k, :self.h[k], :self.w[k]]
         return out
@@ -244,23 +291,29 @@ class BlockStack:
         """
         b = NOISE_BLOCK
         n = len(self)
-        clean = stack.copy()
+        out = np.empty((n, b + 2, b + 2))
+        inner = out[:, 1:-1, 1:-1]
+        inner[...] = stack
         for k in np.flatnonzero((self.h < b) | (self.w < b)):
             # beyond the area: zeros, as past the edge of a frame
-            clean[k, self.h[k]:, :] = 0.0
-            clean[k, :, self.w[k]:] = 0.0
-        ext = np.concatenate([clean, np.full((1, b, b), np.nan), np.zeros((1, b, b))])
-        out = np.empty((n, b + 2, b + 2))
+            inner[k, self.h[k]:, :] = 0.0
+            inner[k, :, self.w[k]:] = 0.0
         nb = self.neighbours
-        out[:, 1:-1, 1:-1] = clean
-        out[:, 0, 1:-1] = ext[nb[:, 0, 1], -1, :]
-        out[:, -1, 1:-1] = ext[nb[:, 2, 1], 0, :]
-        out[:, 1:-1, 0] = ext[nb[:, 1, 0], :, -1]
-        out[:, 1:-1, -1] = ext[nb[:, 1, 2], :, 0]
-        out[:, 0, 0] = ext[nb[:, 0, 0], -1, -1]
-        out[:, 0, -1] = ext[nb[:, 0, 2], -1, 0]
-        out[:, -1, 0] = ext[nb[:, 2, 0], 0, -1]
-        out[:, -1, -1] = ext[nb[:, 2, 2], 0, 0]
+
+        def edge(values):
+            # a neighbour's row, column or corner; index n: not simulated (NaN), n + 1: beyond the area (0)
+            pad = np.empty((n + 2,) + values.shape[1:])
+            pad[:n], pad[n], pad[n + 1] = values, np.nan, 0.0
+            return pad
+
+        out[:, 0, 1:-1] = edge(inner[:, -1, :])[nb[:, 0, 1]]
+        out[:, -1, 1:-1] = edge(inner[:, 0, :])[nb[:, 2, 1]]
+        out[:, 1:-1, 0] = edge(inner[:, :, -1])[nb[:, 1, 0]]
+        out[:, 1:-1, -1] = edge(inner[:, :, 0])[nb[:, 1, 2]]
+        out[:, 0, 0] = edge(inner[:, -1, -1])[nb[:, 0, 0]]
+        out[:, 0, -1] = edge(inner[:, -1, 0])[nb[:, 0, 2]]
+        out[:, -1, 0] = edge(inner[:, 0, -1])[nb[:, 2, 0]]
+        out[:, -1, -1] = edge(inner[:, 0, 0])[nb[:, 2, 2]]
         return out
 
     def blank(self, stack: np.ndarray) -> np.ndarray:
@@ -269,6 +322,20 @@ class BlockStack:
             stack[k, self.h[k]:, :] = np.nan
             stack[k, :, self.w[k]:] = np.nan
         return stack
+
+
+def blank_inactive(image: np.ndarray, active, origin) -> np.ndarray:
+    """Set the pixels of the blocks ``active`` leaves out to NaN, in place: ``image[~active_pixels(...)] = nan``
+    one block at a time, without a mask of the whole image."""
+    if active is None:
+        return image
+    by0, bx0, nby, nbx = block_grid(origin, image.shape)
+    x0, y0 = int(origin[0]) - 1, int(origin[1]) - 1
+    for j, i in zip(*np.nonzero(~np.asarray(active, dtype=bool)[:nby, :nbx])):
+        ya, yb = max((by0 + j) * NOISE_BLOCK, y0), min((by0 + j + 1) * NOISE_BLOCK, y0 + image.shape[0])
+        xa, xb = max((bx0 + i) * NOISE_BLOCK, x0), min((bx0 + i + 1) * NOISE_BLOCK, x0 + image.shape[1])
+        image[ya - y0:yb - y0, xa - x0:xb - x0] = np.nan
+    return image
 
 
 def active_pixels(active, origin, shape) -> np.ndarray:

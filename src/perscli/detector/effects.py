@@ -81,7 +81,7 @@ import numpy as np
 from .. import PerscliError, _kernels
 from ..instrument import (ROMAN_DARK_CURRENT, ROMAN_DETECTOR_SIZE, ROMAN_FULL_WELL, ROMAN_GAIN,
                           ROMAN_NONLINEARITY_BETA, ROMAN_READ_NOISE, ROMAN_RECIPROCITY_ALPHA)
-from .blocks import NOISE_BLOCK, ChainContext, active_pixels, block_streams
+from .blocks import NOISE_BLOCK, ChainContext, blank_inactive, block_streams
 from .params import Param
 from .persistence import PersistenceModel
 from .settings import FERMI_PARAMETERS, PERSISTENCE_SCHEMA, PRESETS, preset_settings
@@ -208,9 +208,7 @@ class DetectorEffect:
         """``image`` with the pixels of inactive blocks set to NaN (they are not simulated)."""
         if ctx.blocks is not None:
             return ctx.blocks.blank(image)
-        if ctx.active is not None:
-            image[~active_pixels(ctx.active, ctx.origin, image.shape)] = np.nan
-        return image
+        return blank_inactive(image, ctx.active, ctx.origin)
 
 
 @register

@@ -234,7 +234,7 @@ def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=N
             value = object_light(truth, histories[i], source, floor, region)
             # only the blocks simulated: the law on a few per cent of the frame
             lights[key] = value if blocks is None else \
-                blocks.gather(pad_to(value, bounds, area), fill=0.0, dtype=np.float32)
+                blocks.gather(value, fill=0.0, dtype=np.float32, at=(bounds[2] - area[2], bounds[0] - area[0]))
         return lights[key]
 
     def fluence(i, source, threshold, cap, floor, scratch):
@@ -261,7 +261,7 @@ def history_charges(truth: str, final: Exposure, histories, laws: dict, blocks=N
 
 
 #: below this fraction of active blocks the chain runs on the stack of them rather than on the whole area
-STACK_FRACTION = 0.25
+STACK_FRACTION = 0.6
 
 
 def _simulate(sources, models, charges, *, exposure, seed, sky_rate, active, area, blocks=None):
