@@ -90,7 +90,6 @@ LONG_FUNCTIONS = {
     "io/frames.py:open_frame": "every frame layout (image, cube, WFC3 ramp) and its units, gain and timing",
     "measure/fit.py:_newton": "the damped Newton iteration of every fit: one loop over its shared state",
     "measure/joint.py:joint_setup": "the frames' headers read and what a joint fit fits chosen",
-    "render/exposure.py:draw_sources": "render's stamps: optics, plan, batches and their sum",
     "samples.py:make_sample_sequence": "the bundled sample exposures: their pixels and cards together",
     "scene/__init__.py:check_catalog": "the one check of catalogue columns, rule after rule",
     "scene/dithers.py:plan_dithers": "a dithered sequence: pattern, pointings and Roman's constraints",

@@ -7,10 +7,10 @@ import logging
 import click
 
 from .helpers import FILE, PerscliCommand, check_outputs, deprecated_option, file_or, progress_reporter, report_errors
-from ..detector.settings import (FERMI_PARAMETERS, MODES, SETTINGS, ApplyOptions, persistence_param,
+from ..detector.settings import (FERMI_PARAMETERS, SETTINGS, ApplyOptions, persistence_param,
                                  preset_default_text)
 from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, key_values, no_checksum_opt, output_opt,
-                      overwrite_opt, units_opt, verbosity_opts, workers_opt)
+                      overwrite_opt, settings_options, units_opt, verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -66,8 +66,7 @@ def _power_of_two(ctx, param, value):
                    f"({', '.join(SETTINGS)}), as render's --set does: persistence.gamma=1.1. Repeatable.")
 @click.option("--param", "params", multiple=True, hidden=True,
               callback=deprecated_option("apply-persistence --param KEY=VALUE", "--set persistence.KEY=VALUE"))
-@click.option("--mode", type=click.Choice(MODES), default=D.mode, show_default=True,
-              help="Add persistence, subtract it (a correction), or write the persistence alone.")
+@settings_options(ApplyOptions, "mode")
 # the settings of how the law is applied: type, range and default (per preset) from the one table of
 # persistence parameters (perscli.detector.settings.PERSISTENCE_PARAMETERS); None here = the law's own
 @setting_option("--time-model", "time_model",
@@ -82,11 +81,7 @@ def _power_of_two(ctx, param, value):
 @setting_option("--lookback", "lookback",
                 "Ignore earlier exposures that ended more than HOURS before CURRENT starts (0: no limit; "
                 "-v names them)", metavar="HOURS")
-@click.option("--model-error", type=click.FloatRange(min=0), default=D.model_error, show_default=True,
-              metavar="FRACTION",
-              help="Fractional uncertainty of the persistence. Where CURRENT has an ERR array (WFC3 flt/ima, "
-                   "JWST): --mode subtract adds FRACTION x persistence to it in quadrature, --mode predict "
-                   "writes FRACTION x persistence; 0 leaves ERR as it is.")
+@settings_options(ApplyOptions, "model_error")
 @click.option("--flag-above", type=click.FloatRange(min=0), default=None, metavar="E_PER_S",
               help="Set a DQ bit where the persistence averaged over CURRENT's exposure exceeds E_PER_S "
                    "electrons per second, whatever the units of the data (WFC3's advice: 0.01). A frame "

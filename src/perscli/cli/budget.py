@@ -6,9 +6,10 @@ import logging
 
 import click
 
-from ..stats.settings import BAND_NAMES, BudgetOptions
+from ..stats.settings import BudgetOptions
 from .helpers import FILE, PerscliCommand, check_outputs, report_errors
-from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, verbosity_opts
+from .options import (columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, settings_options,
+                      verbosity_opts)
 
 #: ``--check``'s exit status when a bin exceeds the budget (1 is an error, 2 a usage error)
 EXIT_OVER_BUDGET = 3
@@ -22,14 +23,7 @@ D = BudgetOptions()
 @click.command("budget", cls=PerscliCommand,
                short_help="Compare a measured xi+ with the Roman additive shear budget.")
 @click.argument("xi", required=False, metavar="[XI.fits]", type=FILE)
-@click.option("--bands", type=click.Choice(BAND_NAMES), default=D.bands, show_default=True,
-              help="Additive shear rms per multipole band: dore2018 (HLIS requirement, Dore et al. 2018), "
-                   "troxel2021 (7.0e-5 in the first band) or hirata (Hirata's allocation).")
-@click.option("--modes", type=click.Choice(["E", "EB"], case_sensitive=False), default=D.modes, show_default=True,
-              metavar="E|EB",
-              help="E: the budget is for E modes only; EB: B modes get the same budget, which doubles xi+.")
-@click.option("--sigma", "n_sigma", type=click.FloatRange(min=0), default=D.n_sigma, show_default=True, metavar="N",
-              help="A bin exceeds the budget when |xi+| - N sigma_xip > |budget|.")
+@settings_options(BudgetOptions, "bands", "modes", "n_sigma")
 @click.option("--theta-range", type=(click.FloatRange(min=0, min_open=True), click.FloatRange(min=0, min_open=True)),
               default=None, metavar="ARCMIN ARCMIN",
               help=f"Without XI: smallest and largest separation of the table [default: {D.theta_min:g} "

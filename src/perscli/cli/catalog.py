@@ -10,7 +10,8 @@ from click.core import ParameterSource
 from ..instrument import ROMAN_N_SCA, ROMAN_SCA_SIZE
 from ..scene.settings import CatalogOptions
 from .helpers import FILE, PerscliCommand, check_outputs, deprecated_option, report_errors
-from .options import columns_opt, dec_opt, no_checksum_opt, output_opt, overwrite_opt, ra_opt, seed_opt, verbosity_opts
+from .options import (columns_opt, dec_opt, no_checksum_opt, output_opt, overwrite_opt, ra_opt, seed_opt,
+                      settings_options, verbosity_opts)
 
 log = logging.getLogger("perscli")
 
@@ -41,8 +42,7 @@ D = CatalogOptions()
 @click.option("--galaxy-rows", "galaxy_rows", default=None, metavar="ROWS",
               help="--pointings: galaxies only in the footprints of these rows of the table (0-based, e.g. "
                    "3,4 or 3-9), stars in every row's: earlier exposures whose stars' light alone persists.")
-@click.option("--galaxy-density", type=click.FloatRange(min=0), default=D.galaxy_density, show_default=True,
-              metavar="PER_ARCMIN2", help="Mean number of galaxies per arcmin^2 (Poisson).")
+@settings_options(CatalogOptions, "galaxy_density")
 @click.option("--star-density", type=click.FloatRange(min=0), default=None, metavar="PER_ARCMIN2",
               help="Instead of the Galactic star model: power-law stars at this mean number per arcmin^2 "
                    "(Poisson, uniform; the paper: 2.5); not used with --gaia.")

@@ -7,28 +7,15 @@ import logging
 import click
 from click.core import ParameterSource
 
-from ..stats.settings import CorrelateOptions, default_text
+from ..stats.settings import CorrelateOptions
 from .helpers import FILE, FOLDER, PerscliCommand, check_outputs, report_errors, require_inputs
-from .options import (columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, seed_opt, verbosity_opts,
-                      workers_opt)
+from .options import (columns_opt, no_checksum_opt, output_opt, overwrite_opt, plot_opt, seed_opt, settings_options,
+                      verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
 #: the defaults, written once (perscli.stats.settings)
 D = CorrelateOptions()
-
-
-def _numbers(ctx, param, value):
-    """A comma-separated list of numbers (for --thresholds and --theta-bins)."""
-    if value is None:
-        return None
-    try:
-        numbers = tuple(float(v) for v in value.replace(" ", "").split(",") if v)
-    except ValueError:
-        raise click.BadParameter(f"{value!r}: give numbers separated by commas, e.g. 1e-8,1e-4") from None
-    if not numbers:
-        raise click.BadParameter("give at least one number")
-    return numbers
 
 
 @click.command("correlate", cls=PerscliCommand,
@@ -45,44 +32,12 @@ def _numbers(ctx, param, value):
                    "- g(frame B) of it; with two (or pairs), frame A of the first minus frame B of the second.")
 @click.option("--de1", metavar="COL", default=None, help="One table: the column holding De1.")
 @click.option("--de2", metavar="COL", default=None, help="One table: the column holding De2.")
-@click.option("--common-ids", is_flag=True, default=False,
-              help="Correlate the ids A and B share, instead of refusing tables whose ids differ.")
-@click.option("--positions", type=click.Choice(["auto", "radec", "xy"]), default=D.positions, show_default=True,
-              help="ra/dec in degrees (auto when present), or x/y (flat) in pixels or in their TUNIT angle.")
-@click.option("--pixel-scale", type=click.FloatRange(min=0, min_open=True), default=D.pixel_scale,
-              show_default=True, metavar="ARCSEC", help="Arcsec per pixel for x/y positions in pixels (Roman's).")
-@click.option("--min-sep", type=click.FloatRange(min=0, min_open=True), default=D.min_sep, show_default=True,
-              metavar="SEP", help="Smallest separation, in --sep-units.")
-@click.option("--max-sep", type=click.FloatRange(min=0, min_open=True), default=D.max_sep, show_default=True,
-              metavar="SEP", help="Largest separation, in --sep-units.")
-@click.option("--nbins", type=click.IntRange(min=1), default=D.nbins, show_default=True, metavar="N",
-              help="Logarithmic separation bins.")
-@click.option("--sep-units", type=click.Choice(["arcsec", "arcmin", "deg", "rad"]), default=D.sep_units,
-              show_default=True, help="Units of --min-sep, --max-sep and of the output separations.")
-@click.option("--bin-slop", type=click.FloatRange(min=0), default=None, metavar="X",
-              help="TreeCorr's bin_slop [default: TreeCorr's, min(1, 0.1/bin size)]; 0 is exact but slow on "
-                   "large catalogues.")
-@click.option("--npatch", type=click.IntRange(min=2), default=D.npatch, show_default=True, metavar="N",
-              help="Jackknife patches, found by k-means on the positions (seeded by --seed).")
+@settings_options(CorrelateOptions, "common_ids", "positions", "pixel_scale", "min_sep", "max_sep", "nbins",
+                  "sep_units", "bin_slop", "npatch")
 @click.option("--patch-centers", metavar="FILE", default=None, type=FILE,
               help="Jackknife patch centres instead of k-means: TreeCorr's write_patch_centers file, a table "
                    "of ra/dec (degrees), or an earlier perscli correlate output (its PATCHES table).")
-@click.option("--var-method", type=click.Choice(["auto", "jackknife", "shot"]), default=D.var_method, show_default=True,
-              help="Errors of xi: the jackknife over patches, or shot noise; auto is the jackknife unless it is "
-                   "impossible (fewer than 10 objects per patch, fewer than 2 patches with objects), then shot "
-                   "noise with a warning; a bin whose jackknife variance is zero though it has pairs gets its shot "
-                   "noise (header SHOTBINS).")
-@click.option("--cross-patch-weight", type=click.Choice(["match", "simple", "mean"]), default=D.cross_patch_weight,
-              show_default=True,
-              help="TreeCorr's weight of pairs across a removed and a kept patch (match: Mohammad & Percival "
-                   "2022, recommended for the jackknife).")
-@click.option("--thresholds", callback=_numbers, default=default_text(D.thresholds), show_default=True,
-              metavar="T1,T2,...",
-              help="|De| thresholds: STATS gives the number and fraction of objects at or above each.")
-@click.option("--theta-bins", "theta_bins", callback=_numbers, default=default_text(D.theta_edges),
-              show_default=True, metavar="E0,E1,...", help="|De| bin edges of the position-angle distribution.")
-@click.option("--nboot", type=click.IntRange(min=2), default=D.nboot, show_default=True, metavar="N",
-              help="Bootstrap resamples for the errors of the position-angle distribution.")
+@settings_options(CorrelateOptions, "var_method", "cross_patch_weight", "thresholds", "theta_edges", "nboot")
 @click.option("--keep-flagged", "keep_flagged", is_flag=True, default=D.flagged == "keep",
               help="Keep objects whose fits carry a flag, with their De (STATS counts the clean ones apart: "
                    "n_clean, n_clean_ge), as a study's sample does; by default they are left out.")
@@ -102,7 +57,7 @@ def _numbers(ctx, param, value):
 @report_errors
 def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, positions, pixel_scale, min_sep,
               max_sep, nbins, sep_units, bin_slop, npatch, patch_centers, var_method, cross_patch_weight, thresholds,
-              theta_bins, nboot, keep_flagged, within, columns, seed, plot, plots_dir, output, overwrite, workers):
+              theta_edges, nboot, keep_flagged, within, columns, seed, plot, plots_dir, output, overwrite, workers):
     """Correlation function xi+/- and statistics of the shape changes De.
 
     De is the change of each object's shape between two measurements:
@@ -226,7 +181,7 @@ def correlate(ctx, shapes, pair_list, pairs_file, frames, de1, de2, common_ids, 
         de_columns=(de1, de2) if de1 is not None else None, common_ids=common_ids, positions=positions,
         pixel_scale=pixel_scale, columns=columns, min_sep=min_sep, max_sep=max_sep, nbins=nbins, sep_units=sep_units,
         bin_slop=bin_slop, npatch=npatch, cross_patch_weight=cross_patch_weight, var_method=var_method,
-        thresholds=thresholds, theta_edges=theta_bins, nboot=nboot, seed=seed,
+        thresholds=thresholds, theta_edges=theta_edges, nboot=nboot, seed=seed,
         flagged="keep" if keep_flagged else "drop", within=tuple(within) if within else None)
     summary = correlate_files(shapes, output, options, pairs=pairs, frames=frames, patch_centers=patch_centers,
                               workers=workers, plot=plot, plots_dir=plots_dir, overwrite=overwrite)

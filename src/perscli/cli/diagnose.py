@@ -11,7 +11,8 @@ from .. import PerscliError
 from ..diagnose.settings import DiagnoseOptions
 from ..io.output import check_output_folder
 from .helpers import FILE, FOLDER, PerscliCommand, report_errors, verbosity
-from .options import FiniteRange, model_opt, no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
+from .options import (FiniteRange, model_opt, no_checksum_opt, overwrite_opt, settings_options, verbosity_opts,
+                      workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -31,9 +32,7 @@ D = DiagnoseOptions()
            "simulated frames]")
 @click.option("-o", "--output", "outdir", required=True, metavar="OUTDIR", type=FOLDER,
               help="Folder to write: model.yaml, report.json, report.md and PNG figures.")
-@click.option("--fit-pixels", type=click.IntRange(min=1000), default=D.fit_pixels, show_default=True, metavar="N",
-              help="About this many pixels, over all exposures, are used in the fits (a stripe of rows in each eighth "
-                   "of the frame, where the simulation is brightest); the gaps use every pixel.")
+@settings_options(DiagnoseOptions, "fit_pixels")
 @click.option("--gain", type=FiniteRange(min=1e-3, max=1e3), default=None, metavar="E_PER_DN",
               help="Gain of measured DN frames whose header has no GAIN or CCDGAIN.")
 @click.option("--exptime", type=FiniteRange(min=0, min_open=True, max=1e7), default=None, metavar="SECONDS",

@@ -7,17 +7,15 @@ import logging
 import click
 
 from ..measure.settings import MeasureOptions
-from .helpers import FILE, PerscliCommand, check_fits_name, check_outputs, file_or, progress_reporter, report_errors
-from .options import columns_opt, no_checksum_opt, output_opt, overwrite_opt, verbosity_opts, workers_opt
+from .helpers import FILE, PerscliCommand, check_fits_name, check_outputs, progress_reporter, report_errors
+from .options import (columns_opt, no_checksum_opt, output_opt, overwrite_opt, settings_options, verbosity_opts,
+                      workers_opt)
 
 log = logging.getLogger("perscli")
 
 #: work below this many steps tells a log (stderr not a terminal) nothing: a full SCA's galaxies take minutes, a
 #: cutout's few dozen seconds
 PROGRESS_LEAST = 500
-
-#: the defaults, written once (perscli.measure.settings, light: --help does not import the fitter)
-D = MeasureOptions()
 
 
 @click.command("measure", cls=PerscliCommand,
@@ -27,57 +25,13 @@ D = MeasureOptions()
               help="Objects to measure: id and ra/dec (degrees) or x/y (FITS pixels); hlr and mag_<FILTER> "
                    "columns, when present, give the starting point.  Checked as render checks it: unique ids, "
                    "RA/Dec on the sky, hlr >= 0 (> 0 for a galaxy), |e| < 1.")
-@click.option("--psf", default=D.psf, show_default=True, metavar="roman|PSF.fits", type=file_or("roman"),
-              help="roman: GalSim's Roman PSF for the frame's SCA and FILTER.  Or a PSF image (file.fits[EXT] "
-                   "picks an HDU; of several, each frame takes the one of its SCA and FILTER) sampled finer "
-                   "than the frame, 4x ideally: its sampling from --psf-oversampling, OVERSAMP (PSF pixels per "
-                   "detector pixel), PSF_SAMP (PSFEx: 1/that), PIXSCALE or PIXELSCL (arcsec) or CDELT1 (deg); "
-                   "refused if undersampled (coarser than 1.5x, R062 2.4x, Z087 1.7x, for a Roman filter; or "
-                   "with power beyond its own Nyquist frequency).")
-@click.option("--psf-pixel", type=click.Choice(["included", "excluded"]), default=D.psf_pixel,
-              help="Whether the PSF image includes the detector pixel response (then the fit does not apply it "
-                   "again), overriding its PSFPIXEL keyword (T/F).  Without either: included for STPSF's "
-                   "DET_SAMP/DET_DIST extensions and PSFEx models (PSF_SAMP), else excluded (an optical PSF), "
-                   "with a warning.")
-@click.option("--psf-oversampling", type=click.FloatRange(min=0, min_open=True), default=D.psf_oversampling,
-              metavar="N",
-              help="PSF pixels per frame pixel of the PSF image, overriding its header.")
-@click.option("--allow-undersampled-psf", is_flag=True, default=D.allow_undersampled_psf,
-              help="Fit with an undersampled PSF image instead of refusing it, with a warning giving the "
-                   "expected shape error (Roman's PSF at the frame's own sampling: 4e-4 to 5e-3 in g with the "
-                   "pixel response, up to 6e-2 without).")
+@settings_options(MeasureOptions, "psf", "psf_pixel", "psf_oversampling", "allow_undersampled_psf")
 @click.option("--write-psf", default=None, type=FILE, metavar="PSF.fits",
               help="Also write the PSF images used, one HDU per SCA and FILTER, readable as --psf (with "
                    "--psf roman: GalSim's Roman PSF drawn 4x oversampled without the pixel; PSFPIXEL = F, "
                    "OVERSAMP = 4, PIXSCALE, SCA, FILTER).")
-@click.option("--method", type=click.Choice(["exp", "hsm"]), default=D.method, show_default=True,
-              help="exp: exponential-mixture fit (exact PSF, analytic Jacobian); hsm: GalSim REGAUSS.")
-@click.option("--stamp", type=int, default=D.stamp, show_default=True, metavar="PIXELS",
-              help="Largest stamp side.  An exp fit uses the smallest of 16, 24, 32, ... up to it that holds "
-                   "4 catalogue half-light radii + 3 pixels each side of the centre (smaller galaxies, smaller "
-                   "FFTs, fewer neighbours); --method hsm uses this side.")
-@click.option("--sky", type=float, default=D.sky, metavar="LEVEL",
-              help="Background per pixel in the frame's units [default: SKYRATE x EXPTIME + dark].")
-@click.option("--read-noise", type=click.FloatRange(min=0), default=D.read_noise, metavar="E",
-              help="Read noise (electrons) of the noise model, when the frame has no weight HDU [default: "
-                   "read_noise.sigma of the frame's detector model (MODEL table), else Roman's 8.5].")
-@click.option("--blend-radius", type=click.FloatRange(min=0), default=D.blend_radius, show_default=True,
-              metavar="PIXELS",
-              help="Flag objects with another catalogue object this close (0: never).")
-@click.option("--kinds", default=D.kinds, metavar="galaxy|LIST|all",
-              help="Catalogue kinds to fit (its kind column: galaxy, star), comma-separated, or all "
-                   "[default: galaxy; every row of a catalogue without a kind column].")
-@click.option("--min-snr", type=float, default=D.min_snr, show_default=True, metavar="X",
-              help="Fit only objects whose S/N predicted from the catalogue (magnitude through ZPT_AB, hlr, "
-                   "PSF, sky + dark + read noise; never the pixels) is at least X; 0: no cut.  The objects "
-                   "of a catalogue without a magnitude column for the frame's filter are always fitted (a "
-                   "magnitude that is not a number is refused).")
-@click.option("--all-rows", is_flag=True, default=D.all_rows,
-              help="Also write rows, without a fit, for selected objects off the frame (flag 256) and below "
-                   "--min-snr (flag 4096).")
-@click.option("--joint", is_flag=True, default=D.joint,
-              help="One fit per galaxy over all the FRAMEs it falls on (one filter; WCS and EXPTIME needed), "
-                   "with g, T, flux and position on the sky: a JOINT table.")
+@settings_options(MeasureOptions, "method", "stamp", "sky", "read_noise", "blend_radius", "kinds", "min_snr",
+                  "all_rows", "joint")
 @columns_opt("the --catalog", "id=NUMBER,ra=ALPHA_J2000,dec=DELTA_J2000")
 @no_checksum_opt
 @output_opt

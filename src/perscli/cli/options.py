@@ -52,6 +52,7 @@ from ..executor import MAX_WORKERS
 from ..instrument import ROMAN_FILTERS, ROMAN_N_SCA
 from ..io.config import split_key_value
 from ..scene import DEC_RANGE, MJD_RANGE, PA_RANGE, RA_RANGE
+from ..settings import default_text, option_fields
 from .helpers import FILE, OUTPUT, DataError, configure_logging, file_or
 
 def output_option(required: bool = True):
@@ -330,3 +331,67 @@ def key_values(item: dict | None = None, *, effect: str | None = None):
         return tuple(out)
 
     return callback
+
+
+def numbers(ctx, param, value):
+    """A click callback: comma-separated numbers (``1e-8,1e-4``) as a tuple of floats."""
+    if value is None:
+        return None
+    try:
+        values = tuple(float(v) for v in value.replace(" ", "").split(",") if v)
+    except ValueError:
+        raise click.BadParameter(f"{value!r}: give numbers separated by commas, e.g. 1e-8,1e-4") from None
+    if not values:
+        raise click.BadParameter("give at least one number")
+    return values
+
+
+def _click_type(spec):
+    """The click type of a setting's :class:`perscli.settings.OptionSpec`."""
+    if spec.kind == "choice":
+        return click.Choice(list(spec.choices), case_sensitive=spec.case_sensitive)
+    if spec.kind == "file_or":
+        return file_or(*spec.choices)
+    if spec.kind in ("float", "int"):
+        if spec.lo is None and spec.hi is None:
+            return float if spec.kind == "float" else int
+        if spec.kind == "int":
+            return click.IntRange(min=spec.lo, max=spec.hi, min_open=spec.lo_open, max_open=spec.hi_open)
+        return click.FloatRange(min=spec.lo, max=spec.hi, min_open=spec.lo_open, max_open=spec.hi_open)
+    return None
+
+
+def settings_option(cls, name: str, help: str | None = None):
+    """The click option of field ``name`` of a settings dataclass, made from the field (:func:`perscli.settings.setting`).
+
+    Its default is the dataclass's, its parameter the field's name: a
+    command passes ``**{name: value}`` on to the dataclass as it comes.
+    ``help`` replaces the field's where one option does different things in
+    different commands (pointings' --sca).
+    """
+    fields = option_fields(cls)
+    if name not in fields:
+        raise KeyError(f"{cls.__name__}.{name} has no option (declare it with perscli.settings.setting)")
+    default, spec = fields[name]
+    flag = spec.flag or "--" + name.replace("_", "-")
+    kwargs = {"help": spec.help if help is None else help, "show_default": spec.show_default}
+    if spec.metavar:
+        kwargs["metavar"] = spec.metavar
+    if spec.kind == "flag":
+        return click.option(flag, name, is_flag=True, default=bool(default), help=kwargs["help"])
+    if spec.kind == "numbers":
+        return click.option(flag, name, callback=numbers, default=default_text(default), **kwargs)
+    return click.option(flag, name, type=_click_type(spec), default=default, **kwargs)
+
+
+def settings_options(cls, *names):
+    """The click options of several fields of a settings dataclass, in the order given (:func:`settings_option`)."""
+    made = [settings_option(cls, n) for n in names]
+
+    def decorate(func):
+        for opt in reversed(made):
+            func = opt(func)
+        return func
+
+    return decorate
+

@@ -23,13 +23,10 @@ from ..instrument import ROMAN_EXPTIME, ROMAN_N_SCA, ROMAN_WAS_GAP
 from ..scene.settings import PLAN_REFERENCE_MJD, PlanOptions, SelectOptions
 from .helpers import FILE, PerscliCommand, PerscliGroup, check_outputs, file_or, progress_reporter, report_errors
 from .options import (columns_opt, dec_opt, filter_opt, mjd_opt, no_checksum_opt, output_opt, overwrite_opt, pa_opt,
-                      ra_opt, seed_opt, verbosity_opts)
+                      ra_opt, seed_opt, settings_option, verbosity_opts)
 
 
 log = logging.getLogger("perscli")
-
-#: the defaults, written once (perscli.scene.settings)
-P, S = PlanOptions(), SelectOptions()
 
 #: footprints below this many tell a log (stderr not a terminal) nothing: ~15 ms each, so a few seconds
 PROGRESS_LEAST = 300
@@ -70,26 +67,22 @@ def n_opt(help: str, *, required: bool = False):
 
 def dither_opt(help: str):
     """``--dither ARCSEC``: a plan's offsets."""
-    return click.option("--dither", type=click.FloatRange(min=0, max=3600), default=P.dither,
-                        show_default=True, metavar="ARCSEC", help=help)
+    return settings_option(PlanOptions, "dither", help)
 
 
 def plan_exptime_opt(help: str):
     """``--exptime SECONDS``: a plan's exposure time (options.exptime_opt is another: a fallback for inputs)."""
-    return click.option("--exptime", type=click.FloatRange(min=0, min_open=True),
-                        default=P.exptime, show_default=True, metavar="SECONDS", help=help)
+    return settings_option(PlanOptions, "exptime", help)
 
 
 def gap_opt(help: str):
     """``--gap SECONDS``: from the end of one exposure of a plan to the start of the next."""
-    return click.option("--gap", type=click.FloatRange(min=0), default=P.gap,
-                        show_default=True, metavar="SECONDS", help=help)
+    return settings_option(PlanOptions, "gap", help)
 
 
 def sca_opt(help: str):
     """``--sca N``: the detector written into every row (options.sca_opt's, with what it does here)."""
-    return click.option("--sca", type=click.IntRange(0, ROMAN_N_SCA), default=S.sca,
-                        show_default=True, metavar="N", help=help)
+    return settings_option(SelectOptions, "sca", help)
 
 
 def footprints_opt(func):

@@ -14,8 +14,8 @@ from ..render.settings import DEFAULT_HDUS, HDU_NAMES, RenderOptions
 from ..scene import check_filter
 from .helpers import FILE, PerscliCommand, check_outputs, progress_reporter, report_errors
 from .options import (chosen_seed_option, columns_opt, compress_option, dec_opt, key_values, mjd_opt, model_opt,
-                      no_checksum_opt, output_option, overwrite_opt, pa_opt, plot_opt, ra_opt, verbosity_opts,
-                      workers_opt)
+                      no_checksum_opt, output_option, overwrite_opt, pa_opt, plot_opt, ra_opt, settings_options,
+                      verbosity_opts, workers_opt)
 
 log = logging.getLogger("perscli")
 
@@ -82,8 +82,7 @@ def _list_effects(ctx, param, value):
 @click.option("--regions", metavar="FILE.reg", default=None, type=FILE,
               help="With --dry-run: also write a ds9 region file (fk5) of the frame's outline and of the objects "
                    "drawn on it.")
-@click.option("--strict", is_flag=True, default=D.strict,
-              help="No object of TRUTH.fits on the frame is an error (exit 1, nothing written), not a warning.")
+@settings_options(RenderOptions, "strict")
 @columns_opt("TRUTH.fits", "ra=ALPHA_J2000,dec=DELTA_J2000,id=NUMBER")
 # --dry-run draws and writes nothing: -o and --seed are required only without it, which the body checks
 # (usage errors, exit 2, in click's own words)

@@ -20,6 +20,7 @@ import dataclasses
 
 from .. import instrument as _instrument
 from .params import Param
+from ..settings import setting
 
 #: The presets of the law, by name.
 #:
@@ -211,8 +212,12 @@ class ApplyOptions:
         Lossless tile compression of the output's images.
     """
 
-    mode: str = "add"
-    model_error: float = DEFAULT_MODEL_ERROR
+    mode: str = setting("add", "choice", "Add persistence, subtract it (a correction), or write the persistence alone.",
+                        choices=MODES)
+    model_error: float = setting(DEFAULT_MODEL_ERROR, "float", "Fractional uncertainty of the persistence. Where "
+                                 "CURRENT has an ERR array (WFC3 flt/ima, JWST): --mode subtract adds FRACTION x "
+                                 "persistence to it in quadrature, --mode predict writes FRACTION x persistence; 0 "
+                                 "leaves ERR as it is.", lo=0, metavar="FRACTION")
     flag_above: float | None = None
     dq_bit: int = DEFAULT_DQ_BIT
     units: str | None = None

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from ..settings import setting
+
 #: about this many pixels, over all exposures, in the fits: a stripe of rows in each eighth of the frame
 #: where the simulation is brightest (the gaps use every pixel)
 DEFAULT_FIT_PIXELS = 1_000_000
@@ -36,7 +38,9 @@ class DiagnoseOptions:
         does not depend on it).
     """
 
-    fit_pixels: int = DEFAULT_FIT_PIXELS
+    fit_pixels: int = setting(DEFAULT_FIT_PIXELS, "int", "About this many pixels, over all exposures, are used in "
+                              "the fits (a stripe of rows in each eighth of the frame, where the simulation is "
+                              "brightest); the gaps use every pixel.", lo=1000, metavar="N")
     gain: float | None = None
     exptime: float | None = None
     workers: int = 1

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from ..settings import setting
+
 #: default cut on the predicted S/N (:func:`perscli.measure.noise.predicted_snr`).  Why 5: the fitted
 #: flux S/N (flux / its error, what flag 2048 tests against 5) is ~0.6 of the predicted optimal S/N, so
 #: a galaxy predicted below 5 is fitted at S/N ~3 and is flagged 2048 unless noise lifts it: on a full
@@ -76,19 +78,48 @@ class MeasureOptions:
         measure_files reads the catalogue).
     """
 
-    psf: str = "roman"
-    psf_pixel: str | None = None
-    psf_oversampling: float | None = None
-    allow_undersampled_psf: bool = False
-    method: str = "exp"
-    stamp: int = 48
-    sky: float | None = None
-    read_noise: float | None = None
-    blend_radius: float = 4.0
-    kinds: str | tuple | None = None
-    min_snr: float = MIN_SNR_DEFAULT
-    all_rows: bool = False
-    joint: bool = False
+    psf: str = setting("roman", "file_or", "roman: GalSim's Roman PSF for the frame's SCA and FILTER.  Or a PSF "
+                       "image (file.fits[EXT] picks an HDU; of several, each frame takes the one of its SCA and "
+                       "FILTER) sampled finer than the frame, 4x ideally: its sampling from --psf-oversampling, "
+                       "OVERSAMP (PSF pixels per detector pixel), PSF_SAMP (PSFEx: 1/that), PIXSCALE or PIXELSCL "
+                       "(arcsec) or CDELT1 (deg); refused if undersampled (coarser than 1.5x, R062 2.4x, Z087 1.7x, "
+                       "for a Roman filter; or with power beyond its own Nyquist frequency).",
+                       choices=("roman",), metavar="roman|PSF.fits")
+    psf_pixel: str | None = setting(None, "choice", "Whether the PSF image includes the detector pixel response (then "
+                                    "the fit does not apply it again), overriding its PSFPIXEL keyword (T/F).  "
+                                    "Without either: included for STPSF's DET_SAMP/DET_DIST extensions and PSFEx "
+                                    "models (PSF_SAMP), else excluded (an optical PSF), with a warning.",
+                                    choices=("included", "excluded"), show_default=False)
+    psf_oversampling: float | None = setting(None, "float", "PSF pixels per frame pixel of the PSF image, overriding "
+                                             "its header.", lo=0, lo_open=True, metavar="N", show_default=False)
+    allow_undersampled_psf: bool = setting(False, "flag", "Fit with an undersampled PSF image instead of refusing it, "
+                                           "with a warning giving the expected shape error (Roman's PSF at the "
+                                           "frame's own sampling: 4e-4 to 5e-3 in g with the pixel response, up to "
+                                           "6e-2 without).")
+    method: str = setting("exp", "choice", "exp: exponential-mixture fit (exact PSF, analytic Jacobian); hsm: GalSim "
+                          "REGAUSS.", choices=("exp", "hsm"))
+    stamp: int = setting(48, "int", "Largest stamp side.  An exp fit uses the smallest of 16, 24, 32, ... up to it "
+                         "that holds 4 catalogue half-light radii + 3 pixels each side of the centre (smaller "
+                         "galaxies, smaller FFTs, fewer neighbours); --method hsm uses this side.", metavar="PIXELS")
+    sky: float | None = setting(None, "float", "Background per pixel in the frame's units [default: SKYRATE x EXPTIME "
+                                "+ dark].", metavar="LEVEL", show_default=False)
+    read_noise: float | None = setting(None, "float", "Read noise (electrons) of the noise model, when the frame has "
+                                       "no weight HDU [default: read_noise.sigma of the frame's detector model (MODEL "
+                                       "table), else Roman's 8.5].", lo=0, metavar="E", show_default=False)
+    blend_radius: float = setting(4.0, "float", "Flag objects with another catalogue object this close (0: never).",
+                                  lo=0, metavar="PIXELS")
+    kinds: str | tuple | None = setting(None, "text", "Catalogue kinds to fit (its kind column: galaxy, star), "
+                                        "comma-separated, or all [default: galaxy; every row of a catalogue without "
+                                        "a kind column].", metavar="galaxy|LIST|all", show_default=False)
+    min_snr: float = setting(MIN_SNR_DEFAULT, "float", "Fit only objects whose S/N predicted from the catalogue "
+                             "(magnitude through ZPT_AB, hlr, PSF, sky + dark + read noise; never the pixels) is at "
+                             "least X; 0: no cut.  The objects of a catalogue without a magnitude column for the "
+                             "frame's filter are always fitted (a magnitude that is not a number is refused).",
+                             metavar="X")
+    all_rows: bool = setting(False, "flag", "Also write rows, without a fit, for selected objects off the frame (flag "
+                             "256) and below --min-snr (flag 4096).")
+    joint: bool = setting(False, "flag", "One fit per galaxy over all the FRAMEs it falls on (one filter; WCS and "
+                          "EXPTIME needed), with g, T, flux and position on the sky: a JOINT table.")
     columns: dict | None = None
 
     def psf_options(self):

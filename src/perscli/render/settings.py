@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from ..settings import setting
+
 #: the HDUs a rendered frame can hold, in the order they are written
 HDU_NAMES = ("SCI", "IDEAL", "FLUENCE", "DRAWN", "STARFLU", "PERSIST", "MODEL")
 
@@ -64,5 +66,6 @@ class RenderOptions:
     hdus: tuple | str = DEFAULT_HDUS
     compress: str = "none"
     persistence_source: str | float | None = None
-    strict: bool = False
+    strict: bool = setting(False, "flag", "No object of TRUTH.fits on the frame is an error (exit 1, nothing "
+                           "written), not a warning.")
     columns: dict | None = None

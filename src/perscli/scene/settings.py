@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from ..instrument import ROMAN_EXPTIME, ROMAN_WAS_GAP
+from ..instrument import ROMAN_EXPTIME, ROMAN_N_SCA, ROMAN_WAS_GAP
+from ..settings import setting
 
 #: [MJD] where a plan without a start looks for its first observable date: the start of the first exposure
 #: of the public Roman Wide Area Survey schedule (Roman_WAS_obseq_11_1_23.fits), 2027-05-16 23:20:18 UTC.
@@ -47,7 +48,8 @@ class RowOptions:
         counted on each row's SCA, when they differ from perscli's.
     """
 
-    sca: int = 0
+    sca: int = setting(0, "int", "The detector written into every row (0: none chosen).", lo=0, hi=ROMAN_N_SCA,
+                       metavar="N")
     footprints: bool = False
     columns: dict | None = None
 
@@ -107,11 +109,13 @@ class PlanOptions(RowOptions):
         See :class:`RowOptions`.
     """
 
-    dither: float = 10.0
+    dither: float = setting(10.0, "float", "A plan's offsets, arcsec.", lo=0, hi=3600, metavar="ARCSEC")
     filter: str = "J129"
     start: float | None = None
-    exptime: float = ROMAN_EXPTIME
-    gap: float = ROMAN_WAS_GAP
+    exptime: float = setting(ROMAN_EXPTIME, "float", "A plan's exposure time.", lo=0, lo_open=True,
+                             metavar="SECONDS")
+    gap: float = setting(ROMAN_WAS_GAP, "float", "From the end of one exposure of a plan to the start of the next.",
+                         lo=0, metavar="SECONDS")
     pa: float | None = None
     seed: int = 1
 
@@ -135,4 +139,5 @@ class CatalogOptions:
 
     size: float = 10.0
     margin_arcsec: float = 30.0
-    galaxy_density: float = 40.0
+    galaxy_density: float = setting(40.0, "float", "Mean number of galaxies per arcmin^2 (Poisson).", lo=0,
+                                    metavar="PER_ARCMIN2")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 
 from ..instrument import ROMAN_PIXEL_SCALE
+from ..settings import setting
 
 #: |De| thresholds of the paper's fractions
 DEFAULT_THRESHOLDS = (1e-8, 1e-4)
@@ -70,21 +71,37 @@ class CorrelateOptions:
     """
 
     de_columns: tuple | None = None
-    common_ids: bool = False
-    positions: str = "auto"
-    pixel_scale: float = ROMAN_PIXEL_SCALE
+    common_ids: bool = setting(False, "flag", "Correlate the ids A and B share, instead of refusing tables whose "
+                                              "ids differ.")
+    positions: str = setting("auto", "choice", "ra/dec in degrees (auto when present), or x/y (flat) in pixels or in "
+                                               "their TUNIT angle.", choices=("auto", "radec", "xy"))
+    pixel_scale: float = setting(ROMAN_PIXEL_SCALE, "float", "Arcsec per pixel for x/y positions in pixels (Roman's).",
+                                 lo=0, lo_open=True, metavar="ARCSEC")
     columns: dict | None = None
-    min_sep: float = 1.0
-    max_sep: float = 100.0
-    nbins: int = 20
-    sep_units: str = "arcmin"
-    bin_slop: float | None = None
-    npatch: int = 20
-    cross_patch_weight: str = "match"
-    var_method: str = "auto"
-    thresholds: tuple = DEFAULT_THRESHOLDS
-    theta_edges: tuple = DEFAULT_THETA_EDGES
-    nboot: int = 200
+    min_sep: float = setting(1.0, "float", "Smallest separation, in --sep-units.", lo=0, lo_open=True, metavar="SEP")
+    max_sep: float = setting(100.0, "float", "Largest separation, in --sep-units.", lo=0, lo_open=True, metavar="SEP")
+    nbins: int = setting(20, "int", "Logarithmic separation bins.", lo=1, metavar="N")
+    sep_units: str = setting("arcmin", "choice", "Units of --min-sep, --max-sep and of the output separations.",
+                             choices=("arcsec", "arcmin", "deg", "rad"))
+    bin_slop: float | None = setting(None, "float", "TreeCorr's bin_slop [default: TreeCorr's, min(1, 0.1/bin size)]; "
+                                                    "0 is exact but slow on large catalogues.",
+                                     lo=0, metavar="X", show_default=False)
+    npatch: int = setting(20, "int", "Jackknife patches, found by k-means on the positions (seeded by --seed).",
+                          lo=2, metavar="N")
+    cross_patch_weight: str = setting("match", "choice", "TreeCorr's weight of pairs across a removed and a kept patch "
+                                                         "(match: Mohammad & Percival 2022, recommended for the "
+                                                         "jackknife).", choices=("match", "simple", "mean"))
+    var_method: str = setting("auto", "choice", "Errors of xi: the jackknife over patches, or shot noise; auto is the "
+                                                "jackknife unless it is impossible (fewer than 10 objects per patch, "
+                                                "fewer than 2 patches with objects), then shot noise with a warning; a "
+                                                "bin whose jackknife variance is zero though it has pairs gets its shot "
+                                                "noise (header SHOTBINS).", choices=("auto", "jackknife", "shot"))
+    thresholds: tuple = setting(DEFAULT_THRESHOLDS, "numbers", "|De| thresholds: STATS gives the number and fraction "
+                                                               "of objects at or above each.", metavar="T1,T2,...")
+    theta_edges: tuple = setting(DEFAULT_THETA_EDGES, "numbers", "|De| bin edges of the position-angle distribution.",
+                                 flag="--theta-bins", metavar="E0,E1,...")
+    nboot: int = setting(200, "int", "Bootstrap resamples for the errors of the position-angle distribution.", lo=2,
+                         metavar="N")
     seed: int = 1
     flagged: str = "drop"
     within: tuple | None = None
@@ -113,21 +130,13 @@ class BudgetOptions:
         How many log-spaced separations that table has.
     """
 
-    bands: str = "dore2018"
-    modes: str = "E"
-    n_sigma: float = 2.0
+    bands: str = setting("dore2018", "choice", "Additive shear rms per multipole band: dore2018 (HLIS requirement, "
+                                               "Dore et al. 2018), troxel2021 (7.0e-5 in the first band) or hirata "
+                                               "(Hirata's allocation).", choices=BAND_NAMES)
+    modes: str = setting("E", "choice", "E: the budget is for E modes only; EB: B modes get the same budget, which "
+                                        "doubles xi+.", choices=("E", "EB"), case_sensitive=False, metavar="E|EB")
+    n_sigma: float = setting(2.0, "float", "A bin exceeds the budget when |xi+| - N sigma_xip > |budget|.",
+                             flag="--sigma", lo=0, metavar="N")
     theta_min: float = 0.1
     theta_max: float = 300.0
     nbins: int = 50
-
-
-def default_text(values) -> str:
-    """A tuple of defaults as the command line writes it: ``1e-8,1e-4``."""
-    out = []
-    for v in values:
-        if v and abs(v) < 0.1:
-            mantissa, exponent = f"{v:.0e}".split("e")
-            out.append(f"{mantissa}e{int(exponent)}")
-        else:
-            out.append(f"{v:g}")
-    return ",".join(out)
