@@ -38,7 +38,10 @@ D = StudyOptions()
 @click.option("--dry-run", is_flag=True, help="Print the task graph's size (and with --cost-from its cost); run nothing.")
 @click.option("--cost-from", "cost_from", type=click.Path(exists=True, dir_okay=False), default=None,
               metavar="COST.json", help="With --dry-run: project CPU-hours and bytes from the cost.json of "
-                                       "an earlier study (e.g. the small preset's).")
+                                       "an earlier study whose field covers whole SCAs, as the projected one's "
+                                       "does (e.g. the small preset's): the fits are scaled by the finals they "
+                                       "read, so a field smaller than an SCA, with fewer galaxies on each final, "
+                                       "would underestimate them.")
 # eager: in force before anything is read; the runner carries it to every task (serial, LocalCluster or a
 # remote scheduler's workers), as the executor does for the other commands
 @no_checksum_opt
@@ -93,7 +96,10 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     for what the paper leaves open: --set 'render.set=[persistence.floor=1e4]'
     (only star light above 1e4 e- per pixel persists), realisations=4,
     measure.joint=false, catalog.star_model.thin_height=300.
-    (The last example needs a Dask scheduler running at HOST.)
+    (The last example needs a Dask scheduler running at HOST.  The fourth
+    shows the projection; the ci preset is a cutout, with fewer galaxies on
+    each final than a whole SCA, so it underestimates the paper's fits:
+    project from a study whose finals are whole SCAs, as the small preset's.)
     """
     from ..study.config import dump, load_study
     from ..study.plan import STATE, build
