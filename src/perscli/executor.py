@@ -85,7 +85,9 @@ _ALLOCATOR_TUNED = False
 def keep_freed_memory() -> None:
     """Have this process's allocator keep freed frames for reuse instead of handing them back (glibc).
 
-    A study's worker makes and drops dozens of 4088^2 frames per task; glibc
+    Called by a study's tasks and by render, apply-persistence and measure
+    (not diagnose: its threads would hold more at their peak, and its
+    memory is what limits it).  A study's worker makes and drops dozens of 4088^2 frames per task; glibc
     maps each frame afresh and unmaps it when freed, so every new frame
     costs a page fault per 4 kB (~0.1 s a frame, a third of a final's
     render).  Raising the mmap and trim thresholds keeps the freed memory

@@ -6,9 +6,10 @@ import logging
 
 import click
 
-from .helpers import FILE, PerscliCommand, check_outputs, deprecated_option, file_or, progress_reporter, report_errors
 from ..detector.settings import (FERMI_PARAMETERS, SETTINGS, ApplyOptions, persistence_param,
                                  preset_default_text)
+from ..executor import keep_freed_memory
+from .helpers import FILE, PerscliCommand, check_outputs, deprecated_option, file_or, progress_reporter, report_errors
 from .options import (FiniteRange, compress_opt, exptime_opt, gain_opt, key_values, no_checksum_opt, output_opt,
                       overwrite_opt, settings_options, units_opt, verbosity_opts, workers_opt)
 
@@ -162,6 +163,8 @@ def apply_persistence(current, previous, output, law, model_spec, settings, para
     if dq_bit is not None and flag_above is None:
         raise click.UsageError("--dq-bit sets the bit --flag-above flags: give --flag-above E_PER_S too")
     check_outputs(output, inputs=[current, *previous, law], overwrite=overwrite)
+    # whole frames made and dropped over and over: kept for reuse rather than mapped afresh each time
+    keep_freed_memory()
     # the options --time-model, --combine, --max-previous and --lookback are the law's settings
     # --set persistence.KEY=VALUE arrives as KEY=VALUE (options.key_values), as the older --param gives it
     model = load_persistence_model(law, (*settings, *params)).with_settings(

@@ -6,6 +6,7 @@ import logging
 
 import click
 
+from ..executor import keep_freed_memory
 from ..measure.settings import MeasureOptions
 from .helpers import FILE, PerscliCommand, check_fits_name, check_outputs, progress_reporter, report_errors
 from .options import (columns_opt, no_checksum_opt, output_opt, overwrite_opt, settings_options, verbosity_opts,
@@ -133,6 +134,8 @@ def measure(frames, catalog, psf, psf_pixel, psf_oversampling, allow_undersample
     from ..measure.shapes import measure_files
 
     check_outputs(output, inputs=[catalog, *frames, psf], overwrite=overwrite)
+    # whole frames made and dropped over and over: kept for reuse rather than mapped afresh each time
+    keep_freed_memory()
     if write_psf is not None:
         check_fits_name(write_psf, "--write-psf")
         check_outputs(write_psf, inputs=[catalog, *frames, psf], overwrite=overwrite)

@@ -8,6 +8,7 @@ import shutil
 import click
 
 from .. import PerscliError
+from ..executor import keep_freed_memory
 from ..instrument import ROMAN_EXPTIME, ROMAN_FILTERS, ROMAN_N_SCA, ROMAN_SCA_SIZE
 from ..io.config import DETECTOR_ITEM
 from ..render.settings import DEFAULT_HDUS, HDU_NAMES, RenderOptions
@@ -198,6 +199,8 @@ def render(truth, pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, s
             log.info("--dry-run: %s not written", output)
         return
     check_outputs(output, inputs=[truth, pointings_file, model_spec, *previous], plot=plot, overwrite=overwrite)
+    # whole frames made and dropped over and over: kept for reuse rather than mapped afresh each time
+    keep_freed_memory()
     exposure = _exposure(pointings_file, row, ra, dec, pa, mjd, exptime, filter_name, sca, bounds)
     model = load_detector_model(model_spec, settings)
     options = RenderOptions(hdus=hdus, compress=compress, persistence_source=persistence_source, strict=strict,
