@@ -8,6 +8,8 @@ import re
 import click
 import pytest
 
+from perscli import PerscliError
+
 from fits_factory import command_named, run, usage_error
 from perscli.detector.settings import ApplyOptions
 from perscli.diagnose.settings import DiagnoseOptions
@@ -74,5 +76,8 @@ def test_a_setting_declares_a_known_kind_of_value():
     with pytest.raises(ValueError, match="choices"):
         OptionSpec("choice", "a choice of nothing")
     field = setting(2.0, "float", "help", lo=0)
-    assert field.default == 2.0 and field.metadata["option"].lo == 0
+    # the range is an effect parameter's (one description of a range): Param checks a value against it
+    assert field.default == 2.0 and field.metadata["option"].values.lo == 0
+    with pytest.raises(PerscliError, match="must not be negative"):
+        field.metadata["option"].values.check("budget", -1.0, "--sigma")
     assert dataclasses.make_dataclass("X", [("a", float, field)])().a == 2.0

@@ -348,16 +348,17 @@ def numbers(ctx, param, value):
 
 def _click_type(spec):
     """The click type of a setting's :class:`perscli.settings.OptionSpec`."""
+    v = spec.values
     if spec.kind == "choice":
-        return click.Choice(list(spec.choices), case_sensitive=spec.case_sensitive)
+        return click.Choice(list(v.choices), case_sensitive=spec.case_sensitive)
     if spec.kind == "file_or":
-        return file_or(*spec.choices)
+        return file_or(*(v.choices if v else ()))
     if spec.kind in ("float", "int"):
-        if spec.lo is None and spec.hi is None:
+        if v is None or (v.lo is None and v.hi is None):
             return float if spec.kind == "float" else int
         if spec.kind == "int":
-            return click.IntRange(min=spec.lo, max=spec.hi, min_open=spec.lo_open, max_open=spec.hi_open)
-        return click.FloatRange(min=spec.lo, max=spec.hi, min_open=spec.lo_open, max_open=spec.hi_open)
+            return click.IntRange(min=v.lo, max=v.hi, min_open=v.lo_open, max_open=v.hi_open)
+        return click.FloatRange(min=v.lo, max=v.hi, min_open=v.lo_open, max_open=v.hi_open)
     return None
 
 

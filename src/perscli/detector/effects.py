@@ -62,7 +62,7 @@ Persistence is not implemented here: the chain calls
 
 This module holds the registry of effects and the effect classes; the rest
 of the detector model lives beside it: the parameter schema in
-:mod:`perscli.detector.params`, the chain's context and noise blocks in
+:mod:`perscli.settings`, the chain's context and noise blocks in
 :mod:`perscli.detector.blocks`, models (YAML, MODEL tables) in
 :mod:`perscli.detector.model` and the chain in :mod:`perscli.detector.chain`.
 """
@@ -82,7 +82,7 @@ from .. import PerscliError, _kernels
 from ..instrument import (ROMAN_DARK_CURRENT, ROMAN_DETECTOR_SIZE, ROMAN_FULL_WELL, ROMAN_GAIN,
                           ROMAN_NONLINEARITY_BETA, ROMAN_READ_NOISE, ROMAN_RECIPROCITY_ALPHA)
 from .blocks import NOISE_BLOCK, ChainContext, blank_inactive, block_streams
-from .params import Param
+from ..settings import Param
 from .persistence import PersistenceModel
 from .settings import FERMI_PARAMETERS, PERSISTENCE_SCHEMA, PRESETS, preset_settings
 

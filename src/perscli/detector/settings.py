@@ -19,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 
 from .. import instrument as _instrument
-from .params import Param
+from ..settings import Param
 from ..settings import setting
 
 #: The presets of the law, by name.
