@@ -133,3 +133,57 @@ def test_cli_defaults_are_the_library_defaults():
             assert defaults[field.name] == getattr(o, field.name), field.name
     assert o.columns is None and "columns" in defaults
     assert o.min_snr == MIN_SNR_DEFAULT == 5.0
+
+
+def test_stamp_planes_is_irfft2_cut_to_the_stamp():
+    """The pruned inverse (rows first, only the stamp's rows along the columns) is irfft2's stamp."""
+    import scipy.fft
+
+    from perscli.measure.fit import stamp_planes
+    rng = np.random.default_rng(3)
+    L, n, pad = 40, 24, 8
+    spec = scipy.fft.rfft2(rng.normal(size=(2, 3, L, L)), axes=(-2, -1))
+    full = scipy.fft.irfft2(spec, s=(L, L), axes=(-2, -1))[..., pad:pad + n, pad:pad + n]
+    # the same transform in another order of its two passes: equal to a few ulp of the largest value
+    np.testing.assert_allclose(stamp_planes(spec, L, n, pad), full, rtol=0, atol=1e-14 * np.abs(full).max())
+
+
+def _joint_problem_of(model, nstamps=4):
+    """A galaxy on a few stamps of one PSF with different WCS Jacobians (and one a plain fit's single stamp)."""
+    from perscli.measure.fit import JointStamp, joint_problem
+    rng = np.random.default_rng(5)
+    stamps = []
+    for k in range(nstamps):
+        ang = 0.4 * k
+        ainv = 9.0 * np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]]) @ np.diag([1.0, 1.0 + 0.02 * k])
+        img = rng.normal(size=(N, N)) + 50.0 * model.image([23.4 + 0.1 * k, 24.2, 0.2, -0.1, 10.0, 1.0])
+        stamps.append(JointStamp(img, np.full((N, N), 1.0 + 0.1 * k), model, (23.5, 24.0), ainv, 140.0 + k))
+    problem, _, _ = joint_problem(stamps)
+    return problem
+
+
+def test_batched_evaluation_is_the_per_stamp_one(model):
+    """A galaxy's stamps evaluated together (one compiled pass, the flux plane from the model) equal the
+    same stamps one at a time (each with its own inverse transform of every plane)."""
+    from perscli.measure.fit import _Problem
+    problem = _joint_problem_of(model)
+    assert problem.batch
+    single = _Problem(problem.stamps, problem.mapping)
+    single.batch = False
+    theta = np.array([0.02, -0.01, 0.15, -0.05, 0.12, 0.33])
+    first = problem.evaluate(theta)
+    spectra = problem.spectra(first[4])
+    got, want = problem.evaluate(theta, spectra), single.evaluate(theta, single.spectra(list(first[4])))
+    for a, b in zip(got[:4], want[:4]):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    np.testing.assert_allclose(np.asarray(got[5]), np.asarray(want[5]), rtol=0, atol=1e-12 * np.abs(want[5]).max())
+
+
+def test_second_order_alone_is_the_evaluations(model):
+    """The Hessian-only pass gives the second-order term a full evaluation gives, bit for bit."""
+    problem = _joint_problem_of(model)
+    theta = np.array([0.02, -0.01, 0.15, -0.05, 0.12, 0.33])
+    spectra = problem.spectra(problem.evaluate(theta)[4])
+    S = problem.evaluate(theta, spectra)[3]
+    assert np.array_equal(problem.second_order(theta, spectra), S)
+    assert np.abs(S).max() > 0

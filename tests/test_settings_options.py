@@ -18,17 +18,18 @@ from perscli.render.settings import RenderOptions
 from perscli.scene.settings import CatalogOptions, PlanOptions, SelectOptions
 from perscli.settings import OptionSpec, default_text, option_fields, setting
 from perscli.stats.settings import BudgetOptions, CorrelateOptions
+from perscli.study.settings import StudyOptions
 
 #: each settings dataclass and the commands whose options it makes
 OWNERS = {CorrelateOptions: ["correlate"], BudgetOptions: ["budget"], MeasureOptions: ["measure"],
           ApplyOptions: ["apply-persistence"], CatalogOptions: ["catalog"], DiagnoseOptions: ["diagnose"],
-          RenderOptions: ["render"], PlanOptions: ["pointings plan"], SelectOptions: ["pointings select"]}
+          RenderOptions: ["render"], PlanOptions: ["pointings plan"], SelectOptions: ["pointings select"],
+          StudyOptions: ["study"]}
 
 #: options that show a settings default without being made from the field, and why
 DERIVED = {
     "correlate.py": {"D.flagged": "--keep-flagged is a flag for flagged='keep', not the field's own values"},
     "render.py": {"D.persistence_source": "its values are checked against the persistence parameters' table"},
-    "study.py": {"D.scheduler": "a scheduler may be an address, checked by its own callback"},
 }
 
 
@@ -81,3 +82,18 @@ def test_a_setting_declares_a_known_kind_of_value():
     with pytest.raises(PerscliError, match="must not be negative"):
         field.metadata["option"].values.check("budget", -1.0, "--sigma")
     assert dataclasses.make_dataclass("X", [("a", float, field)])().a == 2.0
+
+
+def test_a_text_setting_is_checked_by_the_library_once(tmp_path):
+    """--scheduler takes serial, local or an address: the library's check (study.settings.check_scheduler)
+    runs as the option's callback, and its message is the usage error's."""
+    from perscli.study.settings import check_scheduler
+    for good in ("serial", "local", "tcp://10.0.0.1:8786", "node17:8786"):
+        assert check_scheduler(good) == good
+    with pytest.raises(PerscliError, match="Dask scheduler address"):
+        check_scheduler("tcp:/nowhere")
+    out = tmp_path / "never_made"
+    err = usage_error(run("study", "--preset", "ci", "-o", str(out), "--scheduler", "tcp:/nowhere", code=2),
+                      "perscli study")
+    assert "--scheduler" in err and "is not serial, local or a Dask scheduler address" in err
+    assert not out.exists()

@@ -404,8 +404,10 @@ expmix_row_body(Py_ssize_t half, Py_ssize_t plane, const int nfield, const int h
         }
         /* split layout: the real and imaginary planes of field f at o + 2 f plane and o + (2 f + 1) plane */
         const double mr = flux * s0 * cr, mi = flux * s0 * ci;
-        o[j] += mr;
-        o[plane + j] += mi;
+        if (nfield > 0) {
+            o[j] += mr;
+            o[plane + j] += mi;
+        }
         if (nfield > 1) {
             /* d/dcx = -i kx M: the position parameters through dp (d centre / d parameter) */
             const double k0 = kx * dp[0] + ky * dp[2], k1 = kx * dp[1] + ky * dp[3];
@@ -475,6 +477,9 @@ expmix_row_jac(EXPMIX_ROW_ARGS) { expmix_row_body(half, plane, 7, 0, EXPMIX_ROW_
 
 PERSCLI_CLONES static void
 expmix_row_hess(EXPMIX_ROW_ARGS) { expmix_row_body(half, plane, 7, 1, EXPMIX_ROW_PASS); }
+
+PERSCLI_CLONES static void
+expmix_row_hess_only(EXPMIX_ROW_ARGS) { expmix_row_body(half, plane, 0, 1, EXPMIX_ROW_PASS); }
 
 /* The exponential mixture through a tabulated PSF, in Fourier space, folded.
  *
@@ -602,7 +607,9 @@ done:
  *   params:    S rows of 17 doubles: Cxx, Cxy, Cyy, flux, dpos (4, row-major), dshape (9, row-major)
  *   phase_x, phase_y: complex, S x (L M)
  *   resid:     None, or complex S x L x (L/2 + 1) (the weighted residuals' rfft2): then hess (S x 21 doubles)
- *              receives each stamp's Hessian sums (summed over columns), as expmix_eval's caller sums them */
+ *              receives each stamp's Hessian sums (summed over columns), as expmix_eval's caller sums them
+ *   nfield:    1 or 7; or 0 with resid: the Hessian sums only (spec empty), the second-order term at a point
+ *              whose model and derivatives are known already */
 static PyObject *
 expmix_batch(PyObject *self, PyObject *args)
 {
@@ -645,14 +652,15 @@ expmix_batch(PyObject *self, PyObject *args)
             goto release;
         }
     }
-    if ((nfield != 1 && nfield != 7) || L < 2 || L % 2 || M < 1 || pb.len != S * 17 * (Py_ssize_t)sizeof(double) ||
+    if ((nfield != 1 && nfield != 7 && !(nfield == 0 && have_r)) || L < 2 || L % 2 || M < 1 ||
+        pb.len != S * 17 * (Py_ssize_t)sizeof(double) ||
         kb.len != (Py_ssize_t)sizeof(double) * big ||
         pxb.len != (Py_ssize_t)sizeof(double) * 2 * big * S || pyb.len != pxb.len ||
         sb.len != (Py_ssize_t)sizeof(double) * 2 * nfield * plane * S ||
         ob.len < (Py_ssize_t)sizeof(double) * 2 * (nfield + 1) * plane ||
         wb.len != (Py_ssize_t)sizeof(double) * half ||
         mpb.len != (Py_ssize_t)sizeof(double) * NCOMP || mfb.len != mpb.len ||
-        (have_r && (nfield != 7 || rb.len != (Py_ssize_t)sizeof(double) * 2 * plane * S ||
+        (have_r && (nfield == 1 || rb.len != (Py_ssize_t)sizeof(double) * 2 * plane * S ||
                     hb.len != (Py_ssize_t)sizeof(double) * NHESS * S))) {
         PyErr_SetString(PyExc_ValueError, "expmix_batch: buffer sizes do not match L, alias, stamps and fields");
         goto release;
@@ -690,7 +698,11 @@ expmix_batch(PyObject *self, PyObject *args)
                     const double *kxs = k + cx0, *rr = trr + cy * big + cx0, *ri = tri + cy * big + cx0;
                     const double *pxs = px + 2 * cx0, ky = k[cy], pyr = py[2 * cy], pyi = py[2 * cy + 1];
                     double *o = out + row * half;
-                    if (have_r)
+                    if (have_r && nfield == 0)
+                        expmix_row_hess_only(half, plane, kxs, rr, ri, pxs, ky, pyr, pyi, P_EXP_C, F_EXP_C, p[0],
+                                             p[1], p[2], p[3], p + 4, p + 8, vr + row * half, vi + row * half, wcol,
+                                             o, hrow);
+                    else if (have_r)
                         expmix_row_hess(half, plane, kxs, rr, ri, pxs, ky, pyr, pyi, P_EXP_C, F_EXP_C, p[0], p[1],
                                         p[2], p[3], p + 4, p + 8, vr + row * half, vi + row * half, wcol, o, hrow);
                     else if (nfield == 7)

@@ -51,6 +51,10 @@ class OptionSpec:
         For 'choice'.
     show_default : bool
         Show the default in the help (False where the help says it).
+    check : callable, optional
+        For 'text': the library's check of a value, ``check(value) ->
+        value``, raising :class:`~perscli.PerscliError` with what is wrong
+        (a value a kind and a range cannot describe, such as an address).
     """
 
     kind: str
@@ -60,6 +64,7 @@ class OptionSpec:
     values: "Param | None" = None
     case_sensitive: bool = True
     show_default: bool = True
+    check: "object | None" = None
 
     def __post_init__(self):
         if self.kind not in KINDS:

@@ -382,7 +382,19 @@ def settings_option(cls, name: str, help: str | None = None):
         return click.option(flag, name, is_flag=True, default=bool(default), help=kwargs["help"])
     if spec.kind == "numbers":
         return click.option(flag, name, callback=numbers, default=default_text(default), **kwargs)
+    if spec.check is not None:
+        kwargs["callback"] = _checked(spec.check)
     return click.option(flag, name, type=_click_type(spec), default=default, **kwargs)
+
+
+def _checked(check):
+    """A click callback running the library's check of a value (:attr:`perscli.settings.OptionSpec.check`)."""
+    def callback(ctx, param, value):
+        try:
+            return check(value)
+        except PerscliError as exc:
+            raise click.BadParameter(str(exc)) from None
+    return callback
 
 
 def settings_options(cls, *names):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import re
 import shutil
 import sys
 
@@ -13,11 +12,9 @@ from ..io.config import STUDY_ITEM
 from ..io.output import check_output_folder, write_error
 from ..progress import lines
 from .helpers import FILE, FOLDER, PerscliCommand, report_errors
-from ..study.settings import SCHEDULERS, StudyOptions
-from .options import key_values, no_checksum_opt, overwrite_opt, verbosity_opts, workers_opt
+from ..study.settings import StudyOptions
+from .options import key_values, no_checksum_opt, overwrite_opt, settings_option, verbosity_opts, workers_opt
 
-#: the defaults, written once (perscli.study.settings)
-D = StudyOptions()
 
 
 @click.command("study", cls=PerscliCommand,
@@ -30,10 +27,7 @@ D = StudyOptions()
                    "test suite's); STUDY.yaml and --set override it.")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", callback=key_values(STUDY_ITEM),
               help="Override a setting, e.g. exposures.count=5 or persistence.sources=[stars,all]; repeatable.")
-@click.option("--scheduler", default=D.scheduler, show_default=True, metavar="serial|local|ADDRESS",
-              callback=lambda ctx, param, value: _scheduler(value),
-              help="serial: in this process; local: a Dask LocalCluster of --workers processes; "
-                   "ADDRESS: an existing Dask scheduler (tcp://host:8786), e.g. one dask-jobqueue started.")
+@settings_option(StudyOptions, "scheduler")
 @workers_opt("worker processes of --scheduler local's Dask LocalCluster, one task each at a time")
 @click.option("--dry-run", is_flag=True, help="Print the task graph's size (and with --cost-from its cost); run nothing.")
 @click.option("--cost-from", "cost_from", type=click.Path(exists=True, dir_okay=False), default=None,
@@ -148,12 +142,6 @@ def study(description, outdir, preset, settings, scheduler, workers, dry_run, co
     print(f"study {s['name']}: {made} products made, {len(tasks) - made} already there; "
           f"summary in {outdir}/summary.md", file=sys.stderr)
 
-
-def _scheduler(value: str) -> str:
-    """'serial', 'local' or a Dask scheduler's address (tcp://host:port, tls://, ucx://, inproc://, or host:port)."""
-    if value in SCHEDULERS or re.fullmatch(r"(tcp|tls|ucx|inproc|ws|wss)://\S+|[\w.\-]+:\d{1,5}", value):
-        return value
-    raise click.BadParameter(f"{value!r} is not serial, local or a Dask scheduler address (tcp://HOST:8786)")
 
 
 def _counts(tasks) -> dict:

@@ -141,6 +141,18 @@ def covariance_map(ainv) -> np.ndarray:
                      [a10 * a10, 2.0 * a10 * a11, a11 * a11]])
 
 
+def stamp_planes(spec, L: int, n: int, pad: int) -> np.ndarray:
+    """``irfft2`` of half-plane spectra (..., L, L/2 + 1), only the stamp [pad, pad + n)^2 of each plane.
+
+    The inverse along the rows first (every column of the half plane), then
+    along the columns only for the stamp's n rows of the L: what ``irfft2``
+    computes in the same order, without the rows the stamp does not use
+    (a third to a half of the second pass at the stamp sizes of a fit).
+    """
+    rows = scipy.fft.ifft(spec, axis=-2)[..., pad:pad + n, :]
+    return scipy.fft.irfft(rows, n=L, axis=-1)[..., pad:pad + n]
+
+
 class ExpModel:
     """Model images, Jacobians and Hessian terms of the exponential mixture through one PSF, on n x n stamps.
 
@@ -218,8 +230,13 @@ class ExpModel:
                              (float(cov[0]), float(cov[1]), float(cov[2]), float(flux)),
                              (dp[0, 0], dp[0, 1], dp[1, 0], dp[1, 1]), tuple(ds.ravel().tolist()),
                              resid, hess, self.wcol)
-        images = scipy.fft.irfft2(spec, s=(L, L), axes=(-2, -1))
-        images = images[:, self.pad:self.pad + self.n, self.pad:self.pad + self.n]
+        if nfield == 7 and flux != 0:
+            # the flux derivative is the model over the flux: no inverse transform of its own
+            images = np.empty((7, self.n, self.n))
+            images[:6] = stamp_planes(spec[:6], L, self.n, self.pad)
+            np.divide(images[0], flux, out=images[6])
+        else:
+            images = stamp_planes(spec, L, self.n, self.pad)
         if hess is None:
             return images, None
         return images, hess.reshape(21, half).sum(axis=1) / (L * L)
@@ -328,11 +345,31 @@ class _Stamp:
         self.model = model
 
 
+@dataclass
+class StampMaps:
+    """Where parameters theta put the galaxy in each stamp of a fit (first axis: the stamp)."""
+
+    centres: np.ndarray        # (S, 2) x, y in stamp pixel coordinates
+    cov: np.ndarray            # (S, 3) unit covariance (Cxx, Cxy, Cyy), pixel^2
+    flux: np.ndarray           # (S,) the stamp's flux
+    dpos: np.ndarray           # (S, 2, 2) d(x, y) / d(position parameters)
+    dshape: np.ndarray         # (S, 3, 3) d cov / d(shape parameters)
+    d2shape: np.ndarray | None  # (S, 3, 3, 3) d^2 cov / d(shape)^2, when asked for
+    scale: np.ndarray          # (S,) the stamp's flux per unit of the flux parameter
+
+
+def stamp_mapping(th, second: bool) -> StampMaps:
+    """The mapping of a fit of one stamp in its own pixel axes: theta = (x, y, g1, g2, T, flux)."""
+    cov, dcov, d2 = shape_covariance(th[2], th[3], th[4], second=second)
+    return StampMaps(np.array([[float(th[0]), float(th[1])]]), cov[None], np.array([float(th[5])]),
+                     np.eye(2)[None], dcov[None], None if d2 is None else d2[None], np.ones(1))
+
+
 class _Problem:
     """Residuals, normal matrix and Hessian term of a set of stamps for common parameters.
 
-    ``mapping(theta, second)`` gives, per stamp, (centre, cov, flux, dpos,
-    dshape, d2shape, flux_scale): where theta puts the galaxy in that stamp.
+    ``mapping(theta, second)`` gives the :class:`StampMaps` of theta: where
+    it puts the galaxy in each stamp.
     Stamps of one size and grid (a galaxy's stamps on several frames) are
     evaluated together: one compiled pass over all of them
     (:func:`perscli._kernels.expmix_batch`), one batched inverse FFT, and
@@ -351,21 +388,21 @@ class _Problem:
             self.swd = np.stack([s.swd for s in stamps])
             self.transfers = [(s.model.tr_re, s.model.tr_im) for s in stamps]
 
-    def evaluate(self, theta, resid_spectra=None, jts=None):
-        """chi^2, J^T W J, J^T W (data - model), the Hessian term (with spectra) and this point's residuals.
-
-        With ``jts`` (a list), each stamp's sqrt(W) J (6 x pixels) is appended to it.
-        """
+    def evaluate(self, theta, resid_spectra=None):
+        """chi^2, J^T W J, J^T W (data - model), the Hessian term (with spectra), this point's residuals
+        and each stamp's sqrt(W) J (6 x pixels)."""
         maps = self.mapping(theta, resid_spectra is not None)
         if self.batch:
-            return self._evaluate_batch(maps, resid_spectra, jts)
+            return self._evaluate_batch(maps, resid_spectra)
         A = np.zeros((6, 6))
         b = np.zeros(6)
         S = np.zeros((6, 6)) if resid_spectra is not None else None
         chi2 = 0.0
-        us = []
-        for k, (stamp, (centre, cov, flux, dpos, dshape, d2shape, scale)) in enumerate(zip(self.stamps, maps)):
-            images, hs = stamp.model.evaluate(centre, cov, flux, dpos, dshape, 7,
+        us, jts = [], []
+        for k, stamp in enumerate(self.stamps):
+            flux, dpos, dshape, scale = float(maps.flux[k]), maps.dpos[k], maps.dshape[k], float(maps.scale[k])
+            d2shape = None if maps.d2shape is None else maps.d2shape[k]
+            images, hs = stamp.model.evaluate(maps.centres[k], maps.cov[k], flux, dpos, dshape, 7,
                                               None if resid_spectra is None else resid_spectra[k])
             r = stamp.swd - images[0] * stamp.sw
             jt = (images[1:] * stamp.sw).reshape(6, -1)
@@ -377,41 +414,26 @@ class _Problem:
             us.append(r)
             if S is not None:
                 S += hessian_term(hs, flux, dpos, dshape, d2shape, scale)
-            if jts is not None:
-                jts.append(jt.copy())
-        return chi2, A, b, S, us
+            jts.append(jt)
+        return chi2, A, b, S, us, jts
 
-    def _evaluate_batch(self, maps, resid_spectra, jts):
+    def _evaluate_batch(self, maps, resid_spectra):
         """:meth:`evaluate` of stamps of one grid, together."""
         m0 = self.stamps[0].model
-        L, n, pad, half = m0.size, m0.n, m0.pad, m0.size // 2 + 1
-        ns = len(maps)
-        params = np.empty((ns, 17))
-        centres = np.empty((ns, 2))
-        flux, scale = np.empty(ns), np.empty(ns)
-        dpos, dshape = np.empty((ns, 2, 2)), np.empty((ns, 3, 3))
-        d2 = np.empty((ns, 3, 3, 3)) if resid_spectra is not None else None
-        for k, (centre, cov, fl, dp, ds, d2s, sc) in enumerate(maps):
-            centres[k] = centre
-            params[k, 0:3] = cov
-            flux[k], scale[k] = fl, sc
-            dpos[k], dshape[k] = dp, ds
-            if d2 is not None:
-                d2[k] = d2s
-        params[:, 3] = flux
-        params[:, 4:8] = dpos.reshape(ns, 4)
-        params[:, 8:17] = dshape.reshape(ns, 9)
-        phase_x = np.exp(-1j * m0.k[None, :] * (centres[:, 0:1] + pad))
-        phase_y = np.exp(-1j * m0.k[None, :] * (centres[:, 1:2] + pad))
-        spec = np.empty((ns, 7, L, half), dtype=np.complex128)
-        resid = None if resid_spectra is None else np.ascontiguousarray(resid_spectra)
-        hess = None if resid is None else np.empty((ns, 21))
-        _kernels.expmix_batch(spec, m0._work, self.transfers, m0.k, L, m0.alias, 7, params, phase_x, phase_y,
-                              resid, hess, m0.wcol, P_EXP, F_EXP)
-        images = scipy.fft.irfft2(spec, s=(L, L), axes=(-2, -1))[:, :, pad:pad + n, pad:pad + n]
+        L, n, pad = m0.size, m0.n, m0.pad
+        ns = len(self.stamps)
+        flux, scale, dpos, dshape, d2 = maps.flux, maps.scale, maps.dpos, maps.dshape, maps.d2shape
+        spec, hess = self._batch_kernel(maps, resid_spectra, 7)
+        jt = np.empty((ns, 6, n, n))
+        if np.all(flux != 0):
+            # the flux derivative is the model over the flux: no inverse transform of its own
+            images = stamp_planes(spec[:, :6], L, n, pad)
+            np.multiply(images[:, 0], self.sw * (scale / flux)[:, None, None], out=jt[:, 5])
+        else:
+            images = stamp_planes(spec, L, n, pad)
+            np.multiply(images[:, 6], self.sw * scale[:, None, None], out=jt[:, 5])
         r = self.swd - images[:, 0] * self.sw
-        jt = images[:, 1:] * self.sw[:, None]
-        jt[:, 5] *= scale[:, None, None]
+        np.multiply(images[:, 1:6], self.sw[:, None], out=jt[:, :5])
         jt = jt.reshape(ns, 6, -1)
         rf = r.reshape(ns, -1)
         chi2 = float(np.einsum("sp,sp->", rf, rf))
@@ -420,9 +442,39 @@ class _Problem:
         S = None
         if hess is not None:
             S = hessian_terms(hess / (L * L), flux, dpos, dshape, d2, scale)
-        if jts is not None:
-            jts.extend(jt[k].copy() for k in range(ns))
-        return chi2, A, b, S, r
+        return chi2, A, b, S, r, jt
+
+    def _batch_kernel(self, maps, resid_spectra, nfield: int):
+        """:func:`perscli._kernels.expmix_batch` of the stamps: (spectra, Hessian sums or None)."""
+        m0 = self.stamps[0].model
+        L, pad, half = m0.size, m0.pad, m0.size // 2 + 1
+        ns = len(self.stamps)
+        params = np.empty((ns, 17))
+        params[:, 0:3] = maps.cov
+        params[:, 3] = maps.flux
+        params[:, 4:8] = maps.dpos.reshape(ns, 4)
+        params[:, 8:17] = maps.dshape.reshape(ns, 9)
+        phase_x = np.exp(-1j * m0.k[None, :] * (maps.centres[:, 0:1] + pad))
+        phase_y = np.exp(-1j * m0.k[None, :] * (maps.centres[:, 1:2] + pad))
+        spec = np.empty((ns, nfield, L, half), dtype=np.complex128)
+        resid = None if resid_spectra is None else np.ascontiguousarray(resid_spectra)
+        hess = None if resid is None else np.empty((ns, 21))
+        _kernels.expmix_batch(spec, m0._work, self.transfers, m0.k, L, m0.alias, nfield, params, phase_x, phase_y,
+                              resid, hess, m0.wcol, P_EXP, F_EXP)
+        return spec, hess
+
+    def second_order(self, theta, resid_spectra) -> np.ndarray:
+        """The Hessian's second-order term at theta for the residual whose spectra are given.
+
+        At a point already evaluated, with its own residual: one compiled
+        pass over the frequencies, no model planes, no inverse transform.
+        """
+        maps = self.mapping(theta, True)
+        if not self.batch:
+            return self.evaluate(theta, resid_spectra)[3]
+        m0 = self.stamps[0].model
+        _, hess = self._batch_kernel(maps, resid_spectra, 0)
+        return hessian_terms(hess / (m0.size * m0.size), maps.flux, maps.dpos, maps.dshape, maps.d2shape, maps.scale)
 
     def spectra(self, us):
         """The residual spectra of a point (for the Hessian term at the next trial points)."""
@@ -435,11 +487,23 @@ class _Problem:
         return [s.model.residual_spectrum(-s.sw * r) for s, r in zip(self.stamps, us)]
 
 
+@dataclass
+class Point:
+    """What :func:`_newton` knew of its last point: J^T W r, the Hessian's second-order term (with the
+    residual of the point before it, as every trial point takes it), the residuals and sqrt(W) J."""
+
+    b: np.ndarray
+    S: np.ndarray | None
+    us: object
+    jts: object
+
+
 def _newton(problem: _Problem, theta0, floors, valid, *, max_nfev=MAX_NFEV, xtol=1e-10):
     """Damped Newton (Levenberg-Marquardt on J^T W J + the residual's second-order term).
 
-    Returns theta, chi2, A (J^T W J at theta), nfev, flags.  Deterministic:
-    every decision depends on the data and the start only.
+    Returns theta, chi2, A (J^T W J at theta), nfev, flags and the
+    :class:`Point` of theta.  Deterministic: every decision depends on the
+    data and the start only.
 
     The second-order term at a trial point is taken with the residual of the
     current point (the only one known when the trial is evaluated in the
@@ -448,7 +512,7 @@ def _newton(problem: _Problem, theta0, floors, valid, *, max_nfev=MAX_NFEV, xtol
     definite (far from the minimum) the step is Gauss-Newton's.
     """
     theta = np.array(theta0, dtype=np.float64)
-    chi2, A, b, S, us = problem.evaluate(theta)
+    chi2, A, b, S, us, jts = problem.evaluate(theta)
     nfev = 1
     lam = 1e-3
     flags = 0
@@ -496,14 +560,14 @@ def _newton(problem: _Problem, theta0, floors, valid, *, max_nfev=MAX_NFEV, xtol
                 break
             if spectra is None:
                 spectra = problem.spectra(us)
-            chi2_new, A_new, b_new, S_new, us_new = problem.evaluate(trial, spectra)
+            chi2_new, A_new, b_new, S_new, us_new, jts_new = problem.evaluate(trial, spectra)
             nfev += 1
             # chi^2 is a sum of ~1e3 squares, good to ~1e-13 of itself: a step whose predicted gain
             # (b . step) is below that cannot be judged by chi^2, and is taken when chi^2 does not rise
             # beyond it (else the last 1e-9 of g would be refused on rounding alone)
             noise = CHI2_ROUNDING * max(chi2, 1.0)
             if chi2_new <= chi2 or (chi2_new <= chi2 + noise and abs(float(b @ step)) <= noise):
-                theta, chi2, A, b, S, us = trial, chi2_new, A_new, b_new, S_new, us_new
+                theta, chi2, A, b, S, us, jts = trial, chi2_new, A_new, b_new, S_new, us_new, jts_new
                 lam = max(lam / 10.0, 1e-12)
                 accepted = True
             else:
@@ -517,7 +581,7 @@ def _newton(problem: _Problem, theta0, floors, valid, *, max_nfev=MAX_NFEV, xtol
             break
     if not converged:
         flags |= FLAG_FAILED
-    return theta, chi2, A, nfev, flags, us
+    return theta, chi2, A, nfev, flags, Point(b, S, us, jts)
 
 
 def _finish(theta, chi2, A, npix, nfev, flags, *, g=(2, 3), size=4, flux=5) -> FitResult:
@@ -580,13 +644,7 @@ def fit_exp(image: np.ndarray, weight: np.ndarray, model: ExpModel, start, *, ma
     theta = np.array(start, dtype=np.float64)
     if stamp.npix < MIN_PIXELS:
         return FitResult(theta, np.full(6, np.nan), np.nan, 0, 0, FLAG_FEW_PIXELS, 0.0)
-    eye = np.eye(2)
-
-    def mapping(th, second):
-        cov, dcov, d2 = shape_covariance(th[2], th[3], th[4], second=second)
-        return [((th[0], th[1]), cov, th[5], eye, dcov, d2, 1.0)]
-
-    problem = _Problem([stamp], mapping)
+    problem = _Problem([stamp], stamp_mapping)
     theta, chi2, A, nfev, flags, _ = _newton(problem, theta, _PIXEL_FLOORS, _valid, max_nfev=max_nfev, xtol=xtol)
     return _finish(theta, chi2, A, stamp.npix, nfev, flags)
 
@@ -662,17 +720,18 @@ def joint_problem(stamps):
     npix = sum(f.npix for f, _ in used)
     if not used or npix < MIN_PIXELS:
         return None, npix, []
-    maps = [(np.asarray(s.ainv, dtype=np.float64), covariance_map(s.ainv), float(s.flux_scale),
-             (float(s.origin[0]), float(s.origin[1]))) for _, s in used]
+    ainv = np.array([np.asarray(s.ainv, dtype=np.float64) for _, s in used])
+    cmaps = np.array([covariance_map(s.ainv) for _, s in used])
+    fscale = np.array([float(s.flux_scale) for _, s in used])
+    origins = np.array([(float(s.origin[0]), float(s.origin[1])) for _, s in used])
+    ns = len(used)
 
     def mapping(th, second):
+        # every stamp at once: the sky parameters through each stamp's local WCS Jacobian
         cov, dcov, d2 = shape_covariance(th[2], th[3], th[4], second=second)
-        out = []
-        for ainv, cmap, fscale, (x0, y0) in maps:
-            centre = (x0 + ainv[0, 0] * th[0] + ainv[0, 1] * th[1], y0 + ainv[1, 0] * th[0] + ainv[1, 1] * th[1])
-            d2pix = None if d2 is None else np.tensordot(cmap, d2, axes=(1, 0))
-            out.append((centre, cmap @ cov, fscale * th[5], ainv, cmap @ dcov, d2pix, fscale))
-        return out
+        centres = origins + ainv @ np.array([float(th[0]), float(th[1])])
+        d2pix = None if d2 is None else (cmaps @ d2.reshape(3, 9)).reshape(ns, 3, 3, 3)
+        return StampMaps(centres, cmaps @ cov, fscale * float(th[5]), ainv, cmaps @ dcov, d2pix, fscale)
 
     keep = [k for k, f in enumerate(fits) if f.npix >= MIN_PIXELS]
     return _Problem([f for f, _ in used], mapping), npix, keep

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .fit import (_PIXEL_FLOORS, _SKY_FLOORS, FLAG_FAILED, FLAG_FEW_PIXELS, MAX_NFEV, MIN_PIXELS, ExpModel,
-                  FitResult, _finish, _newton, _Problem, _Stamp, _valid, joint_problem, shape_covariance)
+                  FitResult, _finish, _newton, _Problem, _Stamp, _valid, joint_problem, stamp_mapping)
 
 #: a change whose linear response moves g by more than this is refitted from the start, as a fit of the
 #: changed data alone would be: far from the reference's minimum the warm and the cold fit may not meet
@@ -130,8 +130,8 @@ def fit_changes(problem: _Problem, start, floors, npix: int, deltas, *, max_nfev
         The reference's fit, each variant's :class:`Change`, and with ``cold``
         each variant's fit from ``start`` (None where nothing changed).
     """
-    ref, theta, chi2, flags, us = _fit_reference(problem, start, floors, npix, max_nfev=max_nfev, xtol=xtol,
-                                                 cold_start=cold_start)
+    ref, theta, chi2, flags, A, point = _fit_reference(problem, start, floors, npix, max_nfev=max_nfev, xtol=xtol,
+                                                       cold_start=cold_start)
     changes, colds = [], []
     state = None
     for delta in deltas:
@@ -152,7 +152,7 @@ def fit_changes(problem: _Problem, start, floors, npix: int, deltas, *, max_nfev
             changes.append(Change(colds[-1] or from_start(), "cold", math.nan))
             continue
         if state is None:
-            state = _reference_minimum(problem, theta, us)
+            state = _reference_minimum(problem, theta, A, point)
             # the reference reported at its exact minimum, as a fit to the tolerance would have it
             ref.theta = theta + state[-1]
             ref.nfev += 1
@@ -169,42 +169,48 @@ def _fit_reference(problem: _Problem, start, floors, npix: int, *, max_nfev: int
 
     Returns
     -------
-    (FitResult, ndarray, float, int, object)
-        The fit, and the theta, chi2, flags and spectra state of the last
-        Newton step of :func:`perscli.measure.fit._newton`.
+    (FitResult, ndarray, float, int, ndarray, Point)
+        The fit, and the theta, chi2, flags, J^T W J and
+        :class:`~perscli.measure.fit.Point` of the last Newton step of
+        :func:`perscli.measure.fit._newton`.
     """
     # the reference to REF_XTOL only: the Newton step computed at its minimum for the variants takes it the
     # rest of the way (to the square of where it stopped), so its last steps would be spent twice
-    theta, chi2, A, nfev, flags, us = _newton(problem, start, floors, _valid, max_nfev=max_nfev,
-                                              xtol=max(xtol, REF_XTOL))
+    theta, chi2, A, nfev, flags, point = _newton(problem, start, floors, _valid, max_nfev=max_nfev,
+                                                 xtol=max(xtol, REF_XTOL))
     ref = _finish(theta, chi2, A, npix, nfev, flags)
     if ref.flags:
         # no clean minimum (a fit that failed, or stopped at |g| = 1): fitted as a fit of the data alone is, and
         # every variant likewise (their difference is then that of two such fits)
         first = start if cold_start is None else cold_start
-        theta, chi2, A, nf, flags, us = _newton(problem, first, floors, _valid, max_nfev=max_nfev, xtol=xtol)
+        theta, chi2, A, nf, flags, point = _newton(problem, first, floors, _valid, max_nfev=max_nfev, xtol=xtol)
         ref = _finish(theta, chi2, A, npix, nfev + nf, flags)
-    return ref, theta, chi2, flags, us
+    return ref, theta, chi2, flags, A, point
 
 
-def _reference_minimum(problem: _Problem, theta, us) -> tuple:
-    """The reference's minimum, with its own residual's second-order term: once per galaxy.
+def _reference_minimum(problem: _Problem, theta, A, point) -> tuple:
+    """The reference's minimum: once per galaxy.
 
     The reference stopped where its next step fell below the tolerance;
     that step (``own``) is what is left to its exact minimum, against which
     a variant's change is measured: De is the change of the minimum, not of
-    where two fits happened to stop.
+    where two fits happened to stop.  The fit's last point gives J^T W J,
+    the gradient and the Jacobians; the Hessian's second-order term is taken
+    again with that point's own residual (the fit's is the point before's,
+    which can be a step of 1e-3 away and would cost the linear response a
+    few 1e-4 of itself): :meth:`~perscli.measure.fit._Problem.second_order`,
+    without the model's planes.
 
     Returns
     -------
     (A0, b0, S0, jts, spectra, own)
         The Gauss-Newton matrix, gradient and second-order term at
-        ``theta``, each stamp's Jacobian (transposed), the spectra, and the
-        step to the exact minimum.
+        ``theta``, each stamp's Jacobian (transposed), the spectra of its
+        residual, and the step to the exact minimum.
     """
-    jts = []
-    spectra = problem.spectra(us)
-    _, A0, b0, S0, _ = problem.evaluate(theta, spectra, jts=jts)
+    spectra = problem.spectra(point.us)
+    A0, b0, jts = A, point.b, point.jts
+    S0 = problem.second_order(theta, spectra)
     try:
         own = _solve(A0, S0, b0)
     except np.linalg.LinAlgError:
@@ -257,7 +263,7 @@ def _warm_change(problem: _Problem, varied: _Problem, delta, state: tuple, *, th
         return None
     # the check: one Newton evaluation at the linear response, on the changed data (the second-order
     # term with the reference's residual, as every trial point of a fit takes the previous point's)
-    c1, A1, b1, S1, us1 = varied.evaluate(th1, spectra)
+    c1, A1, b1, S1, _, _ = varied.evaluate(th1, spectra)
     try:
         corr = _solve(A1, S1, b1)
     except np.linalg.LinAlgError:
@@ -308,12 +314,6 @@ def fit_exp_changes(image, weight, model: ExpModel, start, deltas, *, max_nfev: 
     if stamp.npix < MIN_PIXELS:
         few = FitResult(theta, np.full(6, np.nan), np.nan, 0, 0, FLAG_FEW_PIXELS, 0.0)
         return few, [Change(few, "same", 0.0) for _ in deltas], [None for _ in deltas]
-    eye = np.eye(2)
-
-    def mapping(th, second):
-        cov, dcov, d2 = shape_covariance(th[2], th[3], th[4], second=second)
-        return [((th[0], th[1]), cov, th[5], eye, dcov, d2, 1.0)]
-
-    problem = _Problem([stamp], mapping)
+    problem = _Problem([stamp], stamp_mapping)
     return fit_changes(problem, theta, _PIXEL_FLOORS, stamp.npix, [None if d is None else [d] for d in deltas],
                        max_nfev=max_nfev, xtol=xtol, cold=cold, cold_start=cold_start)

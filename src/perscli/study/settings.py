@@ -15,9 +15,20 @@ stays fast.
 from __future__ import annotations
 
 import dataclasses
+import re
+
+from .. import PerscliError
+from ..settings import setting
 
 #: where a study's tasks run: in this process, on a Dask LocalCluster, or on a running Dask scheduler
 SCHEDULERS = ("serial", "local")
+
+
+def check_scheduler(value: str) -> str:
+    """'serial', 'local' or a Dask scheduler's address (tcp://host:port, tls://, ucx://, inproc://, or host:port)."""
+    if value in SCHEDULERS or re.fullmatch(r"(tcp|tls|ucx|inproc|ws|wss)://\S+|[\w.\-]+:\d{1,5}", value):
+        return value
+    raise PerscliError(f"{value!r} is not serial, local or a Dask scheduler address (tcp://HOST:8786)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +47,8 @@ class StudyOptions:
         No progress lines on stderr.
     """
 
-    scheduler: str = "local"
+    scheduler: str = setting("local", "text", "serial: in this process; local: a Dask LocalCluster of --workers "
+                             "processes; ADDRESS: an existing Dask scheduler (tcp://host:8786), e.g. one "
+                             "dask-jobqueue started.", metavar="serial|local|ADDRESS", check=check_scheduler)
     workers: int = 1
     quiet: bool = False
